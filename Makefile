@@ -1,0 +1,26 @@
+# The two commands of the README. Each creates the virtual environment and installs the
+# project into it first, so that a fresh machine needs nothing else.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test lint tables clean-runs
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	# torch first, on its own: the pinned CPU build, never the CUDA one.
+	$(PY) -m pip install --quiet torch==2.13.0 2>&1 | grep -v "is ignored" || true
+	$(PY) -m pip install --quiet -e '.[dev]' 2>&1 | grep -v "is ignored" || true
+	$(PY) -c "import pipeline, torch, hydra, mlflow, OpenEXR"
+	touch $(STAMP)
+
+demo: $(STAMP)  ## the main job: default experiment on the built-in synthetic BTF
+	$(PY) -m pipeline
+
+test: $(STAMP)  ## the default (fast) test suite
+	$(PY) -m ruff check pipeline tests
+	$(PY) -m pytest -q
+
+tables: $(STAMP)
+	$(PY) -m pipeline.tables

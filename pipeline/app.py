@@ -1,0 +1,38 @@
+"""The Hydra job: compose the config, run the method's chain, record it in MLflow."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import mlflow
+from omegaconf import DictConfig
+
+from pipeline.btf import runner as btf_runner
+from pipeline.stages import Context
+from pipeline.tracking import job_run
+
+log = logging.getLogger(__name__)
+
+
+METHODS: dict[str, Callable[[Context], dict[str, float]]] = {
+    "neural_btf": btf_runner.run,
+    "clustered": btf_runner.run,
+}
+
+
+def run_job(cfg: DictConfig) -> float | None:
+    """Run one job; returns the headline error (for Hydra sweepers) when there is one."""
+    name = cfg.method.name
+    if name not in METHODS:
+        raise KeyError(f"method.name={name!r} is not one of {sorted(METHODS)}")
+    run_name = f"{name}" + (f" k={cfg.method.k}" if cfg.method.get("k") else "") + f" s{cfg.seed}"
+    with job_run(cfg, run_name=run_name):
+        ctx = Context.from_config(cfg)
+        try:
+            metrics = METHODS[name](ctx)
+        finally:
+            mlflow.set_tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
+            mlflow.log_metrics({f"seconds_{s}": t for s, t in ctx.seconds.items()})
+        mlflow.log_metrics(metrics)
+    return metrics.get("rmse")

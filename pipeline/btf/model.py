@@ -1,0 +1,119 @@
+"""The Neural BTF autoencoder (Rainer et al. 2019; PAPERS.md A).
+
+Encoder: ``blocks`` x [conv1d (kernel 3, stride 1, padding 1) -> ReLU -> max-pool
+(kernel 3, stride 3) -> batch-norm] over the 3 RGB channels of an ABRDF laid out along its
+N directions, then a fully connected layer to an 8-dimensional latent. The paper gives the
+block order but not the activation; a ReLU after each convolution is the usual choice.
+
+Decoder: 12 -> 106 -> 106 -> 106 -> 3 with ReLU, fed the latent plus the light and view
+directions in stereographic coordinates (eq. 7-9). Its 24,383 float32 parameters are the
+97,532 bytes of the paper's Table 1.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from pipeline.errors import ConfigError
+
+LATENT_DIM = 8
+
+
+def stereographic(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Stereographic coordinates of directions on the upper hemisphere (eq. 7-9).
+
+    R = sin(pi - theta) / (1 - cos(pi - theta)) = tan(theta / 2), so theta = 0 maps to the
+    origin and theta = 90 degrees to the unit circle.
+
+    Parameters
+    ----------
+    theta, phi : array_like of the same shape, radians
+
+    Returns
+    -------
+    ndarray of shape theta.shape + (2,)
+    """
+    theta = np.asarray(theta, dtype=np.float64)
+    phi = np.asarray(phi, dtype=np.float64)
+    radius = np.tan(theta / 2.0)
+    return np.stack([radius * np.cos(phi), radius * np.sin(phi)], axis=-1)
+
+
+def direction_features(directions: np.ndarray) -> np.ndarray:
+    """(n, 4) = (theta_l, phi_l, theta_v, phi_v) -> (n, 4) float32 decoder inputs."""
+    directions = np.asarray(directions, dtype=np.float64)
+    light = stereographic(directions[:, 0], directions[:, 1])
+    view = stereographic(directions[:, 2], directions[:, 3])
+    return np.concatenate([light, view], axis=1).astype(np.float32)
+
+
+class Encoder(nn.Module):
+    """ABRDF (batch, 3, N) -> latent (batch, 8)."""
+
+    def __init__(
+        self, n_directions: int, channels: Sequence[int] = (16, 32, 64), latent: int = LATENT_DIM
+    ):
+        super().__init__()
+        channels = list(channels)
+        length = n_directions
+        for _ in channels:
+            length //= 3
+        if length < 1:
+            raise ConfigError(
+                f"model.encoder_channels has {len(channels)} blocks, each pooling by 3, but "
+                f"an ABRDF has only N={n_directions} directions: use at most "
+                f"{max(int(np.log(max(n_directions, 1)) / np.log(3)), 0)} blocks"
+            )
+        layers: list[nn.Module] = []
+        previous = 3
+        for width in channels:
+            layers += [
+                nn.Conv1d(previous, width, kernel_size=3, stride=1, padding=1),
+                nn.ReLU(),
+                nn.MaxPool1d(kernel_size=3, stride=3),
+                nn.BatchNorm1d(width),
+            ]
+            previous = width
+        self.features = nn.Sequential(*layers)
+        self.fc = nn.Linear(previous * length, latent)
+
+    def forward(self, abrdf: torch.Tensor) -> torch.Tensor:
+        return self.fc(self.features(abrdf).flatten(1))
+
+
+class Decoder(nn.Module):
+    """(latent 8 + light 2 + view 2) -> RGB, fully connected with ReLU."""
+
+    def __init__(self, latent: int = LATENT_DIM, hidden: int = 106, layers: int = 3):
+        super().__init__()
+        sizes = [latent + 4] + [hidden] * layers
+        modules: list[nn.Module] = []
+        for a, b in zip(sizes[:-1], sizes[1:], strict=True):
+            modules += [nn.Linear(a, b), nn.ReLU()]
+        modules.append(nn.Linear(sizes[-1], 3))
+        self.net = nn.Sequential(*modules)
+        self.latent = latent
+
+    def forward(self, latents: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+        """latents (q, 8), directions (q, 4) stereographic -> (q, 3)."""
+        return self.net(torch.cat([latents, directions], dim=1))
+
+    def decode_grid(self, latents: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
+        """Decode every latent at every direction: (m, 8) x (n, 4) -> (m, n, 3).
+
+        The first layer is split into its latent and direction parts so that each is
+        multiplied once, not once per (texel, direction) pair.
+        """
+        first = self.net[0]
+        w_latent, w_dir = first.weight[:, : self.latent], first.weight[:, self.latent :]
+        hidden = (latents @ w_latent.T)[:, None, :] + (directions @ w_dir.T + first.bias)[None]
+        out = self.net[1:](hidden.reshape(-1, hidden.shape[-1]))
+        return out.reshape(latents.shape[0], directions.shape[0], 3)
+
+
+def parameter_count(module: nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())

@@ -1,0 +1,207 @@
+"""Method A's chain: the train and evaluate stages and the job that strings them together.
+
+    load -> crop -> preprocess [-> pca -> kmeans -> representatives] -> train -> evaluate
+                                                    (clustered only)
+
+Training writes the decoder and the stored latents; evaluation decodes them, measures the
+eq. 10 RMSE, the sizes of Table 1 and, on synthetic data, the interpolation errors.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import torch
+
+from pipeline import stages
+from pipeline.btf import interpolation
+from pipeline.btf.evaluate import mean_abrdf_rmse, reconstruction_error, storage_sizes
+from pipeline.btf.model import Decoder, Encoder, direction_features
+from pipeline.btf.train import TrainSettings, encode, train
+from pipeline.cache import Entry, save_arrays, save_json
+from pipeline.errors import ConfigError
+from pipeline.stages import Context, _container
+
+log = logging.getLogger(__name__)
+
+stages.VERSIONS.update({"train": "1", "evaluate": "1"})
+
+
+def _train_settings(cfg) -> TrainSettings:
+    settings = _container(cfg.train)
+    lr = settings.pop("lr", None)
+    if lr is None:
+        lr = cfg.method.lr
+    return TrainSettings(lr=lr, **{k: settings[k] for k in settings if k in _TRAIN_FIELDS})
+
+
+_TRAIN_FIELDS = {"epochs", "batch_size", "queries_per_abrdf", "max_steps", "device", "momentum"}
+
+
+def train_stage(
+    ctx: Context, cropped: Entry, prep: Entry, clusters: Entry | None, reps: Entry | None
+) -> Entry:
+    """Train the autoencoder and store decoder weights and latents."""
+    cfg = ctx.cfg
+    method = cfg.method
+    settings = _train_settings(cfg)
+    heldout = interpolation.heldout_light_indices(cfg)
+    stage_settings = {
+        "method": method.name,
+        "target": method.get("target", "texel"),
+        "train": settings.__dict__,
+        "model": _container(cfg.model),
+        "seed": cfg.seed,
+        "heldout_lights": heldout.tolist(),
+    }
+    inputs = {"crop": cropped, "preprocess": prep}
+    if clusters is not None:
+        inputs.update(kmeans=clusters, representatives=reps)
+
+    def compute(folder: Path) -> dict:
+        abrdf = cropped.array("abrdf")
+        directions = cropped.array("directions", mmap=False)
+        norm = stages.normalization(prep)
+        if clusters is None:
+            sources, source_of_texel = abrdf, np.arange(abrdf.shape[0])
+        else:
+            sources = np.asarray(reps.array("representatives"))
+            source_of_texel = clusters.array("labels", mmap=False).astype(np.int64)
+        train_dirs = interpolation.training_directions(directions, heldout)
+
+        def on_epoch(epoch: int, loss: float) -> None:
+            if mlflow.active_run() is not None:
+                mlflow.log_metric("loss", loss, step=epoch)
+
+        result = train(
+            abrdf,
+            sources,
+            source_of_texel,
+            norm,
+            direction_features(directions),
+            train_dirs,
+            settings,
+            seed=cfg.seed,
+            encoder_channels=tuple(cfg.model.encoder_channels),
+            target_from_source=stage_settings["target"] == "representative",
+            on_epoch=on_epoch,
+        )
+        latents = encode(result.encoder, sources, norm)
+        torch.save(result.decoder.state_dict(), folder / "decoder.pt")
+        torch.save(result.encoder.state_dict(), folder / "encoder.pt")
+        save_arrays(folder, latents=latents, latent_of_texel=source_of_texel.astype(np.int32))
+        save_json(folder, "losses", result.epoch_losses)
+        return {
+            "steps": result.steps,
+            "seconds": result.seconds,
+            "queries": result.queries,
+            "final_loss": result.epoch_losses[-1],
+        }
+
+    return ctx.run("train", stage_settings, inputs, compute)
+
+
+def load_decoder(trained: Entry) -> Decoder:
+    decoder = Decoder()
+    decoder.load_state_dict(torch.load(trained.file("decoder.pt"), weights_only=True))
+    return decoder.eval()
+
+
+def load_encoder(trained: Entry, n_directions: int, channels) -> Encoder:
+    encoder = Encoder(n_directions, tuple(channels))
+    encoder.load_state_dict(torch.load(trained.file("encoder.pt"), weights_only=True))
+    return encoder.eval()
+
+
+def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) -> Entry:
+    """RMSE (eq. 10), per-direction RMSE, sizes, and interpolation errors."""
+    cfg = ctx.cfg
+    method = cfg.method
+    clustered = method.name == "clustered"
+    texel_scale = method.get("texel_scale", "none") if clustered else "none"
+    settings = {
+        "texel_scale": texel_scale,
+        "sizes": _container(cfg.sizes),
+        "interpolation": _container(cfg.interpolation),
+        "dataset": _container(cfg.dataset) if cfg.dataset.name == "synthetic" else None,
+    }
+
+    def compute(folder: Path) -> dict:
+        abrdf = cropped.array("abrdf")
+        directions = cropped.array("directions", mmap=False)
+        norm = stages.normalization(prep)
+        decoder = load_decoder(trained)
+        latents = trained.array("latents", mmap=False)
+        latent_of_texel = trained.array("latent_of_texel", mmap=False)
+        recon = reconstruction_error(
+            decoder, latents, latent_of_texel, abrdf, norm.alpha,
+            direction_features(directions), texel_scale=texel_scale,
+        )
+        m, n, _ = abrdf.shape
+        sizes = storage_sizes(
+            decoder,
+            n_latents=latents.shape[0],
+            n_texels=m,
+            n_directions=n,
+            clustered=clustered,
+            weight_dtype=cfg.sizes.weight_dtype,
+            list_dtype=cfg.sizes.list_dtype,
+            extra_dtype=cfg.sizes.extra_dtype if texel_scale != "none" else None,
+        )
+        metrics = {"rmse": recon.rmse, **sizes, "rmse_mean_abrdf": mean_abrdf_rmse(abrdf, norm.alpha)}
+        if recon.rmse_unscaled is not None:
+            metrics["rmse_without_texel_scale"] = recon.rmse_unscaled
+            metrics["rmse_with_texel_scale"] = recon.rmse_scaled
+        heldout = np.asarray(trained.manifest["settings"]["heldout_lights"], dtype=int)
+        metrics.update(
+            interpolation.measure(cfg, cropped, norm, decoder, latents, latent_of_texel,
+                                  recon.rmse_per_direction, heldout)
+        )
+        save_arrays(folder, rmse_per_direction=recon.rmse_per_direction)
+        if recon.texel_scale is not None:
+            save_arrays(folder, texel_scale=recon.texel_scale)
+        save_json(folder, "metrics", metrics)
+        return {"rmse": recon.rmse}
+
+    inputs = {"crop": cropped, "preprocess": prep, "train": trained}
+    return ctx.run("evaluate", settings, inputs, compute)
+
+
+def run(ctx: Context) -> dict[str, float]:
+    """The whole chain for ``method=neural_btf`` or ``method=clustered``."""
+    cfg = ctx.cfg
+    if cfg.method.name == "clustered" and cfg.method.get("k") is None:
+        raise ConfigError("method=clustered needs method.k")
+    loaded = stages.load(ctx)
+    cropped = stages.crop(ctx, loaded)
+    prep = stages.preprocess(ctx, cropped)
+    clusters = reps = None
+    extra: dict[str, float] = {}
+    if cfg.method.name == "clustered":
+        reduced = stages.pca(ctx, cropped, prep)
+        clusters = stages.kmeans(ctx, reduced)
+        reps = stages.representatives(ctx, cropped, clusters)
+        extra["pca_explained_variance"] = reduced.manifest["summary"]["explained_variance"]
+        extra["kmeans_inertia"] = clusters.manifest["summary"]["inertia"]
+    trained = train_stage(ctx, cropped, prep, clusters, reps)
+    if trained.hit and mlflow.active_run() is not None:
+        # A cached model: replay its loss curve so every run shows one.
+        for epoch, loss in enumerate(trained.json("losses")):
+            mlflow.log_metric("loss", loss, step=epoch)
+    evaluated = evaluate_stage(ctx, cropped, prep, trained)
+    metrics = dict(evaluated.json("metrics"))
+    metrics.update(extra)
+    summary = trained.manifest["summary"]
+    metrics.update(
+        train_steps=summary["steps"], train_seconds=summary["seconds"],
+        train_queries=summary["queries"], final_loss=summary["final_loss"],
+        n_texels=cropped.manifest["summary"]["M"], n_directions=cropped.manifest["summary"]["N"],
+    )
+    if mlflow.active_run() is not None:
+        mlflow.log_artifact(str(evaluated.file("rmse_per_direction.npy")), "evaluate")
+        mlflow.log_text(json.dumps(metrics, indent=1), "metrics.json")
+    return metrics

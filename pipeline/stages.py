@@ -1,0 +1,241 @@
+"""Runners of the BTF chain's data stages: load, crop, preprocess, pca, kmeans, representatives.
+
+Each runner reads only its own settings from the config, calls a pure function, and lets
+:class:`pipeline.cache.StageCache` decide whether anything needs computing. Bump a stage's
+``VERSION`` when a code change alters its output.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from omegaconf import Container, DictConfig, OmegaConf
+
+from pipeline.btf.clustering import check_k, cluster_medians, kmeans_pp, pca_reduce
+from pipeline.btf.preprocess import Normalization, encoder_inputs, fit_normalization
+from pipeline.cache import Entry, StageCache, canonical_json, save_arrays, save_json
+from pipeline.errors import ConfigError, DataError
+
+log = logging.getLogger(__name__)
+
+VERSIONS = {
+    "load": "1",
+    "crop": "1",
+    "preprocess": "1",
+    "pca": "1",
+    "kmeans": "1",
+    "representatives": "1",
+}
+
+
+@dataclass
+class Context:
+    """What every runner needs: the config, the cache, and the keys used so far."""
+
+    cfg: DictConfig
+    cache: StageCache
+    keys: dict[str, str] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> Context:
+        return cls(cfg, StageCache(cfg.paths.cache))
+
+    def run(self, stage, settings, inputs: dict[str, Entry], compute) -> Entry:
+        entry = self.cache.run(
+            stage,
+            VERSIONS.get(stage, "1"),
+            settings,
+            {name: e.key for name, e in inputs.items()},
+            compute,
+        )
+        self.keys[stage] = entry.key
+        self.seconds[stage] = entry.seconds
+        return entry
+
+
+def _container(node):
+    """A plain dict/list copy of a config node (resolved); other values pass through."""
+    if isinstance(node, Container):
+        return OmegaConf.to_container(node, resolve=True)
+    return node
+
+
+# --------------------------------------------------------------------------- load
+
+
+def dataset_root(cfg: DictConfig) -> Path:
+    """The dataset folder; the built-in synthetic BTF is generated there on first use."""
+    ds = cfg.dataset
+    if ds.name == "synthetic" and ds.root is None:
+        from pipeline.data.synthetic_btf import write_synthetic_btf
+
+        gen = _container(ds.synthetic)
+        views = _container(ds.views)
+        tag = hashlib.sha256(canonical_json({"gen": gen, "views": views}).encode()).hexdigest()
+        root = Path(cfg.paths.data) / f"synthetic_btf-{ds.format}-{gen['ext']}-{tag[:10]}"
+        if not root.is_dir():
+            log.info("generating the built-in synthetic BTF into %s", root)
+        return write_synthetic_btf(
+            root,
+            size=gen["size"],
+            seed=gen["seed"],
+            format=ds.format,
+            ext=gen["ext"],
+            views=views,
+            quality=gen["quality"],
+        )
+    if ds.root is None:
+        raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/the/dataset")
+    root = Path(ds.root).expanduser()
+    if not root.is_dir():
+        raise DataError(f"dataset root does not exist or is not a folder: {root}")
+    return root
+
+
+def folder_fingerprint(root: Path) -> dict:
+    """Count, total size and newest mtime of the files under ``root``.
+
+    Cheap (one stat per file) and part of the load key, so that editing a dataset in
+    place invalidates the cached decode.
+    """
+    count, size, newest = 0, 0, 0
+    for folder, _dirs, files in os.walk(root):
+        for name in files:
+            st = os.stat(os.path.join(folder, name))
+            count, size, newest = count + 1, size + st.st_size, max(newest, st.st_mtime_ns)
+    return {"files": count, "bytes": size, "mtime_ns": newest}
+
+
+def load(ctx: Context) -> Entry:
+    """Decode the dataset once into a memory-mappable ``images.npy`` (n, H, W, 3)."""
+    from pipeline.data.btf import count_btf_images, load_btf
+
+    ds = ctx.cfg.dataset
+    root = dataset_root(ctx.cfg).resolve()
+    views = _container(ds.views)
+    settings = {
+        "format": ds.format,
+        "root": str(root),
+        "views": views,
+        "fingerprint": folder_fingerprint(root),
+    }
+
+    def compute(folder: Path) -> dict:
+        n, height, width = count_btf_images(root, format=ds.format, views=views)
+        images = np.lib.format.open_memmap(
+            folder / "images.npy", mode="w+", dtype=np.float32, shape=(n, height, width, 3)
+        )
+        btf = load_btf(root, format=ds.format, views=views, out=images)
+        images.flush()
+        del images
+        save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))
+        return {"n_images": n, "height": height, "width": width}
+
+    return ctx.run("load", settings, {}, compute)
+
+
+# --------------------------------------------------------------------------- crop
+
+
+def crop(ctx: Context, loaded: Entry) -> Entry:
+    """Cut a ``crop.size`` square at ``crop.offset`` and lay it out as ABRDFs (M, N, 3)."""
+    settings = _container(ctx.cfg.crop)
+    size = int(settings["size"])
+    y0, x0 = (int(v) for v in settings["offset"])
+    images = loaded.array("images")
+    n, height, width, _ = images.shape
+    if size < 1 or y0 < 0 or x0 < 0 or y0 + size > height or x0 + size > width:
+        raise ConfigError(
+            f"crop.size={size} at crop.offset=[{y0}, {x0}] does not fit the texture "
+            f"of {height}x{width} texels ({loaded.manifest.get('settings', {}).get('root')})"
+        )
+
+    def compute(folder: Path) -> dict:
+        abrdf = np.lib.format.open_memmap(
+            folder / "abrdf.npy", mode="w+", dtype=np.float32, shape=(size * size, n, 3)
+        )
+        # Image by image: the crop of one image is one column of the ABRDF matrix.
+        for i in range(n):
+            abrdf[:, i, :] = images[i, y0 : y0 + size, x0 : x0 + size, :].reshape(-1, 3)
+        abrdf.flush()
+        del abrdf
+        save_arrays(folder, directions=loaded.array("directions", mmap=False))
+        return {"M": size * size, "N": n}
+
+    return ctx.run("crop", settings, {"load": loaded}, compute)
+
+
+# --------------------------------------------------------------------------- preprocess
+
+
+def preprocess(ctx: Context, cropped: Entry) -> Entry:
+    """Fit the eq. 1-6 normalization (per-dimension mean/std of log values, alpha)."""
+
+    def compute(folder: Path) -> dict:
+        norm = fit_normalization(cropped.array("abrdf"))
+        save_arrays(folder, mean=norm.mean, std=norm.std)
+        save_json(folder, "alpha", norm.alpha)
+        return {"alpha": norm.alpha}
+
+    return ctx.run("preprocess", {}, {"crop": cropped}, compute)
+
+
+def normalization(entry: Entry) -> Normalization:
+    return Normalization(
+        entry.array("mean", mmap=False), entry.array("std", mmap=False), entry.json("alpha")
+    )
+
+
+# --------------------------------------------------------------------------- clusters
+
+
+def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
+    """PCA of the preprocessed ABRDFs; independent of k and of the run's seed."""
+    settings = _container(ctx.cfg.pca)
+
+    def compute(folder: Path) -> dict:
+        features = encoder_inputs(cropped.array("abrdf"), normalization(prep))
+        scores, ratio = pca_reduce(features, settings["n_components"], settings["random_state"])
+        save_arrays(folder, scores=scores, explained_variance_ratio=ratio)
+        return {"explained_variance": float(ratio.sum())}
+
+    return ctx.run("pca", settings, {"crop": cropped, "preprocess": prep}, compute)
+
+
+def kmeans(ctx: Context, reduced: Entry) -> Entry:
+    """k-means++ on the PCA scores for the run's single ``method.k``."""
+    k = ctx.cfg.method.k
+    n_texels = reduced.array("scores").shape[0]
+    check_k(k, n_texels)
+    settings = {"k": k, "seed": ctx.cfg.seed, **_container(ctx.cfg.kmeans)}
+
+    def compute(folder: Path) -> dict:
+        labels, centers, inertia = kmeans_pp(
+            np.asarray(reduced.array("scores")),
+            k,
+            seed=ctx.cfg.seed,
+            n_init=settings["n_init"],
+            max_iter=settings["max_iter"],
+        )
+        save_arrays(folder, labels=labels, centers=centers)
+        return {"inertia": inertia}
+
+    return ctx.run("kmeans", settings, {"pca": reduced}, compute)
+
+
+def representatives(ctx: Context, cropped: Entry, clusters: Entry) -> Entry:
+    """The element-wise median ABRDF of each cluster, shape (k, N, 3)."""
+    k = int(clusters.manifest["settings"]["k"])
+
+    def compute(folder: Path) -> dict:
+        medians = cluster_medians(cropped.array("abrdf"), clusters.array("labels"), k)
+        save_arrays(folder, representatives=medians)
+        return {"k": k}
+
+    return ctx.run("representatives", {}, {"crop": cropped, "kmeans": clusters}, compute)

@@ -1,0 +1,105 @@
+"""The whole job as ``python -m pipeline`` runs it, on the composed smoke config."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+from pipeline.app import run_job
+from pipeline.errors import ConfigError, DataError
+from pipeline.tracking import tracking_uri
+
+
+def _runs(cfg):
+    client = MlflowClient(tracking_uri(cfg.paths.runs))
+    experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+    return client.search_runs([experiment.experiment_id])
+
+
+def _cache_entries(cfg) -> list[Path]:
+    root = Path(cfg.paths.cache)
+    if not root.exists():
+        return []
+    return [p for p in root.glob("*/*") if not p.name.startswith(".")]
+
+
+def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, caplog):
+    cfg = smoke_cfg()
+    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+        rmse = run_job(cfg)
+    first = [r.getMessage() for r in caplog.records if "stage" in r.getMessage()]
+    assert any("computed" in m for m in first)
+    assert 0 < rmse < 1
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+        assert run_job(cfg) == pytest.approx(rmse)
+    second = [r.getMessage() for r in caplog.records if "stage" in r.getMessage()]
+    assert second and all(" hit " in m for m in second), second
+
+    runs = _runs(cfg)
+    assert len(runs) == 2 and {r.info.status for r in runs} == {"FINISHED"}
+    run = runs[0]
+    assert run.data.params["method.name"] == "clustered"
+    assert run.data.params["method.k"] == "8"
+    assert run.data.params["seed"] == "0"
+    assert run.data.params["dataset.name"] == "synthetic"
+    for stage in ("load", "crop", "preprocess", "pca", "kmeans", "representatives", "train"):
+        assert f"cache.{stage}" in run.data.tags
+    assert "git.commit" in run.data.tags and "version.torch" in run.data.tags
+    for metric in ("rmse", "bytes_total", "compression_ratio", "rmse_mean_abrdf"):
+        assert metric in run.data.metrics
+
+
+def test_changing_train_settings_reuses_the_data_stages(smoke_cfg, caplog):
+    run_job(smoke_cfg())
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+        run_job(smoke_cfg("train.max_steps=10", "method.k=4"))
+    by_stage = {r.getMessage().split()[1]: r.getMessage() for r in caplog.records}
+    for stage in ("load", "crop", "preprocess", "pca"):
+        assert " hit " in by_stage[stage], by_stage[stage]
+    for stage in ("kmeans", "train"):
+        assert "computed" in by_stage[stage], by_stage[stage]
+
+
+def _assert_failed_cleanly(cfg, error, match):
+    with pytest.raises(error, match=match):
+        run_job(cfg)
+    runs = _runs(cfg)
+    assert [r.info.status for r in runs] == ["FAILED"]
+    return runs[0]
+
+
+def test_missing_dataset_root_fails_cleanly(smoke_cfg, tmp_path):
+    missing = tmp_path / "no_such_dataset"
+    cfg = smoke_cfg("dataset=ubo2003", f"dataset.root={missing}")
+    _assert_failed_cleanly(cfg, DataError, str(missing))
+    assert _cache_entries(cfg) == []
+
+
+def test_crop_larger_than_texture_fails_cleanly(smoke_cfg):
+    cfg = smoke_cfg("crop.size=17")
+    _assert_failed_cleanly(cfg, ConfigError, "crop.size=17")
+    assert {p.parent.name for p in _cache_entries(cfg)} == {"load"}
+
+
+def test_k_larger_than_texel_count_fails_cleanly(smoke_cfg):
+    cfg = smoke_cfg("method.k=145")
+    _assert_failed_cleanly(cfg, ConfigError, "method.k=145 is larger than the number of texels M=144")
+    assert "kmeans" not in {p.parent.name for p in _cache_entries(cfg)}
+
+
+def test_corrupt_image_fails_cleanly_with_its_path(smoke_cfg, tmp_path):
+    from pipeline.data.synthetic_btf import write_synthetic_btf
+
+    root = write_synthetic_btf(tmp_path / "ds", size=8, seed=0, views=[[0, 0], [15, 0]])
+    victim = sorted(root.glob("*/*.jpg"))[5]
+    victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])
+    cfg = smoke_cfg(
+        "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null", "crop.size=8"
+    )
+    _assert_failed_cleanly(cfg, DataError, victim.name)
+    assert _cache_entries(cfg) == []
