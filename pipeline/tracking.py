@@ -193,7 +193,7 @@ class SweepParentRun(Callback):
         if self.run_tables:
             from pipeline.tables import build_tables
 
-            build_tables(config)
+            build_tables(config.paths.runs)
 
     def _end(self, status: str) -> None:
         if self.run_id is None:

@@ -1,0 +1,146 @@
+"""The Neural BTF model, its sizes at the paper's scale, training determinism, evaluation."""
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.btf.evaluate import reconstruction_error, storage_sizes
+from pipeline.btf.model import Decoder, Encoder, parameter_count, stereographic
+from pipeline.btf.preprocess import fit_normalization
+from pipeline.btf.train import TrainSettings, encode, train
+from pipeline.errors import ConfigError
+
+M_PAPER, N_PAPER = 10_000, 6561
+
+
+def test_stereographic_maps_zenith_to_origin_and_horizon_to_unit_circle():
+    phi = np.linspace(0, 2 * np.pi, 7)
+    np.testing.assert_allclose(stereographic(np.zeros(7), phi), 0.0, atol=1e-12)
+    horizon = stereographic(np.full(7, np.pi / 2), phi)
+    np.testing.assert_allclose(np.linalg.norm(horizon, axis=1), 1.0)
+    np.testing.assert_allclose(horizon, np.column_stack([np.cos(phi), np.sin(phi)]), atol=1e-12)
+
+
+def test_stereographic_matches_the_papers_formula():
+    theta = np.radians([15.0, 30.0, 45.0, 60.0, 75.0])
+    paper_radius = np.sin(np.pi - theta) / (1 - np.cos(np.pi - theta))  # eq. 7
+    np.testing.assert_allclose(np.linalg.norm(stereographic(theta, 0 * theta), axis=1),
+                               paper_radius)
+
+
+def test_decoder_has_the_papers_parameter_count():
+    decoder = Decoder()
+    assert parameter_count(decoder) == 24_383
+    assert parameter_count(decoder) * 4 == 97_532  # 95.2 KB of Table 1
+
+
+def test_encoder_blocks_follow_the_abrdf_length():
+    encoder = Encoder(N_PAPER, (4, 4, 4))
+    assert encoder(torch.zeros(2, 3, N_PAPER)).shape == (2, 8)
+    assert encoder.fc.in_features == 4 * 243  # 6561 / 3^3
+    with pytest.raises(ConfigError, match="N=20"):
+        Encoder(20, (4, 4, 4))
+
+
+@pytest.mark.parametrize(
+    ("k", "latents", "total", "ratio"),
+    [(None, 320_000, 417_532, 1885.6), (500, 16_000, 153_532, 5128.1),
+     (1000, 32_000, 169_532, 4644.1), (2000, 64_000, 201_532, 3906.7)],
+)
+def test_sizes_at_paper_scale_are_exact(k, latents, total, ratio):
+    """Table 1 at M = 10000, N = 6561, int32 list: built models, no training."""
+    decoder = Decoder()
+    Encoder(N_PAPER)  # the encoder builds at this size; it is not stored
+    sizes = storage_sizes(decoder, n_latents=k or M_PAPER, n_texels=M_PAPER,
+                          n_directions=N_PAPER, clustered=k is not None)
+    assert sizes["bytes_decoder"] == 97_532
+    assert sizes["bytes_latents"] == latents
+    assert sizes["bytes_list"] == (40_000 if k else 0)
+    assert sizes["bytes_total"] == total
+    assert sizes["bytes_original"] == 787_320_000
+    assert sizes["compression_ratio"] == pytest.approx(ratio, abs=0.06)
+
+
+def test_uint16_list_halves_the_list_and_refuses_large_k():
+    sizes = storage_sizes(Decoder(), 1000, M_PAPER, N_PAPER, True, list_dtype="uint16")
+    assert sizes["bytes_list"] == 20_000
+    with pytest.raises(ValueError, match="k=70000"):
+        storage_sizes(Decoder(), 70_000, 100_000, N_PAPER, True, list_dtype="uint16")
+
+
+def test_decode_grid_equals_the_plain_forward_pass():
+    torch.manual_seed(0)
+    decoder = Decoder().eval()
+    latents, dirs = torch.randn(4, 8), torch.randn(6, 4)
+    pairs = decoder(latents.repeat_interleave(6, 0), dirs.repeat(4, 1)).reshape(4, 6, 3)
+    torch.testing.assert_close(decoder.decode_grid(latents, dirs), pairs)
+
+
+def _tiny_btf(m=30, n=27, seed=0):
+    rng = np.random.default_rng(seed)
+    abrdf = rng.random((m, n, 3), dtype=np.float32)
+    theta = rng.uniform(0, 1.2, (n, 2))
+    phi = rng.uniform(0, 6.28, (n, 2))
+    features = np.concatenate([stereographic(theta[:, 0], phi[:, 0]),
+                               stereographic(theta[:, 1], phi[:, 1])], 1).astype(np.float32)
+    return abrdf, features
+
+
+def _train(seed, abrdf, features, sources=None, source_of_texel=None):
+    settings = TrainSettings(epochs=1, lr=0.05, queries_per_abrdf=8, device="cpu")
+    norm = fit_normalization(abrdf)
+    sources = abrdf if sources is None else sources
+    source_of_texel = np.arange(len(abrdf)) if source_of_texel is None else source_of_texel
+    return train(abrdf, sources, source_of_texel, norm, features, np.arange(abrdf.shape[1]),
+                 settings, seed=seed, encoder_channels=(2, 2, 2)), norm
+
+
+def test_training_is_deterministic_for_a_seed():
+    abrdf, features = _tiny_btf()
+    a, _ = _train(3, abrdf, features)
+    b, _ = _train(3, abrdf, features)
+    c, _ = _train(4, abrdf, features)
+    for pa, pb in zip(a.decoder.state_dict().values(), b.decoder.state_dict().values(),
+                      strict=True):
+        torch.testing.assert_close(pa, pb, rtol=0, atol=0)
+    assert a.epoch_losses == b.epoch_losses and a.epoch_losses != c.epoch_losses
+
+
+class CountingDecoder(Decoder):
+    def __init__(self):
+        super().__init__()
+        self.decoded_latents = 0
+
+    def decode_grid(self, latents, directions):
+        self.decoded_latents += latents.shape[0]
+        return super().decode_grid(latents, directions)
+
+
+def test_clustered_path_decodes_k_by_n_not_m_by_n():
+    abrdf, features = _tiny_btf(m=40)
+    labels = np.arange(40) % 3
+    decoder = CountingDecoder()
+    latents = np.random.default_rng(0).standard_normal((3, 8)).astype(np.float32)
+    recon = reconstruction_error(decoder, latents, labels, abrdf, 1.0, features)
+    assert decoder.decoded_latents == 3
+    # Cross-check against a direct computation over all texels.
+    with torch.no_grad():
+        full = decoder.decode_grid(torch.from_numpy(latents), torch.from_numpy(features))
+    direct = np.sqrt(np.mean((full.numpy()[labels] - abrdf) ** 2))
+    assert recon.rmse == pytest.approx(direct, rel=1e-5)
+    assert recon.rmse_scaled <= recon.rmse_unscaled
+
+
+def test_neural_btf_reconstruction_matches_a_direct_computation():
+    abrdf, features = _tiny_btf(m=12)
+    result, norm = _train(0, abrdf, features)
+    latents = encode(result.encoder, abrdf, norm)
+    recon = reconstruction_error(result.decoder, latents, np.arange(12), abrdf, norm.alpha,
+                                 features)
+    with torch.no_grad():
+        pred = result.decoder.eval().decode_grid(torch.from_numpy(latents),
+                                                 torch.from_numpy(features)).numpy()
+    target = abrdf / norm.alpha
+    assert recon.rmse == pytest.approx(np.sqrt(np.mean((pred - target) ** 2)), rel=1e-5)
+    per_dir = np.sqrt(np.mean((pred - target) ** 2, axis=(0, 2)))
+    np.testing.assert_allclose(recon.rmse_per_direction, per_dir, rtol=1e-5)
