@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -18,9 +19,31 @@ def compose_config(*overrides: str) -> DictConfig:
         return compose(config_name="config", overrides=list(overrides))
 
 
+@pytest.fixture(scope="session")
+def _empty_mlflow_db(tmp_path_factory) -> Path:
+    """An MLflow SQLite store with its schema, created once (creating one takes seconds)."""
+    from pipeline.tracking import init_store
+
+    folder = tmp_path_factory.mktemp("mlflow_template")
+    init_store(folder, "Default")
+    return folder / "mlflow.db"
+
+
 @pytest.fixture
-def smoke_cfg(tmp_path):
+def mlflow_template(_empty_mlflow_db):
+    """Copy the empty store into a runs folder: ``mlflow_template(runs_dir)``."""
+
+    def copy(runs_dir: Path) -> None:
+        runs_dir.mkdir(parents=True, exist_ok=True)
+        shutil.copy(_empty_mlflow_db, runs_dir / "mlflow.db")
+
+    return copy
+
+
+@pytest.fixture
+def smoke_cfg(tmp_path, mlflow_template):
     """A factory: the smoke experiment writing under a temporary ``paths.runs``."""
+    mlflow_template(tmp_path / "runs")
 
     def make(*overrides: str) -> DictConfig:
         return compose_config("experiment=smoke", f"paths.runs={tmp_path / 'runs'}", *overrides)

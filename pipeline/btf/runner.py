@@ -39,7 +39,9 @@ def _train_settings(cfg) -> TrainSettings:
     return TrainSettings(lr=lr, **{k: settings[k] for k in settings if k in _TRAIN_FIELDS})
 
 
-_TRAIN_FIELDS = {"epochs", "batch_size", "queries_per_abrdf", "max_steps", "device", "momentum"}
+_TRAIN_FIELDS = {
+    "epochs", "batch_size", "queries_per_abrdf", "max_steps", "device", "momentum", "optimizer"
+}
 
 
 def train_stage(

@@ -35,6 +35,8 @@ class TrainSettings:
     queries_per_abrdf : direction queries per ABRDF per step; -1 for all training directions.
     max_steps : cap on the total number of steps, -1 for none.
     device : ``auto`` (CUDA when present), ``cpu`` or ``cuda``.
+    momentum : SGD momentum (the paper: plain SGD, 0).
+    optimizer : ``sgd`` (the paper) or ``adam`` (converges in far fewer steps on a CPU).
     """
 
     epochs: int = 1
@@ -44,6 +46,7 @@ class TrainSettings:
     max_steps: int = -1
     device: str = "auto"
     momentum: float = 0.0
+    optimizer: str = "sgd"
 
     def __post_init__(self):
         if self.epochs < 1:
@@ -53,6 +56,8 @@ class TrainSettings:
             raise ConfigError(f"train.batch_size={self.batch_size} must be >= 2")
         if self.lr <= 0:
             raise ConfigError(f"train.lr={self.lr} must be > 0")
+        if self.optimizer not in ("sgd", "adam"):
+            raise ConfigError(f"train.optimizer={self.optimizer!r} must be sgd or adam")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"train.device={self.device!r} must be auto, cpu or cuda")
 
@@ -111,7 +116,10 @@ def train(
     encoder = Encoder(n, encoder_channels).to(device)
     decoder = Decoder().to(device)
     params = list(encoder.parameters()) + list(decoder.parameters())
-    optimizer = torch.optim.SGD(params, lr=settings.lr, momentum=settings.momentum)
+    if settings.optimizer == "adam":
+        optimizer = torch.optim.Adam(params, lr=settings.lr)
+    else:
+        optimizer = torch.optim.SGD(params, lr=settings.lr, momentum=settings.momentum)
     loss_fn = nn.MSELoss()
     features = torch.from_numpy(dir_features).to(device)
     train_dirs = np.asarray(train_dirs)

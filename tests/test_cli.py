@@ -1,0 +1,50 @@
+"""The command lines of the README, run as a user runs them (subprocesses)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+from mlflow.tracking import MlflowClient
+
+from pipeline.tracking import tracking_uri
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _run(*args, cwd=ROOT):
+    return subprocess.run([sys.executable, "-m", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=600)
+
+
+def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_template):
+    runs = tmp_path / "runs"
+    mlflow_template(runs)
+    done = _run("pipeline", "-m", "experiment=smoke", "method.k=4,8", "seed=0,1",
+                "hydra/launcher=joblib", f"paths.runs={runs}")
+    assert done.returncode == 0, done.stderr[-3000:]
+
+    client = MlflowClient(tracking_uri(runs))
+    experiment = client.get_experiment_by_name("smoke")
+    all_runs = client.search_runs([experiment.experiment_id])
+    parents = [r for r in all_runs if "mlflow.parentRunId" not in r.data.tags]
+    children = [r for r in all_runs if "mlflow.parentRunId" in r.data.tags]
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+    assert len(children) == 4
+    assert {r.data.tags["mlflow.parentRunId"] for r in children} == {parents[0].info.run_id}
+    assert {r.info.status for r in children} == {"FINISHED"}
+    assert {(r.data.params["method.k"], r.data.params["seed"]) for r in children} == {
+        ("4", "0"), ("4", "1"), ("8", "0"), ("8", "1")}
+    # One PCA for the whole sweep: computed once, a hit in every other job's log.
+    logs = [p.read_text() for p in (runs / "hydra" / "multirun").glob("*/*/*.log")]
+    pca_lines = [line for text in logs for line in text.splitlines() if "stage pca" in line]
+    assert len(pca_lines) == 4
+    assert sum("computed" in line for line in pca_lines) == 1
+    assert len({r.data.tags["cache.pca"] for r in children}) == 1
+
+
+def test_bad_input_exits_non_zero_with_the_path(tmp_path):
+    missing = tmp_path / "nowhere"
+    done = _run("pipeline", "experiment=smoke", f"paths.runs={tmp_path / 'runs'}",
+                "dataset=ubo2003", f"dataset.root={missing}")
+    assert done.returncode != 0
+    assert str(missing) in done.stderr

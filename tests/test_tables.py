@@ -1,0 +1,117 @@
+"""`python -m pipeline.tables` on a few hand-made MLflow runs with known numbers."""
+
+import mlflow
+import pandas as pd
+import pytest
+from omegaconf import OmegaConf
+
+from pipeline.tables import build_tables, default_settings
+from pipeline.tracking import init_store
+
+# (method, k, seed, rmse): k = 500 is clearly worse than k = 1000 beyond the seed spread.
+RUNS = [
+    ("neural_btf", None, 0, 0.0200),
+    ("neural_btf", None, 1, 0.0210),
+    ("clustered", 500, 0, 0.0300),
+    ("clustered", 500, 1, 0.0302),
+    ("clustered", 500, 2, 0.0304),
+    ("clustered", 1000, 0, 0.0250),
+    ("clustered", 1000, 1, 0.0252),
+    ("clustered", 1000, 2, 0.0254),
+]
+
+
+@pytest.fixture(autouse=True)
+def _store(tmp_path, mlflow_template):
+    mlflow_template(tmp_path)
+
+
+def _log_runs(runs_dir, rows, experiment="btf", failed=False):
+    experiment_id = init_store(runs_dir, experiment)
+    for method, k, seed, rmse in rows:
+        m = 10_000
+        latents = (k or m) * 8 * 4
+        listing = m * 4 if k else 0
+        with mlflow.start_run(experiment_id=experiment_id) as run:
+            mlflow.log_params({"method.name": method, "method.k": k, "seed": seed,
+                               "dataset.name": "synthetic", "dataset.root": None,
+                               "method.texel_scale": "none", "method.target": "texel"})
+            mlflow.log_metrics({
+                "rmse": rmse, "bytes_decoder": 97_532, "bytes_latents": latents,
+                "bytes_list": listing, "bytes_extra": 0,
+                "bytes_total": 97_532 + latents + listing, "bytes_original": 787_320_000,
+                "compression_ratio": 787_320_000 / (97_532 + latents + listing),
+                "rmse_offgrid_model": rmse * 2, "rmse_offgrid_linear": 0.01,
+            })
+            if failed:
+                mlflow.end_run(status="FAILED")
+        assert run.info.run_id
+
+
+@pytest.fixture
+def settings():
+    s = default_settings()
+    s.fig7.enabled = False  # the hand-made runs have no cached models to draw
+    return s
+
+
+def test_tables_from_hand_made_runs(tmp_path, settings):
+    _log_runs(tmp_path, RUNS)
+    _log_runs(tmp_path, [("clustered", 2000, 0, 0.9)], failed=True)  # ignored: FAILED
+    out = build_tables(tmp_path, settings)
+
+    sizes = pd.read_csv(out / "table1_sizes.csv").set_index("model")
+    assert list(sizes.index) == ["Neural BTF", "k = 500", "k = 1000"]
+    assert sizes.loc["Neural BTF", "latents [B]"] == 320_000
+    assert sizes.loc["k = 500", "total [B]"] == 153_532
+    assert sizes.loc["k = 1000", "list [B]"] == 40_000
+    assert sizes.loc["Neural BTF", "ratio (exact)"] == "1:1885.7"
+    assert sizes.loc["Neural BTF", "ratio (paper)"] == "1:1885"  # 751 MB / 408 KB
+    assert sizes.loc["k = 500", "ratio (paper)"] == "1:5127"  # the paper's 1:5127
+    assert sizes.loc["k = 1000", "ratio (paper)"] == "1:4633"
+
+    rmse = pd.read_csv(out / "table2_rmse.csv").set_index("dataset")
+    assert rmse.loc["synthetic", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"
+    assert rmse.loc["synthetic", "k = 500"] == "0.0302 ± 0.0002 (n=3)"
+    assert rmse.loc["synthetic", "k = 1000"] == "0.0252 ± 0.0002 (n=3)"
+    assert "k = 2000" not in rmse.columns
+
+    verdict = pd.read_csv(out / "k_verdict.csv")
+    assert verdict.loc[0, "verdict"].startswith("k changes the RMSE beyond seed noise")
+    assert "lowest mean at k=1000" in verdict.loc[0, "verdict"]
+
+    summary = (out / "summary.md").read_text()
+    assert "synthetic: no run of k = 2000" in summary
+    assert "synthetic: Neural BTF has" not in summary  # two seeds: nothing to report
+    for stem in ("table1_sizes", "table2_rmse", "interpolation", "k_verdict"):
+        for ext in ("md", "csv", "tex"):
+            assert (out / f"{stem}.{ext}").is_file()
+    assert "\\begin{table}" in (out / "table2_rmse.tex").read_text()
+
+
+def test_verdict_finds_no_effect_when_k_is_within_seed_noise(tmp_path, settings):
+    noisy = [("clustered", 500, s, r) for s, r in enumerate([0.030, 0.026, 0.034])]
+    noisy += [("clustered", 1000, s, r) for s, r in enumerate([0.031, 0.027, 0.033])]
+    _log_runs(tmp_path, noisy)
+    verdict = pd.read_csv(build_tables(tmp_path, settings) / "k_verdict.csv")
+    assert verdict.loc[0, "verdict"].startswith("no evidence")
+
+
+def test_one_seed_per_k_says_what_is_missing(tmp_path, settings):
+    _log_runs(tmp_path, [("clustered", 500, 0, 0.03), ("clustered", 1000, 0, 0.03)])
+    out = build_tables(tmp_path, settings)
+    assert "not enough runs" in pd.read_csv(out / "k_verdict.csv").loc[0, "verdict"]
+    assert "k = 500 has 1 seed" in (out / "summary.md").read_text()
+
+
+def test_filters_select_experiments(tmp_path, settings):
+    _log_runs(tmp_path, RUNS[:2], experiment="a")
+    _log_runs(tmp_path, RUNS[2:4], experiment="b")
+    settings = OmegaConf.merge(settings, {"experiments": ["b"]})
+    rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
+    assert list(rmse.columns) == ["dataset", "k = 500"]
+
+
+def test_no_runs_says_so(tmp_path, settings):
+    out = build_tables(tmp_path, settings)
+    assert "No finished Neural BTF run" in (out / "summary.md").read_text()
