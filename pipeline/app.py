@@ -9,6 +9,7 @@ import mlflow
 from omegaconf import DictConfig
 
 from pipeline.btf import runner as btf_runner
+from pipeline.methods import brdf_runner
 from pipeline.stages import Context
 from pipeline.tracking import job_run
 
@@ -18,6 +19,7 @@ log = logging.getLogger(__name__)
 METHODS: dict[str, Callable[[Context], dict[str, float]]] = {
     "neural_btf": btf_runner.run,
     "clustered": btf_runner.run,
+    "brdf_map": brdf_runner.run,
 }
 
 

@@ -1,0 +1,27 @@
+"""The paper experiment at full size (M = 10000, N = 6561) on the synthetic BTF. Slow."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+def test_paper_experiment_produces_table1_with_the_papers_bytes(tmp_path):
+    runs = tmp_path / "runs"
+    done = subprocess.run(
+        [sys.executable, "-m", "pipeline", "-m", "experiment=paper", "train.max_steps=10",
+         "interpolation.offgrid=4", f"paths.runs={runs}"],
+        cwd=ROOT, capture_output=True, text=True, timeout=3600,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    sizes = pd.read_csv(runs / "tables" / "table1_sizes.csv").set_index("model")
+    assert list(sizes.index) == ["Neural BTF", "k = 500", "k = 1000", "k = 2000"]
+    assert set(sizes["decoder [B]"]) == {97_532}
+    assert list(sizes["latents [B]"]) == [320_000, 16_000, 32_000, 64_000]
+    assert list(sizes["list [B]"]) == [0, 40_000, 40_000, 40_000]
+    assert set(sizes["original [B]"]) == {787_320_000}
