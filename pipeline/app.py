@@ -19,6 +19,7 @@ log = logging.getLogger(__name__)
 METHODS: dict[str, Callable[[Context], dict[str, float]]] = {
     "neural_btf": btf_runner.run,
     "clustered": btf_runner.run,
+    "pca": btf_runner.run_linear,
     "brdf_map": brdf_runner.run,
 }
 

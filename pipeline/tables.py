@@ -26,7 +26,7 @@ from pipeline.tracking import tracking_uri  # noqa: E402
 
 log = logging.getLogger(__name__)
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
-BTF_METHODS = ("neural_btf", "clustered")
+BTF_METHODS = ("neural_btf", "clustered", "pca")
 
 
 def default_settings() -> DictConfig:

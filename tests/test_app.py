@@ -103,3 +103,14 @@ def test_corrupt_image_fails_cleanly_with_its_path(smoke_cfg, tmp_path):
     )
     _assert_failed_cleanly(cfg, DataError, victim.name)
     assert _cache_entries(cfg) == []
+
+
+def test_pca_baseline_runs_through_the_app(smoke_cfg):
+    cfg = smoke_cfg("method=pca", "method.n_components=3")
+    rmse = run_job(cfg)
+    run = _runs(cfg)[0]
+    assert run.info.status == "FINISHED" and run.data.params["method.name"] == "pca"
+    assert run.data.metrics["rmse"] == pytest.approx(rmse)
+    assert rmse < run.data.metrics["rmse_mean_abrdf"]
+    m, n = 144, 9 * 81
+    assert run.data.metrics["bytes_total"] == 4 * (4 * 3 * n + m * 3)

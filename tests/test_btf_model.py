@@ -144,3 +144,23 @@ def test_neural_btf_reconstruction_matches_a_direct_computation():
     assert recon.rmse == pytest.approx(np.sqrt(np.mean((pred - target) ** 2)), rel=1e-5)
     per_dir = np.sqrt(np.mean((pred - target) ** 2, axis=(0, 2)))
     np.testing.assert_allclose(recon.rmse_per_direction, per_dir, rtol=1e-5)
+
+
+def test_linear_baseline_recovers_low_rank_data_and_counts_its_bytes():
+    from pipeline.btf.linear import components_for_budget, fit_linear, linear_error, pca_bytes
+
+    rng = np.random.default_rng(0)
+    low_rank = rng.random((40, 2)) @ rng.random((2, 27 * 3)) + 0.1
+    targets = low_rank.reshape(40, 27, 3).astype(np.float32)
+    model = fit_linear(targets, 2, "float32")
+    rmse, per_direction = linear_error(model, targets)
+    assert rmse < 1e-5 and per_direction.shape == (27,)
+    assert fit_linear(targets, 1, "float32") is not None
+    assert linear_error(fit_linear(targets, 1, "float32"), targets)[0] > 1e-3
+    stored = model.mean.nbytes + model.basis.nbytes + model.coefficients.nbytes
+    assert stored == pca_bytes(2, 40, 27, "float32")
+    # At the paper's size the bytes of clustered k = 1000 (169,532 B) hold two float16
+    # components but not one float32 component.
+    assert components_for_budget(169_532, 10_000, 6561, "float16") == 2
+    with pytest.raises(ConfigError, match="cannot hold one float32 component"):
+        components_for_budget(169_532, 10_000, 6561, "float32")

@@ -20,6 +20,7 @@ import torch
 from pipeline import stages
 from pipeline.btf import interpolation
 from pipeline.btf.evaluate import mean_abrdf_rmse, reconstruction_error, storage_sizes
+from pipeline.btf.linear import components_for_budget, fit_linear, linear_error, pca_bytes
 from pipeline.btf.model import Decoder, Encoder, direction_features
 from pipeline.btf.train import TrainSettings, encode, train
 from pipeline.cache import Entry, save_arrays, save_json
@@ -28,7 +29,7 @@ from pipeline.stages import Context, _container
 
 log = logging.getLogger(__name__)
 
-stages.VERSIONS.update({"train": "1", "evaluate": "1"})
+stages.VERSIONS.update({"train": "1", "evaluate": "1", "linear": "1"})
 
 
 def _train_settings(cfg) -> TrainSettings:
@@ -207,3 +208,46 @@ def run(ctx: Context) -> dict[str, float]:
         mlflow.log_artifact(str(evaluated.file("rmse_per_direction.npy")), "evaluate")
         mlflow.log_text(json.dumps(metrics, indent=1), "metrics.json")
     return metrics
+
+
+def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
+    """The PCA baseline: truncated SVD of the normalized ABRDF matrix."""
+    method = ctx.cfg.method
+    m, n = cropped.manifest["summary"]["M"], cropped.manifest["summary"]["N"]
+    n_components = method.n_components
+    if method.get("match_clustered_k"):
+        budget = storage_sizes(Decoder(), int(method.match_clustered_k), m, n, True,
+                               list_dtype=ctx.cfg.sizes.list_dtype)["bytes_total"]
+        n_components = components_for_budget(budget, m, n, method.dtype)
+    settings = {"n_components": n_components, "dtype": method.dtype, "seed": ctx.cfg.seed}
+
+    def compute(folder: Path) -> dict:
+        norm = stages.normalization(prep)
+        model = fit_linear(norm.target(cropped.array("abrdf")), n_components, method.dtype,
+                           seed=ctx.cfg.seed)
+        rmse, per_direction = linear_error(model, norm.target(cropped.array("abrdf")))
+        save_arrays(folder, mean=model.mean, basis=model.basis,
+                    coefficients=model.coefficients, rmse_per_direction=per_direction)
+        basis_bytes = model.basis.nbytes + model.mean.nbytes
+        sizes = {
+            "bytes_decoder": basis_bytes, "bytes_latents": model.coefficients.nbytes,
+            "bytes_list": 0, "bytes_extra": 0, "bytes_original": m * n * 3 * 4,
+        }
+        sizes["bytes_total"] = basis_bytes + model.coefficients.nbytes
+        assert sizes["bytes_total"] == pca_bytes(n_components, m, n, method.dtype)
+        sizes["compression_ratio"] = sizes["bytes_original"] / sizes["bytes_total"]
+        metrics = {"rmse": rmse, "n_components": n_components, **sizes,
+                   "rmse_mean_abrdf": mean_abrdf_rmse(cropped.array("abrdf"), norm.alpha)}
+        save_json(folder, "metrics", metrics)
+        return {"rmse": rmse}
+
+    return ctx.run("linear", settings, {"crop": cropped, "preprocess": prep}, compute)
+
+
+def run_linear(ctx: Context) -> dict[str, float]:
+    """``method=pca``: load -> crop -> preprocess -> truncated SVD."""
+    loaded = stages.load(ctx)
+    cropped = stages.crop(ctx, loaded)
+    prep = stages.preprocess(ctx, cropped)
+    fitted = linear_stage(ctx, cropped, prep)
+    return dict(fitted.json("metrics"))

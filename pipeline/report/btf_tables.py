@@ -49,7 +49,9 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     runs["k"] = _num(runs.get("params.method.k", pd.Series(np.nan, index=runs.index)))
     runs["seed"] = _num(runs["params.seed"])
     method = runs["params.method.name"]
+    components = _num(runs.get("metrics.n_components", pd.Series(np.nan, index=runs.index)))
     label = np.where(method == "neural_btf", "Neural BTF", "k = " + runs["k"].map(_fmt_k))
+    label = np.where(method == "pca", "PCA c = " + components.map(_fmt_k), label)
     scale = runs.get("params.method.texel_scale", pd.Series("none", index=runs.index))
     label = np.where((method == "clustered") & ~scale.isin(["none", None]), label + " +scale",
                      label)
@@ -57,7 +59,8 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     label = np.where((method == "clustered") & (target == "representative"),
                      label + " (rep. target)", label)
     runs["model"] = label
-    runs["order"] = np.where(method == "neural_btf", -1.0, runs["k"])
+    runs["order"] = np.where(method == "neural_btf", -1.0,
+                             np.where(method == "pca", 1e9 + components.fillna(0), runs["k"]))
     return runs
 
 
