@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.data.images import read_exr, srgb_eotf
 from pipeline.errors import DataError
 
 __all__ = [
@@ -96,27 +97,16 @@ class LightStack:
 # --------------------------------------------------------------------------- images
 
 
-def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB EOTF: encoded values in [0, 1] to linear values in [0, 1]."""
-    encoded = np.asarray(encoded, dtype=np.float32)
-    return np.where(
-        encoded <= 0.04045,
-        encoded / 12.92,
-        ((encoded + 0.055) / 1.055) ** 2.4,
-    ).astype(np.float32)
+# sRGB decoding and EXR reading are shared with the BTF readers (pipeline.data.images).
+srgb_to_linear = srgb_eotf
 
 
 def _read_exr(path: Path) -> np.ndarray:
-    import OpenEXR
-
-    try:
-        channels = OpenEXR.File(str(path), separate_channels=True).channels()
-    except Exception as exc:  # OpenEXR raises RuntimeError for unreadable files
-        raise DataError(f"cannot read EXR image {path}: {exc}") from exc
+    channels = read_exr(path)
     if all(c in channels for c in "RGB"):
-        planes = [channels[c].pixels for c in "RGB"]
+        planes = [channels[c] for c in "RGB"]
     elif "Y" in channels:
-        planes = [channels["Y"].pixels] * 3
+        planes = [channels["Y"]] * 3
     else:
         raise DataError(f"EXR image {path} has channels {sorted(channels)}, expected R, G, B or Y")
     return np.stack(planes, axis=-1).astype(np.float32)
