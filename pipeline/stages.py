@@ -16,7 +16,6 @@ from pathlib import Path
 import numpy as np
 from omegaconf import Container, DictConfig, OmegaConf
 
-from pipeline.btf.clustering import check_k, cluster_medians, kmeans_pp, pca_reduce
 from pipeline.btf.preprocess import Normalization, encoder_inputs, fit_normalization
 from pipeline.cache import Entry, StageCache, canonical_json, save_arrays, save_json
 from pipeline.errors import ConfigError, DataError
@@ -200,6 +199,8 @@ def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     settings = _container(ctx.cfg.pca)
 
     def compute(folder: Path) -> dict:
+        from pipeline.btf.clustering import pca_reduce
+
         features = encoder_inputs(cropped.array("abrdf"), normalization(prep))
         scores, ratio = pca_reduce(features, settings["n_components"], settings["random_state"])
         save_arrays(folder, scores=scores, explained_variance_ratio=ratio)
@@ -210,6 +211,9 @@ def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
 
 def kmeans(ctx: Context, reduced: Entry) -> Entry:
     """k-means++ on the PCA scores for the run's single ``method.k``."""
+    # scikit-learn is imported only when a stage needs it: a cached rerun skips it.
+    from pipeline.btf.clustering import check_k, kmeans_pp
+
     k = ctx.cfg.method.k
     n_texels = reduced.array("scores").shape[0]
     check_k(k, n_texels)
@@ -234,6 +238,8 @@ def representatives(ctx: Context, cropped: Entry, clusters: Entry) -> Entry:
     k = int(clusters.manifest["settings"]["k"])
 
     def compute(folder: Path) -> dict:
+        from pipeline.btf.clustering import cluster_medians
+
         medians = cluster_medians(cropped.array("abrdf"), clusters.array("labels"), k)
         save_arrays(folder, representatives=medians)
         return {"k": k}

@@ -16,9 +16,8 @@ stereographic coordinates), i.e. piecewise-linear interpolation on the product m
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import Delaunay
 
-from pipeline.btf.model import Decoder, direction_features, stereographic
+from pipeline.btf.stereographic import direction_features, stereographic
 from pipeline.data.directions import grid_81
 
 OFFGRID_MAX_THETA = np.radians(70.0)  # inside the 75-degree ring, so inside the triangulation
@@ -79,6 +78,8 @@ class ProductInterpolator:
         idx = np.repeat(nearest[:, None], 3, axis=1)
         w = np.tile([1.0, 0.0, 0.0], (len(queries), 1))
         if len(points) >= 3:
+            from scipy.spatial import Delaunay
+
             tri = Delaunay(p2)
             simplex = tri.find_simplex(q2)
             inside = simplex >= 0
@@ -129,7 +130,7 @@ def measure(
     cfg,
     cropped,
     norm,
-    decoder: Decoder,
+    decoder,
     latents: np.ndarray,
     latent_of_texel: np.ndarray,
     rmse_per_direction: np.ndarray,
