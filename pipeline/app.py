@@ -9,7 +9,7 @@ import mlflow
 from omegaconf import DictConfig
 
 from pipeline.btf import runner as btf_runner
-from pipeline.methods import brdf_runner
+from pipeline.methods import brdf_runner, fourier_runner, pattern_runner
 from pipeline.stages import Context
 from pipeline.tracking import job_run
 
@@ -21,6 +21,8 @@ METHODS: dict[str, Callable[[Context], dict[str, float]]] = {
     "clustered": btf_runner.run,
     "pca": btf_runner.run_linear,
     "brdf_map": brdf_runner.run,
+    "fourier": fourier_runner.run,
+    "fourier_pattern": pattern_runner.run,
 }
 
 
@@ -29,7 +31,8 @@ def run_job(cfg: DictConfig) -> float | None:
     name = cfg.method.name
     if name not in METHODS:
         raise KeyError(f"method.name={name!r} is not one of {sorted(METHODS)}")
-    run_name = f"{name}" + (f" k={cfg.method.k}" if cfg.method.get("k") else "") + f" s{cfg.seed}"
+    k = f" k={cfg.method.k}" if name == "clustered" else ""
+    run_name = f"{name}{k} s{cfg.seed}"
     with job_run(cfg, run_name=run_name):
         ctx = Context.from_config(cfg)
         try:

@@ -124,7 +124,8 @@ def table_interpolation(runs: pd.DataFrame) -> pd.DataFrame:
     if not present:
         return pd.DataFrame()
     rows = []
-    for (dataset, model), group in runs.groupby(["dataset", "model"], sort=False):
+    ordered = runs.sort_values(["dataset", "order", "model"])
+    for (dataset, model), group in ordered.groupby(["dataset", "model"], sort=False):
         row = {"dataset": dataset, "model": model}
         for metric, name in present:
             row[name] = _mean_std(_num(group[f"metrics.{metric}"]))
