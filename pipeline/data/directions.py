@@ -194,6 +194,13 @@ def _whole_degrees(value: float, what: str) -> int:
     return int(value)
 
 
+def _name_angles(theta_light, phi_light, theta_view, phi_view) -> list[int]:
+    """The four angles of an image name as whole degrees (checked)."""
+    names = ("theta_light", "phi_light", "theta_view", "phi_view")
+    values = (theta_light, phi_light, theta_view, phi_view)
+    return [_whole_degrees(value, what) for value, what in zip(values, names, strict=True)]
+
+
 def view_folder_name(theta_view: float, phi_view: float) -> str:
     """Folder of one view, shared by UBO2003 and UTIA: ``tv030_pv030``."""
     theta = _whole_degrees(theta_view, "theta_view")
@@ -236,16 +243,7 @@ def ubo2003_file_name(
     """
     if not 0 <= number <= 99999:
         raise ConfigError(f"running number {number} does not fit five digits")
-    angles = [
-        _whole_degrees(value, what)
-        for value, what in [
-            (theta_light, "theta_light"),
-            (phi_light, "phi_light"),
-            (theta_view, "theta_view"),
-            (phi_view, "phi_view"),
-        ]
-    ]
-    tl, pl, tv, pv = angles
+    tl, pl, tv, pv = _name_angles(theta_light, phi_light, theta_view, phi_view)
     return f"{number:05d} tl{tl:03d} pl{pl:03d} tv{tv:03d} pv{pv:03d}.{ext}"
 
 
@@ -270,16 +268,7 @@ def utia_file_name(
     theta_light: float, phi_light: float, theta_view: float, phi_view: float, ext: str = "png"
 ) -> str:
     """UTIA image name: ``tl000_pl000_tv000_pv000.png``; angles in whole degrees."""
-    angles = [
-        _whole_degrees(value, what)
-        for value, what in [
-            (theta_light, "theta_light"),
-            (phi_light, "phi_light"),
-            (theta_view, "theta_view"),
-            (phi_view, "phi_view"),
-        ]
-    ]
-    tl, pl, tv, pv = angles
+    tl, pl, tv, pv = _name_angles(theta_light, phi_light, theta_view, phi_view)
     return f"tl{tl:03d}_pl{pl:03d}_tv{tv:03d}_pv{pv:03d}.{ext}"
 
 
