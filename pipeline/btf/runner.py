@@ -38,12 +38,15 @@ def _train_settings(cfg):
     lr = settings.pop("lr", None)
     if lr is None:
         lr = cfg.method.lr
-    return TrainSettings(lr=lr, **{k: settings[k] for k in settings if k in _TRAIN_FIELDS})
+    fields = _TRAIN_FIELDS | _SPEED_ONLY
+    return TrainSettings(lr=lr, **{k: settings[k] for k in settings if k in fields})
 
 
 _TRAIN_FIELDS = {
-    "epochs", "batch_size", "queries_per_abrdf", "max_steps", "device", "momentum", "optimizer"
+    "epochs", "batch_size", "queries_per_abrdf", "max_steps", "device", "momentum", "optimizer",
 }
+# Settings that change how fast training runs but not what it computes: not in the key.
+_SPEED_ONLY = {"threads"}
 
 
 def train_stage(
@@ -57,7 +60,7 @@ def train_stage(
     stage_settings = {
         "method": method.name,
         "target": method.get("target", "texel"),
-        "train": settings.__dict__,
+        "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY},
         "model": _container(cfg.model),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),

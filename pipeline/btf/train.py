@@ -74,6 +74,8 @@ def train(
     target_from_source : train against the representative's values instead of the texel's.
     """
     device = resolve_device(settings.device)
+    if settings.threads:
+        torch.set_num_threads(int(settings.threads))
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     m, n, _ = abrdf.shape

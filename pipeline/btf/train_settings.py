@@ -19,6 +19,9 @@ class TrainSettings:
     device : ``auto`` (CUDA when present), ``cpu`` or ``cuda``.
     momentum : SGD momentum (the paper: plain SGD, 0).
     optimizer : ``sgd`` (the paper) or ``adam`` (converges in far fewer steps on a CPU).
+    threads : CPU threads of torch; None keeps torch's default (all cores). Set it when
+        jobs run side by side: torch's threads spin-wait, and two jobs with all cores each
+        run several times slower than with their share.
     """
 
     epochs: int = 1
@@ -29,6 +32,7 @@ class TrainSettings:
     device: str = "auto"
     momentum: float = 0.0
     optimizer: str = "sgd"
+    threads: int | None = None
 
     def __post_init__(self):
         if self.epochs < 1:
