@@ -2,6 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
+# Tests use tiny arrays: one thread per library is as fast, and far faster when the
+# machine is busy (spin-waiting thread pools). Set before numpy/torch are imported; the
+# command-line tests' subprocesses inherit it.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
 import shutil
 from pathlib import Path
 
