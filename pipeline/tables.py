@@ -22,6 +22,7 @@ import pandas as pd  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from pipeline.report import btf_tables  # noqa: E402
+from pipeline.report.fourier_tables import fourier_sections  # noqa: E402
 from pipeline.tracking import tracking_uri  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -68,12 +69,13 @@ def build_tables(runs_dir: str | Path, settings: DictConfig | None = None) -> Pa
     out.mkdir(parents=True, exist_ok=True)
     runs = fetch_runs(runs_dir, list(settings.experiments or []), settings.filter)
     sections = [f"# Tables regenerated from MLflow ({tracking_uri(runs_dir)})\n"]
+    sections += fourier_sections(runs_dir, out)
     if not runs.empty and "params.method.name" in runs:
         runs = runs[runs["params.method.name"].isin(BTF_METHODS)]
     if runs.empty or "metrics.rmse" not in runs:
-        sections.append("No finished Neural BTF run found: run `python -m pipeline` first.\n")
+        sections.append("No finished Neural BTF run found (method A): `python -m pipeline`.\n")
         (out / "summary.md").write_text("\n".join(sections))
-        print(sections[-1])
+        print("\n".join(sections))
         return out
     runs = btf_tables.label_runs(runs[runs["metrics.rmse"].notna()])
 

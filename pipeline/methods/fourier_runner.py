@@ -92,7 +92,12 @@ def shrink(array: np.ndarray, crop, factor: int, labels: bool = False) -> np.nda
     if crop is not None:
         row, col, height, width = (int(v) for v in crop)
         full_h, full_w = array.shape[-3:-1]
-        if min(row, col) < 0 or min(height, width) < 1 or row + height > full_h or col + width > full_w:
+        if (
+            min(row, col) < 0
+            or min(height, width) < 1
+            or row + height > full_h
+            or col + width > full_w
+        ):
             raise ConfigError(
                 f"dataset.crop=[{row}, {col}, {height}, {width}] (row, col, height, width) "
                 f"does not fit images of {full_h}x{full_w}"
@@ -101,9 +106,18 @@ def shrink(array: np.ndarray, crop, factor: int, labels: bool = False) -> np.nda
     if factor > 1:
         height, width = (n // factor * factor for n in array.shape[-3:-1])
         if height == 0 or width == 0:
-            raise ConfigError(f"dataset.downsample={factor} leaves no pixel of {array.shape[-3:-1]}")
+            raise ConfigError(
+                f"dataset.downsample={factor} leaves no pixel of {array.shape[-3:-1]}"
+            )
         array = array[..., :height, :width, :]
-        shape = (*array.shape[:-3], height // factor, factor, width // factor, factor, array.shape[-1])
+        shape = (
+            *array.shape[:-3],
+            height // factor,
+            factor,
+            width // factor,
+            factor,
+            array.shape[-1],
+        )
         array = array.reshape(shape).mean(axis=(-4, -2), dtype=np.float64).astype(np.float32)
     return np.ascontiguousarray(array)
 
@@ -118,7 +132,7 @@ def _unit(normals: np.ndarray) -> np.ndarray:
 def stack_root(cfg) -> Path:
     """The stack folder; the built-in synthetic pot is written under paths.data first."""
     ds = cfg.dataset
-    if ds.get("root") is None and ds.get("synthetic") is not None:
+    if ds.get("root") is None and ds.name == "synthetic_stack":
         gen = _container(ds.synthetic)
         tag = hashlib.sha256(canonical_json(gen).encode()).hexdigest()[:10]
         root = (Path(cfg.paths.data) / f"synthetic_stack-{tag}").resolve()
@@ -156,8 +170,12 @@ def _split(cfg, root: Path):
     if isinstance(every, bool) or int(every) != every or not 2 <= every <= n:
         raise ConfigError(f"dataset.holdout_every={every!r} must be an integer in [2, {n}]")
     held = np.arange(n) % int(every) == int(every) - 1
-    return (stack.images[~held], stack.light_dirs[~held], stack.images[held],
-            stack.light_dirs[held])
+    return (
+        stack.images[~held],
+        stack.light_dirs[~held],
+        stack.images[held],
+        stack.light_dirs[held],
+    )
 
 
 def data_stage(ctx: Context) -> Entry:
@@ -194,9 +212,15 @@ def data_stage(ctx: Context) -> Entry:
             arrays["regions"] = shrink(np.load(root / "regions.npy"), crop, factor, labels=True)
         save_arrays(folder, **arrays)
         n, height, width, _ = arrays["train_images"].shape
-        return {"n_train": n, "n_heldout": len(test_dirs), "height": height, "width": width,
-                "reference": reference, "regions": "regions" in arrays,
-                "given_normals": "given_normals" in arrays}
+        return {
+            "n_train": n,
+            "n_heldout": len(test_dirs),
+            "height": height,
+            "width": width,
+            "reference": reference,
+            "regions": "regions" in arrays,
+            "given_normals": "given_normals" in arrays,
+        }
 
     return ctx.run("stack_data", settings, {}, compute)
 
@@ -223,8 +247,11 @@ def normals_stage(ctx: Context, data: Entry) -> Entry:
                 f"dataset.normals={mode!r} is neither given, flat, photometric nor a file"
             )
         stat = path.stat()
-        settings = {"mode": "file", "path": str(path),
-                    "fingerprint": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns}}
+        settings = {
+            "mode": "file",
+            "path": str(path),
+            "fingerprint": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns},
+        }
 
     def compute(folder: Path) -> dict:
         shape = data.array("train_images").shape[1:3]
@@ -234,16 +261,21 @@ def normals_stage(ctx: Context, data: Entry) -> Entry:
             normals = np.broadcast_to(np.float32([0, 0, 1]), (*shape, 3)).copy()
         elif settings["mode"] == "photometric":
             normals, _ = lambertian_normals(
-                data.array("train_images"), data.array("train_dirs"),
-                settings["drop_dark"], settings["drop_bright"],
+                data.array("train_images"),
+                data.array("train_dirs"),
+                settings["drop_dark"],
+                settings["drop_bright"],
             )
         else:
             read = data.manifest["settings"]
-            normals = _unit(shrink(load_normal_map(settings["path"]), read["crop"],
-                                   read["downsample"]))
+            normals = _unit(
+                shrink(load_normal_map(settings["path"]), read["crop"], read["downsample"])
+            )
             if normals.shape[:2] != tuple(shape):
-                raise DataError(f"normal map {settings['path']} is {normals.shape[:2]} after "
-                                f"crop/downsample but the images are {tuple(shape)}")
+                raise DataError(
+                    f"normal map {settings['path']} is {normals.shape[:2]} after "
+                    f"crop/downsample but the images are {tuple(shape)}"
+                )
         save_arrays(folder, normals=normals.astype(np.float32))
         return {"mean_nz": float(normals[..., 2].mean())}
 
@@ -266,16 +298,19 @@ def fit_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
     def compute(folder: Path) -> dict:
         start = time.perf_counter()
         coeffs = fit_fourier(
-            data.array("train_images"), data.array("train_dirs"), normals.array("normals"),
-            M=int(settings["M"]), lam=float(settings["lam"]),
-            clamp_diffuse=bool(settings["clamp_diffuse"]), solver=settings["solver"],
+            data.array("train_images"),
+            data.array("train_dirs"),
+            normals.array("normals"),
+            M=int(settings["M"]),
+            lam=float(settings["lam"]),
+            clamp_diffuse=bool(settings["clamp_diffuse"]),
+            solver=settings["solver"],
         )
         seconds = time.perf_counter() - start
         save_arrays(folder, coeffs=coeffs)
         return {"seconds": seconds, "n_coeffs": int(coeffs.shape[-1])}
 
-    return ctx.run("fourier_fit", settings, {"stack_data": data, "stack_normals": normals},
-                   compute)
+    return ctx.run("fourier_fit", settings, {"stack_data": data, "stack_normals": normals}, compute)
 
 
 def baselines_stage(ctx: Context, data: Entry) -> Entry:
@@ -295,8 +330,7 @@ def baselines_stage(ctx: Context, data: Entry) -> Entry:
         save_json(folder, "metrics", metrics)
         return metrics
 
-    return ctx.run("relight_baselines", {"models": ["ptm", "hsh"]}, {"stack_data": data},
-                   compute)
+    return ctx.run("relight_baselines", {"models": ["ptm", "hsh"]}, {"stack_data": data}, compute)
 
 
 # --------------------------------------------------------------------------- segmentation
@@ -320,8 +354,9 @@ def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
     """Labels by the paper's method (when points exist) and by k-means; accuracy vs truth."""
     seg = _container(ctx.cfg.method.segmentation)
     if seg["features"] not in ("mean_colour", "coefficients"):
-        raise ConfigError(f"method.segmentation.features={seg['features']!r} is not "
-                          "mean_colour or coefficients")
+        raise ConfigError(
+            f"method.segmentation.features={seg['features']!r} is not mean_colour or coefficients"
+        )
     points = seg["points"]
     if points is None and data.manifest["summary"]["regions"]:
         points = representative_points(data.array("regions", mmap=False))
@@ -339,8 +374,9 @@ def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
             features, space = fitted.array("coeffs", mmap=False), None
         else:
             features, space = mean, seg["colour_space"]
-        labels["kmeans"] = segment_kmeans(features, seg["n_regions"], seed=seg["seed"],
-                                          colour_space=space, n_init=seg["n_init"])
+        labels["kmeans"] = segment_kmeans(
+            features, seg["n_regions"], seed=seg["seed"], colour_space=space, n_init=seg["n_init"]
+        )
         save_arrays(folder, mean_image=mean, **{f"labels_{k}": v for k, v in labels.items()})
         metrics = {}
         truth = data.array("regions", mmap=False) if (data.path / "regions.npy").is_file() else None
@@ -366,7 +402,7 @@ def _segmentation_figure(path: Path, mean, truth, labels: dict) -> None:
     panels += [(f"{name}", found) for name, found in labels.items()]
     fig, axes = plt.subplots(1, len(panels), figsize=(3 * len(panels), 3.2), squeeze=False)
     for ax, (title, image) in zip(axes[0], panels, strict=True):
-        ax.imshow(image, cmap="tab10", interpolation="nearest")
+        ax.imshow(image, cmap="tab10", vmin=0, vmax=9, interpolation="nearest")
         ax.set_title(title, fontsize=9)
         ax.axis("off")
     fig.tight_layout()
@@ -377,8 +413,9 @@ def _segmentation_figure(path: Path, mean, truth, labels: dict) -> None:
 # --------------------------------------------------------------------------- evaluation
 
 
-def evaluate_stage(ctx: Context, data: Entry, normals: Entry, fitted: Entry,
-                   baselines: Entry) -> Entry:
+def evaluate_stage(
+    ctx: Context, data: Entry, normals: Entry, fitted: Entry, baselines: Entry
+) -> Entry:
     """Held-out and training RMS of the Fourier fit; the held-out and normals figures."""
     figures = _container(ctx.cfg.method.figures)
     clamp = bool(fitted.manifest["settings"]["clamp_diffuse"])
@@ -392,7 +429,8 @@ def evaluate_stage(ctx: Context, data: Entry, normals: Entry, fitted: Entry,
             "rmse_heldout_fourier": rms_error(predicted, test),
             "rmse_train_fourier": rms_error(
                 render_fourier(coeffs, data.array("train_dirs"), normal_map, clamp_diffuse=clamp),
-                train),
+                train,
+            ),
         }
         shown = np.linspace(0, len(test_dirs) - 1, min(figures["n_lights"], len(test_dirs)))
         shown = np.unique(shown.round().astype(int))
@@ -403,14 +441,19 @@ def evaluate_stage(ctx: Context, data: Entry, normals: Entry, fitted: Entry,
             "HSH": render_hsh(baselines.array("hsh"), test_dirs[shown]),
         }
         (folder / "figures").mkdir()
-        _heldout_figure(folder / "figures" / "heldout.png", rows, test_dirs[shown],
-                        float(figures["exposure"]))
+        _heldout_figure(
+            folder / "figures" / "heldout.png", rows, test_dirs[shown], float(figures["exposure"])
+        )
         _normals_figure(folder / "figures" / "normals.png", np.asarray(normal_map))
         save_json(folder, "metrics", metrics)
         return metrics
 
-    inputs = {"stack_data": data, "stack_normals": normals, "fourier_fit": fitted,
-              "relight_baselines": baselines}
+    inputs = {
+        "stack_data": data,
+        "stack_normals": normals,
+        "fourier_fit": fitted,
+        "relight_baselines": baselines,
+    }
     return ctx.run("fourier_evaluate", figures, inputs, compute)
 
 
@@ -422,18 +465,19 @@ def _heldout_figure(path: Path, rows: dict, dirs: np.ndarray, exposure: float) -
 
     reference = rows["reference"]
     names = list(rows)
-    fig, axes = plt.subplots(len(dirs), len(names), squeeze=False,
-                             figsize=(2.4 * len(names), 2.5 * len(dirs)))
+    fig, axes = plt.subplots(
+        len(dirs), len(names), squeeze=False, figsize=(2.4 * len(names), 2.5 * len(dirs))
+    )
     for i, light in enumerate(dirs):
         for j, name in enumerate(names):
             ax = axes[i, j]
             ax.imshow(display(rows[name][i], exposure), interpolation="nearest")
-            label = name if name == "reference" else (
-                f"{name}  RMS {rms_error(rows[name][i], reference[i]):.4f}")
+            if name == "reference":
+                label = "reference, l = ({:.2f}, {:.2f}, {:.2f})".format(*light)
+            else:
+                label = f"{name}  RMS {rms_error(rows[name][i], reference[i]):.4f}"
             ax.set_title(label, fontsize=8)
             ax.axis("off")
-        axes[i, 0].text(0, -0.02, "l = ({:.2f}, {:.2f}, {:.2f})".format(*light), fontsize=7,
-                        transform=axes[i, 0].transAxes, va="top")
     fig.suptitle("held-out lights: reference and relit models", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
@@ -452,8 +496,10 @@ def _normals_figure(path: Path, normals: np.ndarray) -> None:
 def describe(cfg, data: Entry) -> str:
     """A short run name: method, M, λ, data and normals."""
     root = Path(data.manifest["settings"]["root"]).name
-    return (f"{cfg.method.name} M={cfg.method.M} lam={cfg.method.lam} "
-            f"{cfg.dataset.name}:{root} normals={Path(str(cfg.dataset.normals)).name}")
+    return (
+        f"{cfg.method.name} M={cfg.method.M} lam={cfg.method.lam} "
+        f"{cfg.dataset.name}:{root} normals={Path(str(cfg.dataset.normals)).name}"
+    )
 
 
 def run(ctx: Context) -> dict[str, float]:
@@ -464,8 +510,11 @@ def run(ctx: Context) -> dict[str, float]:
     baselines = baselines_stage(ctx, data)
     segmented = segmentation_stage(ctx, data, fitted)
     evaluated = evaluate_stage(ctx, data, normals, fitted, baselines)
-    metrics = {**evaluated.json("metrics"), **baselines.json("metrics"),
-               **segmented.json("metrics")}
+    metrics = {
+        **evaluated.json("metrics"),
+        **baselines.json("metrics"),
+        **segmented.json("metrics"),
+    }
     summary = data.manifest["summary"]
     metrics.update(
         time_fit_fourier=fitted.manifest["summary"]["seconds"],

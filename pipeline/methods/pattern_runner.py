@@ -59,7 +59,11 @@ def target_settings(cfg) -> dict:
     """The target object of the pattern: the synthetic pot or a normal-map file."""
     pattern = cfg.method.pattern
     if str(pattern.target) == "pot":
-        return {"kind": "pot", "size": [int(n) for n in pattern.size], "seed": int(pattern.pot_seed)}
+        return {
+            "kind": "pot",
+            "size": [int(n) for n in pattern.size],
+            "seed": int(pattern.pot_seed),
+        }
     return {"kind": "file", **_file_settings("target", str(pattern.target))}
 
 
@@ -67,7 +71,8 @@ def target_normals(target: dict) -> tuple[np.ndarray, np.ndarray]:
     """(normals (H, W, 3), mask (H, W) of pixels on the object) of the target."""
     if target["kind"] == "pot":
         scene = make_synthetic_scene(
-            SyntheticStackConfig(size=tuple(target["size"]), seed=target["seed"]))
+            SyntheticStackConfig(size=tuple(target["size"]), seed=target["seed"])
+        )
         return scene.normals, scene.mask
     normals = load_normal_map(target["path"])
     return normals, np.ones(normals.shape[:2], dtype=bool)
@@ -107,20 +112,37 @@ def quilt_stage(ctx: Context, fitted: Entry, segmented: Entry, out_shape) -> Ent
                     f"{block}x{block} block: lower method.quilting.block_size"
                 )
             start = time.perf_counter()
-            quilted = quilt(source, out_shape, block, overlap, quilting["tolerance"],
-                            np.random.default_rng([quilting["seed"], region]), mask=mask)
+            quilted = quilt(
+                source,
+                out_shape,
+                block,
+                overlap,
+                quilting["tolerance"],
+                np.random.default_rng([quilting["seed"], region]),
+                mask=mask,
+            )
             summary["seconds_quilting"] += time.perf_counter() - start
-            tiled = random_tiling(source, out_shape, block, overlap,
-                                  np.random.default_rng([quilting["seed"], region, 1]), mask=mask)
+            tiled = random_tiling(
+                source,
+                out_shape,
+                block,
+                overlap,
+                np.random.default_rng([quilting["seed"], region, 1]),
+                mask=mask,
+            )
             summary[f"seam_cost_quilting_r{region}"] = seam_cost(quilted, block, overlap)
             summary[f"seam_cost_random_r{region}"] = seam_cost(tiled, block, overlap)
-            save_arrays(folder, **{
-                f"quilted_r{region}": quilted.reshape(*out_shape, 3, n_coeffs),
-                f"random_r{region}": tiled.reshape(*out_shape, 3, n_coeffs).astype(np.float32),
-            })
+            save_arrays(
+                folder,
+                **{
+                    f"quilted_r{region}": quilted.reshape(*out_shape, 3, n_coeffs),
+                    f"random_r{region}": tiled.reshape(*out_shape, 3, n_coeffs).astype(np.float32),
+                },
+            )
         for kind in ("quilting", "random"):
             summary[f"seam_cost_{kind}"] = float(
-                np.mean([summary[f"seam_cost_{kind}_r{r}"] for r in regions]))
+                np.mean([summary[f"seam_cost_{kind}_r{r}"] for r in regions])
+            )
         return summary
 
     inputs = {"fourier_fit": fitted, "stack_segmentation": segmented}
@@ -148,10 +170,12 @@ def weight_maps(pattern: dict, n_regions: int, shape) -> np.ndarray:
 def pattern_stage(ctx: Context, fitted: Entry, quilted: Entry, target: dict) -> Entry:
     """Render, blend (eq. 20) and write the optical pattern as PNG and EXR."""
     pattern = _container(ctx.cfg.method.pattern)
-    settings = {key: pattern[key] for key in ("light", "view", "weights", "exposure",
-                                              "mask_outside")}
-    settings[pattern["weights"]] = pattern.get(pattern["weights"])  # only the used generator
-    if pattern["weights"] not in ("stripes", "blobs"):
+    settings = {
+        key: pattern[key] for key in ("light", "view", "weights", "exposure", "mask_outside")
+    }
+    if pattern["weights"] in ("stripes", "blobs"):  # only the generator in use
+        settings[pattern["weights"]] = pattern[pattern["weights"]]
+    else:
         settings["weights_file"] = _file_settings("weights", pattern["weights"])
     settings["target"] = target
     clamp = bool(fitted.manifest["settings"]["clamp_diffuse"])
@@ -175,13 +199,15 @@ def pattern_stage(ctx: Context, fitted: Entry, quilted: Entry, target: dict) -> 
         colours = np.array([[0.9, 0.6, 0.3], [0.6, 0.1, 0.1], [0.2, 0.4, 0.8], [0.3, 0.7, 0.3]])
         palette = colours[np.arange(len(maps)) % len(colours)]
         write_image_8bit(out / "weights.png", np.einsum("nhw,nc->hwc", weights, palette))
-        _quilting_figure(out / "quilting.png", quilted, regions, light, view, clamp,
-                         pattern["exposure"])
+        _quilting_figure(
+            out / "quilting.png", quilted, regions, light, view, clamp, pattern["exposure"]
+        )
         save_arrays(folder, pattern=image, weights=weights.astype(np.float32))
         return {"mean": float(image[on_object].mean()), "max": float(image.max())}
 
-    return ctx.run("pattern_render", settings, {"pattern_quilt": quilted, "fourier_fit": fitted},
-                   compute)
+    return ctx.run(
+        "pattern_render", settings, {"pattern_quilt": quilted, "fourier_fit": fitted}, compute
+    )
 
 
 def _quilting_figure(path, quilted: Entry, regions, light, view, clamp, exposure) -> None:
@@ -202,7 +228,8 @@ def _quilting_figure(path, quilted: Entry, regions, light, view, clamp, exposure
             axes[row, col].imshow(fr.display(image, exposure), interpolation="nearest")
             axes[row, col].set_title(
                 f"region {region}: {kind}, seam cost {summary[f'seam_cost_{name}_r{region}']:.3g}",
-                fontsize=8)
+                fontsize=8,
+            )
             axes[row, col].axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
