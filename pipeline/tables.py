@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from pipeline.report import btf_tables  # noqa: E402
 from pipeline.report.fourier_tables import fourier_sections  # noqa: E402
-from pipeline.tracking import tracking_uri  # noqa: E402
+from pipeline.tracking import tracking_uri, use_store  # noqa: E402
 
 log = logging.getLogger(__name__)
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -39,7 +39,7 @@ def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> 
     """Finished runs of the given MLflow experiments as one DataFrame."""
     import mlflow
 
-    mlflow.set_tracking_uri(tracking_uri(runs_dir))
+    use_store(runs_dir)
     found = [e.name for e in mlflow.search_experiments()]
     names = [e for e in (experiments or found) if e in found]
     if not names:
@@ -77,7 +77,8 @@ def build_tables(runs_dir: str | Path, settings: DictConfig | None = None) -> Pa
         (out / "summary.md").write_text("\n".join(sections))
         print("\n".join(sections))
         return out
-    runs = btf_tables.label_runs(runs[runs["metrics.rmse"].notna()])
+    runs = btf_tables.drop_repeats(runs[runs["metrics.rmse"].notna()])
+    runs = btf_tables.label_runs(runs)
 
     sizes = btf_tables.table_sizes(runs)
     sections.append(_write(sizes, out, "table1_sizes", "Table 1: stored sizes in bytes",

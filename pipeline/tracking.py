@@ -40,16 +40,23 @@ def tracking_uri(runs: str | os.PathLike) -> str:
     return f"sqlite:///{Path(runs).resolve() / 'mlflow.db'}"
 
 
+def use_store(runs: str | os.PathLike) -> str:
+    """Point this process's MLflow client at the store of ``runs``; returns the URI."""
+    import mlflow
+
+    uri = tracking_uri(runs)
+    mlflow.set_tracking_uri(uri)
+    os.environ[_OWN_URI] = uri
+    return uri
+
+
 def init_store(runs: str | os.PathLike, experiment: str) -> str:
     """Create (or upgrade) the store and the experiment once; return the experiment id."""
-    import mlflow
     from mlflow.tracking import MlflowClient
 
     runs = Path(runs).resolve()
     runs.mkdir(parents=True, exist_ok=True)
-    uri = tracking_uri(runs)
-    mlflow.set_tracking_uri(uri)
-    os.environ[_OWN_URI] = uri
+    uri = use_store(runs)
     # The lock serializes schema creation between processes that share this folder.
     with open(runs / ".mlflow.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)

@@ -26,13 +26,14 @@ def _store(tmp_path, mlflow_template):
     mlflow_template(tmp_path)
 
 
-def _log_runs(runs_dir, rows, experiment="btf", failed=False):
+def _log_runs(runs_dir, rows, experiment="btf", failed=False, evaluate_key=None):
     experiment_id = init_store(runs_dir, experiment)
     for method, k, seed, rmse in rows:
         m = 10_000
         latents = (k or m) * 8 * 4
         listing = m * 4 if k else 0
-        with mlflow.start_run(experiment_id=experiment_id) as run:
+        tags = {"cache.evaluate": evaluate_key or f"{method}-{k}-{seed}-{rmse}"}
+        with mlflow.start_run(experiment_id=experiment_id, tags=tags) as run:
             mlflow.log_params({"method.name": method, "method.k": k, "seed": seed,
                                "dataset.name": "synthetic", "dataset.root": None,
                                "method.texel_scale": "none", "method.target": "texel"})
@@ -115,3 +116,10 @@ def test_filters_select_experiments(tmp_path, settings):
 def test_no_runs_says_so(tmp_path, settings):
     out = build_tables(tmp_path, settings)
     assert "No finished Neural BTF run" in (out / "summary.md").read_text()
+
+
+def test_a_rerun_of_the_same_job_is_not_another_seed(tmp_path, settings):
+    _log_runs(tmp_path, [("clustered", 500, 0, 0.03), ("clustered", 500, 1, 0.04)])
+    _log_runs(tmp_path, [("clustered", 500, 0, 0.03)])  # same stages, all cache hits
+    rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
+    assert rmse.loc[0, "k = 500"] == "0.0350 ± 0.0071 (n=2)"

@@ -64,6 +64,16 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     return runs
 
 
+def drop_repeats(runs: pd.DataFrame) -> pd.DataFrame:
+    """Keep one run per computation: a rerun of the same job (all its stages cache hits)
+    records the same result again and must not count as another seed."""
+    key = pd.Series(runs["run_id"], index=runs.index, dtype=object)
+    for tag in ("tags.cache.linear", "tags.cache.evaluate"):
+        if tag in runs:
+            key = runs[tag].where(runs[tag].notna(), key)
+    return runs.loc[~key.duplicated()]
+
+
 def _fmt_k(k: float) -> str:
     return "?" if pd.isna(k) else str(int(k))
 
