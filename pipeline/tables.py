@@ -81,10 +81,11 @@ def build_tables(runs_dir: str | Path, settings: DictConfig | None = None) -> Pa
     runs = btf_tables.label_runs(runs)
 
     sizes = btf_tables.table_sizes(runs)
-    sections.append(_write(sizes, out, "table1_sizes", "Table 1: stored sizes in bytes",
-                           "Ratio (exact) = original bytes / total bytes. Ratio (paper) = "
-                           "original in MB / total in whole KB, the paper's "
-                           "convention. Original = M x N x 3 float32."))
+    if not sizes.empty:
+        sections.append(_write(sizes, out, "table1_sizes", "Table 1: stored sizes in bytes",
+                               "Ratio (exact) = original bytes / total bytes. Ratio (paper) = "
+                               "original in MB / total in whole KB, the paper's "
+                               "convention. Original = M x N x 3 float32."))
     rmse = btf_tables.table_rmse(runs)
     sections.append(_write(rmse, out, "table2_rmse",
                            "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",

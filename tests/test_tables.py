@@ -123,3 +123,15 @@ def test_a_rerun_of_the_same_job_is_not_another_seed(tmp_path, settings):
     _log_runs(tmp_path, [("clustered", 500, 0, 0.03)])  # same stages, all cache hits
     rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
     assert rmse.loc[0, "k = 500"] == "0.0350 ± 0.0071 (n=2)"
+
+
+def test_different_crops_of_one_source_are_different_datasets(tmp_path, settings):
+    experiment_id = init_store(tmp_path, "btf")
+    for crop, n, rmse in ((12, 729, 0.16), (48, 6561, 0.03)):
+        with mlflow.start_run(experiment_id=experiment_id, tags={"cache.evaluate": str(crop)}):
+            mlflow.log_params({"method.name": "clustered", "method.k": 8, "seed": 0,
+                               "dataset.name": "synthetic", "crop.size": crop})
+            mlflow.log_metrics({"rmse": rmse, "n_directions": n})
+    rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
+    assert dict(zip(rmse["dataset"], rmse["k = 8"], strict=True)) == {
+        "synthetic 12²×729": "0.1600 (n=1)", "synthetic 48²×6561": "0.0300 (n=1)"}

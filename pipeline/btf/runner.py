@@ -272,4 +272,5 @@ def run_linear(ctx: Context) -> dict[str, float]:
     cropped = stages.crop(ctx, loaded)
     prep = stages.preprocess(ctx, cropped)
     fitted = linear_stage(ctx, cropped, prep)
-    return dict(fitted.json("metrics"))
+    return {**fitted.json("metrics"), "n_texels": cropped.manifest["summary"]["M"],
+            "n_directions": cropped.manifest["summary"]["N"]}

@@ -45,7 +45,14 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     leaf = root.map(lambda r: r.rstrip("/").split("/")[-1] if r not in ("", "None") else "")
     # Generic formats are told apart by their folder; presets (WOOL, ...) by their name.
     generic = name.isin(["ubo2003", "utia"]) & (leaf != "")
-    runs["dataset"] = np.where(generic, name + ":" + leaf, name)
+    label = pd.Series(np.where(generic, name + ":" + leaf, name), index=runs.index)
+    # The same source cropped or subset differently is a different dataset: a 12 x 12
+    # smoke crop must never be averaged with a 48 x 48 one.
+    crop = _num(runs.get("params.crop.size", pd.Series(np.nan, index=runs.index)))
+    n_dirs = _num(runs.get("metrics.n_directions", pd.Series(np.nan, index=runs.index)))
+    shape = [f" {int(c)}²×{int(n)}" if pd.notna(c) and pd.notna(n) else ""
+             for c, n in zip(crop, n_dirs, strict=True)]
+    runs["dataset"] = label + shape
     runs["k"] = _num(runs.get("params.method.k", pd.Series(np.nan, index=runs.index)))
     runs["seed"] = _num(runs["params.seed"])
     method = runs["params.method.name"]
@@ -90,7 +97,13 @@ def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
     rounded to 1 KB), which reproduces the paper's 1:1885, 1:5127, 1:4633, 1:3904.
     """
     rows = []
+    needed = [f"metrics.{m}" for m, _ in SIZE_ROWS] + ["metrics.bytes_original"]
+    if any(column not in runs for column in needed):
+        return pd.DataFrame()
     for (dataset, model), group in runs.groupby(["dataset", "model"], sort=False):
+        group = group.dropna(subset=needed)
+        if group.empty:
+            continue
         first = group.iloc[0]
         row = {"dataset": dataset, "model": model}
         for metric, name in SIZE_ROWS:
