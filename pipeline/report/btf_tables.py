@@ -138,7 +138,8 @@ def table_rmse(runs: pd.DataFrame, metric: str = "rmse") -> pd.DataFrame:
     table = runs.pivot_table(
         index="dataset", columns="model", values=f"metrics.{metric}", aggfunc=_mean_std
     )
-    return table.reindex(columns=[c for c in columns if c in table.columns])
+    table = table.reindex(columns=[c for c in columns if c in table.columns])
+    return table.fillna("–")  # no run of that model on that dataset
 
 
 def table_interpolation(runs: pd.DataFrame) -> pd.DataFrame:
