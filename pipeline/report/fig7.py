@@ -63,6 +63,8 @@ def draw_fig7(runs: pd.DataFrame, pairs_degrees: list, out_dir: Path) -> list[Pa
     pairs_degrees : list of [theta_l, phi_l, theta_v, phi_v] in degrees.
     """
     written: list[Path] = []
+    for stale in out_dir.glob("fig7_*"):  # figures of runs that are gone must not linger
+        stale.unlink()
     queries = np.radians(np.asarray(pairs_degrees, dtype=np.float64).reshape(-1, 4))
     for dataset, group in runs.groupby("dataset"):
         group = group.sort_values(["order", "model", "seed"]).drop_duplicates("model")
@@ -88,15 +90,20 @@ def draw_fig7(runs: pd.DataFrame, pairs_degrees: list, out_dir: Path) -> list[Pa
                 if image is not None:
                     row.append((run["model"], image))
             panels.append(row)
-        safe = "".join(c if c.isalnum() else "_" for c in dataset)
+        safe = _file_name(dataset)
         written.append(_plot(panels, out_dir / f"fig7_{safe}.png", dataset))
         for i, row in enumerate(panels):
             for label, image in row:
-                name = "".join(c if c.isalnum() else "_" for c in label.split("\n")[0])
+                name = _file_name(label.split("\n")[0])
                 path = out_dir / f"fig7_{safe}_pair{i}_{name}.exr"
                 write_exr(path, (image * alpha).astype(np.float32))
                 written.append(path)
     return written
+
+
+def _file_name(text: str) -> str:
+    """ASCII letters and digits only (a label like "synthetic 48²×6561" is not a file name)."""
+    return "".join(c if c.isascii() and c.isalnum() else "_" for c in text)
 
 
 def _plot(panels, path: Path, title: str) -> Path:
