@@ -25,3 +25,16 @@ def test_paper_experiment_produces_table1_with_the_papers_bytes(tmp_path):
     assert list(sizes["latents [B]"]) == [320_000, 16_000, 32_000, 64_000]
     assert list(sizes["list [B]"]) == [0, 40_000, 40_000, 40_000]
     assert set(sizes["original [B]"]) == {787_320_000}
+
+
+@pytest.mark.slow
+def test_bench_prints_its_figures_as_json(capsys):
+    import json
+
+    from pipeline.bench import main
+
+    figures = main(["--steps", "2", "--no-mlflow"])
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert json.loads(last) == json.loads(json.dumps(figures))
+    assert figures["decoder_parameters"] == 24_383
+    assert figures["train_naive"]["queries_per_s"] > 0
