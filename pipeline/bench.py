@@ -7,7 +7,7 @@ reconstruction throughput; the last line is one JSON object, also logged to MLfl
 (experiment ``bench``). Timings are medians of repeats; compare figures as ratios within
 one run, never across noisy runs. This is a measurement tool, not a test.
 
-    python -m pipeline.bench [--threads 1] [--steps 20] [--runs runs]
+    python -m pipeline.bench [--threads 1] [--steps 20] [--runs runs] [--load-size 256]
 """
 
 from __future__ import annotations
@@ -90,12 +90,43 @@ def reconstruction_throughput(latents: int) -> float:
     return latents * N_PAPER / _median_seconds(run, 3)
 
 
+def load_times(runs: str, size: int) -> dict:
+    """Seconds to load a full UBO2003-layout folder (6561 JPEGs of size x size) through the
+    load stage: decoded (a cache miss) and again from the stage cache (a hit)."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+
+    from pipeline.data.synthetic_btf import write_synthetic_btf
+    from pipeline.stages import Context, load
+
+    root = write_synthetic_btf(Path(runs) / "data" / f"bench_ubo2003_{size}", size=size, seed=0)
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("config", overrides=[
+            "experiment=smoke", "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null",
+            f"paths.runs={runs}", f"paths.cache={Path(runs) / 'bench_cache'}"])
+    import shutil
+
+    shutil.rmtree(cfg.paths.cache, ignore_errors=True)
+    times = {}
+    for name in ("decode", "cached"):
+        start = time.perf_counter()
+        entry = load(Context.from_config(cfg))
+        times[f"load_{name}_s"] = time.perf_counter() - start
+    times["load_images"] = int(entry.manifest["summary"]["n_images"])
+    return times
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     parser.add_argument("--steps", type=int, default=10, help="training steps per timing")
     parser.add_argument("--runs", default="runs", help="paths.runs holding mlflow.db")
     parser.add_argument("--no-mlflow", action="store_true")
+    parser.add_argument("--load-size", type=int, default=0,
+                        help="also time loading a 6561-file UBO2003 folder of this texture size "
+                             "(256 = the real datasets; generated once under --runs)")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -118,6 +149,11 @@ def main(argv=None) -> dict:
     print(f"reconstruction: {figures['reconstruct_queries_per_s'] / 1e6:.3f} M queries/s "
           f"(Neural BTF all M x N at paper size: "
           f"{10_000 * N_PAPER / figures['reconstruct_queries_per_s']:.0f} s)")
+    if args.load_size:
+        figures.update(load_times(args.runs, args.load_size))
+        print(f"load {figures['load_images']} JPEGs of {args.load_size}^2: decode "
+              f"{figures['load_decode_s']:.1f} s, from the stage cache "
+              f"{figures['load_cached_s']:.2f} s")
     if not args.no_mlflow:
         import mlflow
 
