@@ -164,3 +164,15 @@ def test_linear_baseline_recovers_low_rank_data_and_counts_its_bytes():
     assert components_for_budget(169_532, 10_000, 6561, "float16") == 2
     with pytest.raises(ConfigError, match="cannot hold one float32 component"):
         components_for_budget(169_532, 10_000, 6561, "float32")
+
+
+def test_texel_scale_is_in_every_figure_of_the_run():
+    abrdf, features = _tiny_btf(m=40)
+    labels = np.arange(40) % 3
+    latents = np.random.default_rng(0).standard_normal((3, 8)).astype(np.float32)
+    recon = reconstruction_error(Decoder(), latents, labels, abrdf, 1.0, features,
+                                 texel_scale="lstsq")
+    assert recon.rmse == recon.rmse_scaled < recon.rmse_unscaled
+    assert recon.texel_scale.shape == (40,)
+    # The per-direction errors are those of the scaled reconstruction too.
+    assert np.sqrt(np.mean(recon.rmse_per_direction**2)) == pytest.approx(recon.rmse)

@@ -90,7 +90,7 @@ def reconstruction_error(
     clustered = latents.shape[0] != m or not np.array_equal(latent_of_texel, np.arange(m))
     decoded = decode_all(decoder, latents, dir_features) if clustered else None
     sq_dir = np.zeros(n, dtype=np.float64)
-    sq_scaled = 0.0
+    sq_dir_scaled = np.zeros(n, dtype=np.float64)
     scales = np.empty(m, dtype=np.float32) if clustered else None
     for start in range(0, m, chunk):
         stop = min(start + chunk, m)
@@ -100,7 +100,7 @@ def reconstruction_error(
             mode = texel_scale if texel_scale != "none" else "lstsq"
             scales[start:stop] = texel_scales(target, pred, mode)
             diff_scaled = pred * scales[start:stop, None, None] - target
-            sq_scaled += float(np.square(diff_scaled, dtype=np.float64).sum())
+            sq_dir_scaled += np.square(diff_scaled, dtype=np.float64).sum(axis=(0, 2))
         else:
             pred = decode_all(decoder, latents[start:stop], dir_features)
         sq_dir += np.square(pred - target, dtype=np.float64).sum(axis=(0, 2))
@@ -108,8 +108,10 @@ def reconstruction_error(
     rmse_unscaled = float(np.sqrt(sq_dir.sum() / (m * n * 3)))
     if not clustered:
         return Reconstruction(rmse_unscaled, rmse_per_direction)
-    rmse_scaled = float(np.sqrt(sq_scaled / (m * n * 3)))
+    rmse_scaled = float(np.sqrt(sq_dir_scaled.sum() / (m * n * 3)))
     use_scale = texel_scale != "none"
+    if use_scale:  # every figure of a run describes what that run stores
+        rmse_per_direction = np.sqrt(sq_dir_scaled / (m * 3))
     return Reconstruction(
         rmse=rmse_scaled if use_scale else rmse_unscaled,
         rmse_per_direction=rmse_per_direction,

@@ -135,8 +135,12 @@ def measure(
     latent_of_texel: np.ndarray,
     rmse_per_direction: np.ndarray,
     heldout: np.ndarray,
+    texel_scale: np.ndarray | None = None,
 ) -> dict[str, float]:
-    """Interpolation metrics (all in the normalized [0, 1] space)."""
+    """Interpolation metrics (all in the normalized [0, 1] space).
+
+    ``texel_scale`` (M,), when the clustered model stores one, multiplies its predictions.
+    """
     abrdf = cropped.array("abrdf")
     directions = cropped.array("directions", mmap=False)
     alpha = np.float32(norm.alpha)
@@ -163,6 +167,8 @@ def measure(
         truth = truth[:, y0 : y0 + size, x0 : x0 + size].reshape(len(queries), -1, 3)
         truth = truth.transpose(1, 0, 2) / alpha
         model = _model_predict(decoder, latents, latent_of_texel, queries)
+        if texel_scale is not None:
+            model = model * texel_scale[:, None, None]
         nearest, linear = interp.predict(abrdf, queries)
         metrics["rmse_offgrid_model"] = _rmse(model, truth)
         metrics["rmse_offgrid_nearest"] = _rmse(nearest / alpha, truth)

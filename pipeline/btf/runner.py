@@ -28,7 +28,7 @@ from pipeline.stages import Context, _container
 
 log = logging.getLogger(__name__)
 
-stages.VERSIONS.update({"train": "1", "evaluate": "1", "linear": "1"})
+stages.VERSIONS.update({"train": "1", "evaluate": "2", "linear": "1"})
 
 
 def _train_settings(cfg):
@@ -180,7 +180,7 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         heldout = np.asarray(trained.manifest["settings"]["heldout_lights"], dtype=int)
         metrics.update(
             interpolation.measure(cfg, cropped, norm, decoder, latents, latent_of_texel,
-                                  recon.rmse_per_direction, heldout)
+                                  recon.rmse_per_direction, heldout, recon.texel_scale)
         )
         save_arrays(folder, rmse_per_direction=recon.rmse_per_direction)
         if recon.texel_scale is not None:
