@@ -114,3 +114,15 @@ def test_pca_baseline_runs_through_the_app(smoke_cfg):
     assert rmse < run.data.metrics["rmse_mean_abrdf"]
     m, n = 144, 9 * 81
     assert run.data.metrics["bytes_total"] == 4 * (4 * 3 * n + m * 3)
+
+
+def test_tables_draw_fig7_from_the_cached_models(smoke_cfg):
+    from pipeline.tables import build_tables
+
+    cfg = smoke_cfg()
+    run_job(cfg)
+    out = build_tables(cfg.paths.runs)
+    pngs = sorted(p.name for p in out.glob("fig7_*.png"))
+    assert pngs == ["fig7_synthetic_12__729.png"]
+    # One EXR per pair and panel: reference + the one model, two direction pairs.
+    assert len(list(out.glob("fig7_*.exr"))) == 4

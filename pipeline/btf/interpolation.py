@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.btf.stereographic import direction_features, stereographic
-from pipeline.data.directions import grid_81
+from pipeline.data.directions import direction_index, grid_81, unit_vectors
 
 OFFGRID_MAX_THETA = np.radians(70.0)  # inside the 75-degree ring, so inside the triangulation
 
@@ -37,22 +37,14 @@ def heldout_light_indices(cfg) -> np.ndarray:
 
 def _direction_ids(angles: np.ndarray) -> np.ndarray:
     """Grid index of each (theta, phi) in radians (exact grid directions only)."""
-    grid = np.round(np.degrees(grid_81())).astype(int)
-    lookup = {(t, p % 360): i for i, (t, p) in enumerate(grid)}
     degrees = np.round(np.degrees(angles)).astype(int)
-    return np.array([lookup[(t, p % 360)] for t, p in degrees])
+    return np.array([direction_index(t, p % 360) for t, p in degrees])
 
 
 def training_directions(directions: np.ndarray, heldout: np.ndarray) -> np.ndarray:
     """Column indices (into the ABRDF's N directions) whose light is not held out."""
     light_ids = _direction_ids(directions[:, :2])
     return np.flatnonzero(~np.isin(light_ids, heldout))
-
-
-def _unit(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    return np.stack(
-        [np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], axis=-1
-    )
 
 
 class ProductInterpolator:
@@ -74,7 +66,7 @@ class ProductInterpolator:
     def _weights(points: np.ndarray, queries: np.ndarray):
         """Barycentric (index, weight) triples; nearest point when outside the hull."""
         p2, q2 = stereographic(*points.T), stereographic(*queries.T)
-        nearest = np.argmax(_unit(*queries.T) @ _unit(*points.T).T, axis=1)
+        nearest = np.argmax(unit_vectors(*queries.T) @ unit_vectors(*points.T).T, axis=1)
         idx = np.repeat(nearest[:, None], 3, axis=1)
         w = np.tile([1.0, 0.0, 0.0], (len(queries), 1))
         if len(points) >= 3:
@@ -109,12 +101,9 @@ def _rmse(pred: np.ndarray, target: np.ndarray) -> float:
 
 
 def _model_predict(decoder, latents, latent_of_texel, queries) -> np.ndarray:
-    import torch
+    from pipeline.btf.evaluate import decode_all
 
-    with torch.no_grad():
-        feats = torch.from_numpy(direction_features(queries))
-        decoded = decoder.decode_grid(torch.from_numpy(latents), feats).numpy()
-    return decoded[latent_of_texel]
+    return decode_all(decoder, latents, direction_features(queries))[latent_of_texel]
 
 
 def offgrid_directions(count: int, seed: int) -> np.ndarray:

@@ -102,6 +102,12 @@ _INDEX_OF_DEGREES: dict[tuple[int, int], int] = {
 }
 
 
+def unit_vectors(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Angles in radians, any shape, to unit vectors of shape theta.shape + (3,)."""
+    sin_theta = np.sin(theta)
+    return np.stack([sin_theta * np.cos(phi), sin_theta * np.sin(phi), np.cos(theta)], axis=-1)
+
+
 def direction_index(theta_degrees: int, phi_degrees: int) -> int:
     """Canonical index (0..80) of a grid direction given in whole degrees.
 

@@ -49,6 +49,7 @@ from pipeline.data.directions import (
     direction_index,
     grid_81_degrees,
     ubo2003_file_name,
+    unit_vectors,
     utia_file_name,
     view_folder_name,
 )
@@ -73,12 +74,6 @@ _SHADOW_STRENGTH = 0.55
 _EXPOSURE = 3.0  # about 3e-5 of the values at grid directions clip at 1
 _GENERATOR_VERSION = 1
 _MARKER_NAME = "synthetic_btf.json"
-
-
-def _unit_vectors(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """(n,) angles in radians to (n, 3) unit vectors."""
-    sin_theta = np.sin(theta)
-    return np.stack([sin_theta * np.cos(phi), sin_theta * np.sin(phi), np.cos(theta)], axis=-1)
 
 
 @dataclass(frozen=True)
@@ -276,8 +271,8 @@ class SyntheticBTF:
         maps = self._flat_maps
         theta_light = np.clip(directions[:, 0], 0.0, np.pi)
         theta_view = np.clip(directions[:, 2], 0.0, np.pi)
-        light = _unit_vectors(theta_light, directions[:, 1]).astype(np.float32)
-        view = _unit_vectors(theta_view, directions[:, 3]).astype(np.float32)
+        light = unit_vectors(theta_light, directions[:, 1]).astype(np.float32)
+        view = unit_vectors(theta_view, directions[:, 3]).astype(np.float32)
         halfway = light + view
         halfway /= np.maximum(np.linalg.norm(halfway, axis=1, keepdims=True), 1e-12)
         light_dot_half = np.clip(np.sum(light * halfway, axis=1), 1e-4, 1.0)[:, None]  # (c, 1)

@@ -17,23 +17,21 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-import torch  # noqa: E402
 
-from pipeline.btf.model import Decoder, direction_features  # noqa: E402
+from pipeline.btf.evaluate import decode_all  # noqa: E402
+from pipeline.btf.runner import load_decoder  # noqa: E402
+from pipeline.btf.stereographic import direction_features  # noqa: E402
 from pipeline.cache import StageCache  # noqa: E402
+from pipeline.data.directions import unit_vectors  # noqa: E402
 from pipeline.data.images import gamma_encode, write_exr  # noqa: E402
 
 log = logging.getLogger(__name__)
 
 
-def _unit(theta, phi):
-    return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
-
-
 def nearest_direction(directions: np.ndarray, query: np.ndarray) -> int:
     """Index of the measured (light, view) pair closest to ``query`` (sum of both angles)."""
-    light = _unit(directions[:, 0], directions[:, 1]) @ _unit(query[0], query[1])
-    view = _unit(directions[:, 2], directions[:, 3]) @ _unit(query[2], query[3])
+    light = unit_vectors(directions[:, 0], directions[:, 1]) @ unit_vectors(query[0], query[1])
+    view = unit_vectors(directions[:, 2], directions[:, 3]) @ unit_vectors(query[2], query[3])
     return int(np.argmax(light + view))
 
 
@@ -42,12 +40,9 @@ def _reconstruct(cache: StageCache, run: pd.Series, query: np.ndarray) -> np.nda
     trained = cache.lookup("train", str(run.get("tags.cache.train")))
     if trained is None:
         return None
-    decoder = Decoder()
-    decoder.load_state_dict(torch.load(trained.file("decoder.pt"), weights_only=True))
-    latents = torch.from_numpy(trained.array("latents", mmap=False))
-    with torch.no_grad():
-        decoded = decoder.eval().decode_grid(latents, torch.from_numpy(direction_features(query)))
-    values = decoded.numpy()[trained.array("latent_of_texel", mmap=False), 0]
+    decoded = decode_all(load_decoder(trained), trained.array("latents", mmap=False),
+                         direction_features(query))
+    values = decoded[trained.array("latent_of_texel", mmap=False), 0]
     evaluated = cache.lookup("evaluate", str(run.get("tags.cache.evaluate")))
     if evaluated is not None and (evaluated.path / "texel_scale.npy").is_file():
         values = values * evaluated.array("texel_scale", mmap=False)[:, None]
