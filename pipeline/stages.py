@@ -58,7 +58,7 @@ class Context:
         return entry
 
 
-def _container(node):
+def plain_settings(node):
     """A plain dict/list copy of a config node (resolved); other values pass through."""
     if isinstance(node, Container):
         return OmegaConf.to_container(node, resolve=True)
@@ -74,8 +74,8 @@ def dataset_root(cfg: DictConfig) -> Path:
     if ds.name == "synthetic" and ds.root is None:
         from pipeline.data.synthetic_btf import write_synthetic_btf
 
-        gen = _container(ds.synthetic)
-        views = _container(ds.views)
+        gen = plain_settings(ds.synthetic)
+        views = plain_settings(ds.views)
         tag = hashlib.sha256(canonical_json({"gen": gen, "views": views}).encode()).hexdigest()
         root = Path(cfg.paths.data) / f"synthetic_btf-{ds.format}-{gen['ext']}-{tag[:10]}"
         if not root.is_dir():
@@ -117,7 +117,7 @@ def load(ctx: Context) -> Entry:
 
     ds = ctx.cfg.dataset
     root = dataset_root(ctx.cfg).resolve()
-    views = _container(ds.views)
+    views = plain_settings(ds.views)
     settings = {
         "format": ds.format,
         "root": str(root),
@@ -144,7 +144,7 @@ def load(ctx: Context) -> Entry:
 
 def crop(ctx: Context, loaded: Entry) -> Entry:
     """Cut a ``crop.size`` square at ``crop.offset`` and lay it out as ABRDFs (M, N, 3)."""
-    settings = _container(ctx.cfg.crop)
+    settings = plain_settings(ctx.cfg.crop)
     size = int(settings["size"])
     y0, x0 = (int(v) for v in settings["offset"])
     images = loaded.array("images")
@@ -196,7 +196,7 @@ def normalization(entry: Entry) -> Normalization:
 
 def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     """PCA of the preprocessed ABRDFs; independent of k and of the run's seed."""
-    settings = _container(ctx.cfg.pca)
+    settings = plain_settings(ctx.cfg.pca)
 
     def compute(folder: Path) -> dict:
         from pipeline.btf.clustering import pca_reduce
@@ -217,7 +217,7 @@ def kmeans(ctx: Context, reduced: Entry) -> Entry:
     k = ctx.cfg.method.k
     n_texels = reduced.array("scores").shape[0]
     check_k(k, n_texels)
-    settings = {"k": k, "seed": ctx.cfg.seed, **_container(ctx.cfg.kmeans)}
+    settings = {"k": k, "seed": ctx.cfg.seed, **plain_settings(ctx.cfg.kmeans)}
 
     def compute(folder: Path) -> dict:
         labels, centers, inertia = kmeans_pp(

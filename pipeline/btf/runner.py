@@ -24,7 +24,7 @@ from pipeline.btf import interpolation
 from pipeline.btf.stereographic import direction_features
 from pipeline.cache import Entry, save_arrays, save_json
 from pipeline.errors import ConfigError
-from pipeline.stages import Context, _container
+from pipeline.stages import Context, plain_settings
 
 log = logging.getLogger(__name__)
 
@@ -32,19 +32,18 @@ stages.VERSIONS.update({"train": "1", "evaluate": "2", "linear": "1"})
 
 
 def _train_settings(cfg):
+    from dataclasses import fields
+
     from pipeline.btf.train_settings import TrainSettings
 
-    settings = _container(cfg.train)
+    settings = plain_settings(cfg.train)
     lr = settings.pop("lr", None)
-    if lr is None:
-        lr = cfg.method.lr
-    fields = _TRAIN_FIELDS | _SPEED_ONLY
-    return TrainSettings(lr=lr, **{k: settings[k] for k in settings if k in fields})
+    unknown = set(settings) - {f.name for f in fields(TrainSettings)}
+    if unknown:
+        raise ConfigError(f"unknown train settings: {sorted(unknown)}")
+    return TrainSettings(lr=cfg.method.lr if lr is None else lr, **settings)
 
 
-_TRAIN_FIELDS = {
-    "epochs", "batch_size", "queries_per_abrdf", "max_steps", "device", "momentum", "optimizer",
-}
 # Settings that change how fast training runs but not what it computes: not in the key.
 _SPEED_ONLY = {"threads"}
 
@@ -61,7 +60,7 @@ def train_stage(
         "method": method.name,
         "target": method.get("target", "texel"),
         "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY},
-        "model": _container(cfg.model),
+        "model": plain_settings(cfg.model),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),
     }
@@ -144,9 +143,9 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
     texel_scale = method.get("texel_scale", "none") if clustered else "none"
     settings = {
         "texel_scale": texel_scale,
-        "sizes": _container(cfg.sizes),
-        "interpolation": _container(cfg.interpolation),
-        "dataset": _container(cfg.dataset) if cfg.dataset.name == "synthetic" else None,
+        "sizes": plain_settings(cfg.sizes),
+        "interpolation": plain_settings(cfg.interpolation),
+        "dataset": plain_settings(cfg.dataset) if cfg.dataset.name == "synthetic" else None,
     }
 
     def compute(folder: Path) -> dict:

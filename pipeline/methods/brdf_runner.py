@@ -51,7 +51,7 @@ from pipeline.methods.microfacet_model import (
     MicrofacetFit,
     MixtureParams,
 )
-from pipeline.stages import Context, _container
+from pipeline.stages import Context, plain_settings
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ _NOT_EM_KEYS = {"name", "baselines", "figures"}
 
 def em_settings(cfg) -> MicrofacetEMSettings:
     """``method.*`` as :class:`MicrofacetEMSettings`; an unknown key is a ConfigError."""
-    method = _container(cfg.method)
+    method = plain_settings(cfg.method)
     known = {f.name for f in fields(MicrofacetEMSettings)}
     unknown = sorted(set(method) - known - _NOT_EM_KEYS)
     if unknown:
@@ -85,7 +85,7 @@ def _source(cfg) -> tuple[Path, SyntheticAnisotropicBRDF | None]:
     """The file to read and, for the built-in BRDF, its generator (written on first use)."""
     ds = cfg.dataset
     if ds.get("root") is None and ds.get("synthetic") is not None:
-        gen = _container(ds.synthetic)
+        gen = plain_settings(ds.synthetic)
         for name in ("specular_scale", "diffuse_albedo"):
             gen[name] = tuple(gen[name])
         truth = SyntheticAnisotropicBRDF(**gen)
@@ -241,7 +241,7 @@ def baselines_stage(ctx: Context, data: Entry) -> Entry:
     """Baselines: the fit without prior (w_u = 0) and plain Ashikhmin-Shirley."""
     # w_u is 0 here whatever method.prior_strength says, so a sweep over w_u reuses this entry.
     em = replace(em_settings(ctx.cfg), prior_strength=0.0)
-    base = _container(ctx.cfg.method.baselines)
+    base = plain_settings(ctx.cfg.method.baselines)
     settings = {"em": asdict(em), "seed": ctx.cfg.seed, **base}
 
     def compute(folder: Path) -> dict:
@@ -359,7 +359,7 @@ def _figures(folder: Path, fig_cfg: dict, raw, models: dict) -> None:
 
 def evaluate_stage(ctx: Context, data: Entry, fitted: Entry, baselines: Entry) -> Entry:
     """Metrics of the method and both baselines, the figures, the complete reconstruction."""
-    fig_cfg = _container(ctx.cfg.method.figures)
+    fig_cfg = plain_settings(ctx.cfg.method.figures)
 
     def compute(folder: Path) -> dict:
         brdf = measured_brdf(data)

@@ -52,7 +52,7 @@ from pipeline.methods.segmentation import (
     segment_kmeans,
     segmentation_accuracy,
 )
-from pipeline.stages import Context, _container, folder_fingerprint
+from pipeline.stages import Context, folder_fingerprint, plain_settings
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +133,7 @@ def stack_root(cfg) -> Path:
     """The stack folder; the built-in synthetic pot is written under paths.data first."""
     ds = cfg.dataset
     if ds.get("root") is None and ds.name == "synthetic_stack":
-        gen = _container(ds.synthetic)
+        gen = plain_settings(ds.synthetic)
         tag = hashlib.sha256(canonical_json(gen).encode()).hexdigest()[:10]
         root = (Path(cfg.paths.data) / f"synthetic_stack-{tag}").resolve()
         if not (root / "scene.json").is_file():
@@ -182,7 +182,7 @@ def data_stage(ctx: Context) -> Entry:
     """Read (or generate) the stack, split the lights, shrink, store arrays."""
     ds = ctx.cfg.dataset
     root = stack_root(ctx.cfg)
-    crop = _container(ds.get("crop"))
+    crop = plain_settings(ds.get("crop"))
     factor = int(ds.get("downsample") or 1)
     if factor < 1:
         raise ConfigError(f"dataset.downsample={factor} must be an integer >= 1")
@@ -234,7 +234,7 @@ def normals_stage(ctx: Context, data: Entry) -> Entry:
     mode = str(ds.get("normals") or "flat")
     settings: dict = {"mode": mode}
     if mode == "photometric":
-        settings.update(_container(ds.photometric))
+        settings.update(plain_settings(ds.photometric))
     elif mode == "given" and not data.manifest["summary"]["given_normals"]:
         raise ConfigError(
             f"dataset.normals=given but {data.manifest['settings']['root']} has no "
@@ -352,7 +352,7 @@ def representative_points(regions: np.ndarray) -> list[list[int]]:
 
 def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
     """Labels by the paper's method (when points exist) and by k-means; accuracy vs truth."""
-    seg = _container(ctx.cfg.method.segmentation)
+    seg = plain_settings(ctx.cfg.method.segmentation)
     if seg["features"] not in ("mean_colour", "coefficients"):
         raise ConfigError(
             f"method.segmentation.features={seg['features']!r} is not mean_colour or coefficients"
@@ -417,7 +417,7 @@ def evaluate_stage(
     ctx: Context, data: Entry, normals: Entry, fitted: Entry, baselines: Entry
 ) -> Entry:
     """Held-out and training RMS of the Fourier fit; the held-out and normals figures."""
-    figures = _container(ctx.cfg.method.figures)
+    figures = plain_settings(ctx.cfg.method.figures)
     clamp = bool(fitted.manifest["settings"]["clamp_diffuse"])
 
     def compute(folder: Path) -> dict:

@@ -40,7 +40,7 @@ from pipeline.methods.optical_pattern import (
     stripe_weights,
 )
 from pipeline.methods.quilting import candidate_positions, quilt, random_tiling, seam_cost
-from pipeline.stages import Context, _container
+from pipeline.stages import Context, plain_settings
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,7 @@ def target_normals(target: dict) -> tuple[np.ndarray, np.ndarray]:
 
 def quilt_stage(ctx: Context, fitted: Entry, segmented: Entry, out_shape) -> Entry:
     """Quilt each region's coefficients to ``out_shape``; random tiling as the baseline."""
-    quilting = _container(ctx.cfg.method.quilting)
+    quilting = plain_settings(ctx.cfg.method.quilting)
     if quilting["labels"] not in ("paper", "kmeans"):
         raise ConfigError(f"method.quilting.labels={quilting['labels']!r} is not paper or kmeans")
     if not segmented.file(f"labels_{quilting['labels']}.npy").is_file():
@@ -169,7 +169,7 @@ def weight_maps(pattern: dict, n_regions: int, shape) -> np.ndarray:
 
 def pattern_stage(ctx: Context, fitted: Entry, quilted: Entry, target: dict) -> Entry:
     """Render, blend (eq. 20) and write the optical pattern as PNG and EXR."""
-    pattern = _container(ctx.cfg.method.pattern)
+    pattern = plain_settings(ctx.cfg.method.pattern)
     settings = {
         key: pattern[key] for key in ("light", "view", "weights", "exposure", "mask_outside")
     }

@@ -212,12 +212,10 @@ def missing_runs(runs: pd.DataFrame, ks: list[int]) -> list[str]:
     and cells with fewer than two seeds (no spread can be measured)."""
     notes = []
     for dataset, group in runs.groupby("dataset"):
-        have = set(group["model"])
         for model in ["Neural BTF"] + [f"k = {k}" for k in ks]:
             n = int((group["model"] == model).sum())
             if n == 0:
                 notes.append(f"{dataset}: no run of {model}")
             elif n == 1:
                 notes.append(f"{dataset}: {model} has 1 seed (no seed spread)")
-        del have
     return notes
