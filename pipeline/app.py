@@ -9,6 +9,7 @@ import mlflow
 from omegaconf import DictConfig
 
 from pipeline.btf import runner as btf_runner
+from pipeline.memory import process_peak_mb
 from pipeline.methods import brdf_runner, fourier_runner, pattern_runner
 from pipeline.stages import Context
 from pipeline.tracking import job_run
@@ -40,5 +41,7 @@ def run_job(cfg: DictConfig) -> float | None:
         finally:
             mlflow.set_tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
             mlflow.log_metrics({f"seconds_{s}": t for s, t in ctx.seconds.items()})
+            mlflow.log_metrics({f"peak_rss_mb_{s}": v for s, v in ctx.peak_rss_mb.items()})
+            mlflow.log_metric("peak_rss_mb", process_peak_mb())
         mlflow.log_metrics(metrics)
     return metrics.get("rmse")

@@ -1,13 +1,23 @@
-"""``python -m pipeline.bench``: throughput figures of method A at the paper's sizes.
+"""``python -m pipeline.bench``: speed and memory figures of method A at the paper's sizes.
 
-Prints, in one run on one machine: the float32 matrix-multiply peak (the yardstick), the
-decoder training throughput of a naive loop at the paper's batch (5 ABRDFs x all N
-directions per step) and of the configured path, the encoder throughput, and the
-reconstruction throughput; the last line is one JSON object, also logged to MLflow
-(experiment ``bench``). Timings are medians of repeats; compare figures as ratios within
-one run, never across noisy runs. This is a measurement tool, not a test.
+Prints, in one run on one machine:
 
-    python -m pipeline.bench [--threads 1] [--steps 20] [--runs runs] [--load-size 256]
+- the float32 matrix-multiply peak (the yardstick), at the threads the figures use;
+- decoder training throughput at the paper's batch (5 ABRDFs x all 6561 directions per
+  step) of a naive autograd loop and of ``pipeline.btf.train.train`` (the fused, chunked,
+  threaded step), in queries/s, GFLOP/s and as a share of the peak, and of the recipe
+  ``experiment=paper`` uses (32 ABRDFs x 1024 directions);
+- encoder throughput (ABRDFs/s, forward and backward);
+- reconstruction throughput: Neural BTF (all M x N) and clustered (k x N decoded once);
+- with ``--paper-run``: time and peak resident memory of every stage of a paper-size run
+  on the synthetic BTF (one Neural BTF and one clustered job, each in its own process);
+- with ``--load-size 256``: loading a 6561-file UBO2003 folder, decoded and cached.
+
+The last line is one JSON object (keys in README.md), also logged to MLflow (experiment
+``bench`` under ``--runs``). Timings are medians of repeats; compare them as ratios within
+one run, never across runs on a shared machine. A measurement tool, not a test.
+
+    python -m pipeline.bench [--threads 2] [--paper-run] [--load-size 256] [--runs runs]
 """
 
 from __future__ import annotations
@@ -15,14 +25,20 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 from pipeline.btf.model import Decoder, Encoder, parameter_count
 
 N_PAPER = 6561
+M_PAPER = 10_000
+CONF = Path(__file__).resolve().parents[1] / "conf"
 # Decoder multiply-adds per query: 12*106 + 2*106*106 + 106*3.
 DECODER_MACS = 12 * 106 + 2 * 106 * 106 + 106 * 3
 TRAIN_FLOPS_PER_QUERY = 3 * 2 * DECODER_MACS  # forward + backward ~ 3x forward
@@ -38,36 +54,70 @@ def _median_seconds(fn, repeats: int) -> float:
     return float(np.median(times))
 
 
-def matmul_peak(size: int = 1024, repeats: int = 5) -> float:
+def paper_channels() -> tuple[int, ...]:
+    return tuple(OmegaConf.load(CONF / "config.yaml").model.encoder_channels)
+
+
+def matmul_peak(size: int = 2048, repeats: int = 5) -> float:
     """GFLOP/s of a float32 square matrix product."""
     a, b = torch.randn(size, size), torch.randn(size, size)
     return 2 * size**3 / _median_seconds(lambda: a @ b, repeats) / 1e9
 
 
-def train_step_throughput(batch: int, queries: int, steps: int, channels) -> dict:
-    """Queries/s of full training steps (encoder + decoder + SGD) on random ABRDFs."""
+def _rates(queries_per_step: float, seconds_per_step: float) -> dict:
+    rate = queries_per_step / seconds_per_step
+    return {"queries_per_s": rate, "gflops": rate * TRAIN_FLOPS_PER_QUERY / 1e9,
+            "steps_per_s": 1 / seconds_per_step}
+
+
+def naive_training(steps: int, channels) -> dict:
+    """A plain autograd loop at the paper's batch: each step encodes 5 ABRDFs, repeats each
+    latent for all N directions, concatenates the direction inputs and backpropagates."""
     torch.manual_seed(0)
     encoder, decoder = Encoder(N_PAPER, channels), Decoder()
     params = list(encoder.parameters()) + list(decoder.parameters())
     optimizer = torch.optim.SGD(params, lr=0.05)
-    abrdfs = torch.randn(batch, 3, N_PAPER)
+    abrdfs = torch.randn(5, 3, N_PAPER)
     directions = torch.rand(N_PAPER, 4)
-    targets = torch.rand(batch * queries, 3)
-    index = torch.randint(0, N_PAPER, (batch * queries,))
+    targets = torch.rand(5 * N_PAPER, 3)
+    index = torch.arange(N_PAPER).repeat(5)
 
-    def step():
+    def run():
         for _ in range(steps):
             latents = encoder(abrdfs)
-            pred = decoder(latents.repeat_interleave(queries, 0), directions[index])
+            pred = decoder(latents.repeat_interleave(N_PAPER, 0), directions[index])
             loss = torch.nn.functional.mse_loss(pred, targets)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
 
-    seconds = _median_seconds(step, 3) / steps
-    rate = batch * queries / seconds
-    return {"queries_per_s": rate, "gflops": rate * TRAIN_FLOPS_PER_QUERY / 1e9,
-            "steps_per_s": 1 / seconds}
+    return _rates(5 * N_PAPER, _median_seconds(run, 3) / steps)
+
+
+def pipeline_training(batch: int, queries: int, steps: int, channels, threads: int) -> dict:
+    """The project's training loop (``pipeline.btf.train.train``) on random ABRDFs: data
+    handling, normalization, encoder, fused decoder step and optimizer, as in a real run."""
+    from pipeline.btf.preprocess import fit_normalization
+    from pipeline.btf.train import train
+    from pipeline.btf.train_settings import TrainSettings
+
+    rng = np.random.default_rng(0)
+    m = max(2 * batch, 64)
+    abrdf = rng.random((m, N_PAPER, 3), dtype=np.float32)
+    norm = fit_normalization(abrdf)
+    features = rng.random((N_PAPER, 4), dtype=np.float32) * 2 - 1
+    settings = TrainSettings(epochs=10**6, batch_size=batch, queries_per_abrdf=queries,
+                             max_steps=steps, optimizer="adam", lr=1e-3, threads=threads,
+                             device="cpu")
+
+    def run():
+        return train(abrdf, abrdf, np.arange(m), norm, features, np.arange(N_PAPER), settings,
+                     seed=0, encoder_channels=channels)
+
+    run()  # warm-up
+    times = [run().seconds for _ in range(3)]
+    q = N_PAPER if queries < 0 else queries
+    return _rates(batch * q, float(np.median(times)) / steps)
 
 
 def encoder_throughput(batch: int, channels) -> float:
@@ -77,23 +127,51 @@ def encoder_throughput(batch: int, channels) -> float:
     return batch / _median_seconds(lambda: encoder(abrdfs).sum().backward(), 3)
 
 
-@torch.no_grad()
-def reconstruction_throughput(latents: int) -> float:
-    """Queries/s of decoding ``latents`` latents at all N directions (chunks of 32)."""
+def reconstruction_seconds(latents: int) -> float:
+    """Seconds to decode ``latents`` latents at all N directions with the evaluate stage's
+    ``decode_all`` (chunks of 32 latents)."""
+    from pipeline.btf.evaluate import decode_all
+
     decoder = Decoder().eval()
-    z, directions = torch.randn(latents, 8), torch.rand(N_PAPER, 4)
+    z = np.random.default_rng(0).standard_normal((latents, 8)).astype(np.float32)
+    directions = np.random.default_rng(1).random((N_PAPER, 4), dtype=np.float32)
+    return _median_seconds(lambda: decode_all(decoder, z, directions), 3)
 
-    def run():
-        for start in range(0, latents, 32):
-            decoder.decode_grid(z[start : start + 32], directions)
 
-    return latents * N_PAPER / _median_seconds(run, 3)
+def paper_run(runs: str, steps: int, threads: int) -> dict:
+    """Per-stage seconds and peak RSS of paper-size jobs on the synthetic BTF (128 x 128,
+    crop 100 x 100), one process per job, with ``steps`` training steps each."""
+    root = Path(runs) / "bench_paper"
+    figures: dict = {}
+    for variant in ("neural_btf", "k1000"):
+        command = [sys.executable, "-m", "pipeline", "experiment=paper", f"variant={variant}",
+                   f"train.max_steps={steps}", f"train.threads={threads}",
+                   f"paths.runs={root}", "tracking.experiment=bench_paper"]
+        start = time.perf_counter()
+        subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
+        wall = time.perf_counter() - start
+        import mlflow
+
+        from pipeline.tracking import use_store
+
+        use_store(str(root))
+        run = mlflow.search_runs(experiment_names=["bench_paper"], output_format="list",
+                                 order_by=["attributes.start_time DESC"], max_results=1)[0]
+        metrics = run.data.metrics
+        row = {"wall_s": wall, "peak_rss_mb": metrics["peak_rss_mb"],
+               "train_queries_per_s": metrics["train_queries"] / metrics["train_seconds"]}
+        for name, value in metrics.items():
+            for prefix in ("seconds_", "peak_rss_mb_"):
+                if name.startswith(prefix):
+                    row[f"{name[len(prefix):]}_{prefix.rstrip('_')}"] = value
+        figures[variant] = row
+    return figures
 
 
 def load_times(runs: str, size: int) -> dict:
     """Seconds to load a full UBO2003-layout folder (6561 JPEGs of size x size) through the
     load stage: decoded (a cache miss) and again from the stage cache (a hit)."""
-    from pathlib import Path
+    import shutil
 
     from hydra import compose, initialize_config_dir
 
@@ -101,13 +179,10 @@ def load_times(runs: str, size: int) -> dict:
     from pipeline.stages import Context, load
 
     root = write_synthetic_btf(Path(runs) / "data" / f"bench_ubo2003_{size}", size=size, seed=0)
-    conf = Path(__file__).resolve().parents[1] / "conf"
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=[
             "experiment=smoke", "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null",
             f"paths.runs={runs}", f"paths.cache={Path(runs) / 'bench_cache'}"])
-    import shutil
-
     shutil.rmtree(cfg.paths.cache, ignore_errors=True)
     times = {}
     for name in ("decode", "cached"):
@@ -118,56 +193,99 @@ def load_times(runs: str, size: int) -> dict:
     return times
 
 
+def _print_training(name: str, row: dict, peak: float) -> None:
+    print(f"training {name}: {row['queries_per_s'] / 1e6:.3f} M queries/s, "
+          f"{row['gflops']:.1f} GFLOP/s = {row['gflops'] / peak:.0%} of peak, "
+          f"{row['steps_per_s']:.1f} steps/s")
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
     parser.add_argument("--steps", type=int, default=10, help="training steps per timing")
     parser.add_argument("--runs", default="runs", help="paths.runs holding mlflow.db")
     parser.add_argument("--no-mlflow", action="store_true")
+    parser.add_argument("--paper-run", type=int, default=0, metavar="STEPS",
+                        help="also run paper-size jobs with this many training steps and "
+                             "report each stage's time and peak RSS")
     parser.add_argument("--load-size", type=int, default=0,
                         help="also time loading a 6561-file UBO2003 folder of this texture size "
                              "(256 = the real datasets; generated once under --runs)")
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    channels = (8, 16, 32)
-    figures: dict = {"device": "cpu", "threads": torch.get_num_threads(),
+    threads = torch.get_num_threads()
+    channels = paper_channels()
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    figures: dict = {"device": f"{device} ({torch.cuda.get_device_name()})" if device == "cuda"
+                     else "cpu", "threads": threads,
                      "machine": platform.processor() or platform.machine(),
-                     "decoder_parameters": parameter_count(Decoder())}
-    figures["matmul_gflops"] = matmul_peak()
-    print(f"matmul peak: {figures['matmul_gflops']:.1f} GFLOP/s ({figures['threads']} threads)")
-    naive = train_step_throughput(5, N_PAPER, args.steps, channels)
-    batched = train_step_throughput(32, 256, args.steps, channels)
-    for name, row in (("naive (5 x all N)", naive), ("demo (32 x 256)", batched)):
-        print(f"training {name}: {row['queries_per_s'] / 1e6:.3f} M queries/s, "
-              f"{row['gflops']:.1f} GFLOP/s = {row['gflops'] / figures['matmul_gflops']:.0%} "
-              f"of peak, {row['steps_per_s']:.1f} steps/s")
-    figures["train_naive"], figures["train_demo"] = naive, batched
+                     "torch": torch.__version__, "decoder_parameters": parameter_count(Decoder()),
+                     "encoder_channels": list(channels)}
+    peak = figures["matmul_gflops"] = matmul_peak()
+    print(f"matmul peak: {peak:.1f} GFLOP/s ({threads} threads, device {figures['device']}; "
+          f"the training figures below run on the CPU)")
+    figures["train_naive"] = naive_training(args.steps, channels)
+    _print_training("naive autograd loop (5 x all N)", figures["train_naive"], peak)
+    figures["train_fused"] = pipeline_training(5, -1, args.steps, channels, threads)
+    _print_training("pipeline loop (5 x all N)", figures["train_fused"], peak)
+    figures["train_speedup"] = (figures["train_fused"]["queries_per_s"]
+                                / figures["train_naive"]["queries_per_s"])
+    print(f"  speed-up over the naive loop: {figures['train_speedup']:.2f}x")
+    paper = OmegaConf.load(CONF / "experiment" / "paper.yaml").train
+    figures["train_paper_recipe"] = pipeline_training(
+        paper.batch_size, paper.queries_per_abrdf, args.steps, channels, threads)
+    _print_training(f"pipeline loop, experiment=paper recipe ({paper.batch_size} x "
+                    f"{paper.queries_per_abrdf})", figures["train_paper_recipe"], peak)
     figures["encoder_abrdfs_per_s"] = encoder_throughput(32, channels)
     print(f"encoder: {figures['encoder_abrdfs_per_s']:.0f} ABRDFs/s (forward + backward)")
-    figures["reconstruct_queries_per_s"] = reconstruction_throughput(256)
-    print(f"reconstruction: {figures['reconstruct_queries_per_s'] / 1e6:.3f} M queries/s "
-          f"(Neural BTF all M x N at paper size: "
-          f"{10_000 * N_PAPER / figures['reconstruct_queries_per_s']:.0f} s)")
+    seconds = reconstruction_seconds(256)
+    figures["reconstruct_queries_per_s"] = 256 * N_PAPER / seconds
+    figures["reconstruct_neural_btf_s"] = M_PAPER * N_PAPER / figures["reconstruct_queries_per_s"]
+    figures["reconstruct_clustered_k2000_s"] = reconstruction_seconds(2000)
+    print(f"reconstruction: {figures['reconstruct_queries_per_s'] / 1e6:.3f} M queries/s; "
+          f"Neural BTF, all {M_PAPER} x {N_PAPER}: {figures['reconstruct_neural_btf_s']:.0f} s; "
+          f"clustered k = 2000 (decoded once): {figures['reconstruct_clustered_k2000_s']:.1f} s")
+    if args.paper_run:
+        figures["paper_run"] = paper_run(args.runs, args.paper_run, threads)
+        for variant, row in figures["paper_run"].items():
+            print(f"paper-size run, {variant} ({args.paper_run} training steps): "
+                  f"{row['wall_s']:.0f} s wall, peak RSS {row['peak_rss_mb']:.0f} MiB")
+            for stage in ("load", "crop", "preprocess", "pca", "kmeans", "representatives",
+                          "train", "evaluate"):
+                if f"{stage}_seconds" in row:
+                    print(f"  {stage:16s} {row[f'{stage}_seconds']:8.1f} s "
+                          f"{row[f'{stage}_peak_rss_mb']:8.0f} MiB")
     if args.load_size:
         figures.update(load_times(args.runs, args.load_size))
         print(f"load {figures['load_images']} JPEGs of {args.load_size}^2: decode "
               f"{figures['load_decode_s']:.1f} s, from the stage cache "
               f"{figures['load_cached_s']:.2f} s")
     if not args.no_mlflow:
-        import mlflow
-
-        from pipeline.tracking import environment_tags, init_store
-
-        experiment_id = init_store(args.runs, "bench")
-        with mlflow.start_run(experiment_id=experiment_id, tags=environment_tags()):
-            flat = {k: v for k, v in figures.items() if isinstance(v, int | float)}
-            flat.update({f"{name}_{k}": v for name in ("train_naive", "train_demo")
-                         for k, v in figures[name].items()})
-            mlflow.log_metrics(flat)
-            mlflow.log_params({"threads": figures["threads"], "machine": figures["machine"]})
+        _record(args.runs, figures)
     print(json.dumps(figures))
     return figures
+
+
+def _flatten(figures: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in figures.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}_"))
+        elif isinstance(value, int | float) and not isinstance(value, bool):
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _record(runs: str, figures: dict) -> None:
+    import mlflow
+
+    from pipeline.tracking import environment_tags, init_store
+
+    experiment_id = init_store(runs, "bench")
+    with mlflow.start_run(experiment_id=experiment_id, tags=environment_tags()):
+        mlflow.log_metrics(_flatten(figures))
+        mlflow.log_params({k: figures[k] for k in ("threads", "machine", "device", "torch")})
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from omegaconf import Container, DictConfig, OmegaConf
 from pipeline.btf.preprocess import Normalization, encoder_inputs, fit_normalization
 from pipeline.cache import Entry, StageCache, canonical_json, save_arrays, save_json
 from pipeline.errors import ConfigError, DataError
+from pipeline.memory import stage_peak
 
 log = logging.getLogger(__name__)
 
@@ -40,21 +41,24 @@ class Context:
     cache: StageCache
     keys: dict[str, str] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
+    peak_rss_mb: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> Context:
         return cls(cfg, StageCache(cfg.paths.cache))
 
     def run(self, stage, settings, inputs: dict[str, Entry], compute) -> Entry:
-        entry = self.cache.run(
-            stage,
-            VERSIONS.get(stage, "1"),
-            settings,
-            {name: e.key for name, e in inputs.items()},
-            compute,
-        )
+        with stage_peak() as peak:
+            entry = self.cache.run(
+                stage,
+                VERSIONS.get(stage, "1"),
+                settings,
+                {name: e.key for name, e in inputs.items()},
+                compute,
+            )
         self.keys[stage] = entry.key
         self.seconds[stage] = entry.seconds
+        self.peak_rss_mb[stage] = peak["mb"]
         return entry
 
 

@@ -3,7 +3,7 @@
 Reads the finished runs back (``mlflow.search_runs``), and writes under
 ``${paths.runs}/tables/``: Table 1 (sizes), Table 2 (RMSE, mean ± std over seeds), the
 interpolation table and the k-versus-error verdict, each as Markdown, CSV and LaTeX, plus
-Fig. 7 (PNG and EXR) and an RMSE-versus-k plot. Works with whatever subset of runs exists
+Fig. 7 (PNG and EXR), an RMSE-versus-k plot and the training RMSE-versus-time curves. Works with whatever subset of runs exists
 and says what is missing. Options (Hydra overrides): ``paths.runs=...``,
 ``tables.experiments=[btf,...]``, ``tables.filter="tags.note = 'x'"``.
 """
@@ -22,6 +22,7 @@ import pandas as pd  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from pipeline.report import btf_tables  # noqa: E402
+from pipeline.report.curves import curves_section  # noqa: E402
 from pipeline.report.fourier_tables import fourier_sections  # noqa: E402
 from pipeline.tracking import tracking_uri, use_store  # noqa: E402
 
@@ -123,6 +124,7 @@ def build_tables(runs_dir: str | Path, settings: DictConfig | None = None) -> Pa
     sections.append("## Missing from the paper grid\n\n" + (
         "\n".join(f"- {m}" for m in missing) if missing else "Nothing.") + "\n")
     sections.append(_plot_rmse_vs_k(runs, out))
+    sections.append(curves_section(runs, out))
     if settings.fig7.enabled:
         from pipeline.report.fig7 import draw_fig7
 

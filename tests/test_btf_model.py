@@ -176,3 +176,53 @@ def test_texel_scale_is_in_every_figure_of_the_run():
     assert recon.texel_scale.shape == (40,)
     # The per-direction errors are those of the scaled reconstruction too.
     assert np.sqrt(np.mean(recon.rmse_per_direction**2)) == pytest.approx(recon.rmse)
+
+
+def test_a_shorter_run_is_the_start_of_a_longer_one_with_its_curve():
+    """The lr schedule does not depend on the run's length, so the RMSE-versus-time curve
+    of one long run also gives every shorter run (checked against a separate short run)."""
+    abrdf, features = _tiny_btf(m=40)
+    norm = fit_normalization(abrdf)
+
+    def run(steps):
+        settings = TrainSettings(epochs=10, lr=0.01, optimizer="adam", queries_per_abrdf=-1,
+                                 max_steps=steps, lr_half_life=0.5, curve_every=3,
+                                 curve_texels=10, threads=2, chunk=16, device="cpu")
+        return train(abrdf, abrdf, np.arange(40), norm, features, np.arange(27), settings,
+                     seed=0, encoder_channels=(4, 8))
+
+    short, long = run(6), run(12)
+    assert [p["step"] for p in long.curve] == [0, 3, 6, 9, 12]
+    assert [p["rmse"] for p in short.curve] == [p["rmse"] for p in long.curve[:3]]
+    assert long.curve[-1]["rmse"] < long.curve[0]["rmse"]
+    assert long.curve[-1]["queries"] == 12 * 5 * 27
+    # The curve's RMSE is eq. 10 on its texels: recompute the last point of the short run.
+    rows = np.sort(np.random.default_rng(7919).choice(40, 10, replace=False))
+    latents = encode(short.encoder, abrdf[rows], norm)
+    with torch.no_grad():
+        pred = short.decoder.decode_grid(torch.from_numpy(latents), torch.from_numpy(features))
+    expected = np.sqrt(np.mean((pred.numpy() - norm.target(abrdf[rows])) ** 2))
+    assert short.curve[-1]["rmse"] == pytest.approx(expected, rel=1e-5)
+
+
+def test_learning_rate_halves_every_half_life():
+    abrdf, features = _tiny_btf(m=40)
+    settings = TrainSettings(epochs=2, lr=0.01, optimizer="sgd", queries_per_abrdf=4,
+                             lr_half_life=1.0, device="cpu", threads=1)
+    seen = []
+    original = torch.optim.SGD.step
+
+    def spy(self, *args, **kwargs):
+        seen.append(self.param_groups[0]["lr"])
+        return original(self, *args, **kwargs)
+
+    torch.optim.SGD.step = spy
+    try:
+        train(abrdf, abrdf, np.arange(40), fit_normalization(abrdf), features, np.arange(27),
+              settings, seed=0, encoder_channels=(4, 8))
+    finally:
+        torch.optim.SGD.step = original
+    steps_per_epoch = 40 // 5
+    assert seen[0] == pytest.approx(0.01)
+    assert seen[steps_per_epoch] == pytest.approx(0.005)
+    assert seen[-1] == pytest.approx(0.01 * 0.5 ** ((2 * steps_per_epoch - 1) / steps_per_epoch))

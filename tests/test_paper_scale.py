@@ -38,3 +38,9 @@ def test_bench_prints_its_figures_as_json(capsys):
     assert json.loads(last) == json.loads(json.dumps(figures))
     assert figures["decoder_parameters"] == 24_383
     assert figures["train_naive"]["queries_per_s"] > 0
+    assert figures["train_fused"]["queries_per_s"] > 0
+    assert figures["train_speedup"] == pytest.approx(
+        figures["train_fused"]["queries_per_s"] / figures["train_naive"]["queries_per_s"])
+    assert figures["encoder_channels"] == [16, 32, 64]
+    assert figures["reconstruct_neural_btf_s"] == pytest.approx(
+        10_000 * 6561 / figures["reconstruct_queries_per_s"])

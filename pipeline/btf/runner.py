@@ -28,7 +28,7 @@ from pipeline.stages import Context, plain_settings
 
 log = logging.getLogger(__name__)
 
-stages.VERSIONS.update({"train": "1", "evaluate": "2", "linear": "1"})
+stages.VERSIONS.update({"train": "2", "evaluate": "2", "linear": "1"})
 
 
 def _train_settings(cfg):
@@ -44,8 +44,9 @@ def _train_settings(cfg):
     return TrainSettings(lr=cfg.method.lr if lr is None else lr, **settings)
 
 
-# Settings that change how fast training runs but not what it computes: not in the key.
-_SPEED_ONLY = {"threads"}
+# Settings that change how fast training runs but not what it computes (up to the order of
+# floating-point sums): not in the key.
+_SPEED_ONLY = {"threads", "chunk"}
 
 
 def train_stage(
@@ -87,6 +88,10 @@ def train_stage(
             if mlflow.active_run() is not None:
                 mlflow.log_metric("loss", loss, step=epoch)
 
+        def on_curve(point: dict) -> None:
+            if mlflow.active_run() is not None:
+                log_curve_point(point)
+
         result = train(
             abrdf,
             sources,
@@ -99,12 +104,14 @@ def train_stage(
             encoder_channels=tuple(cfg.model.encoder_channels),
             target_from_source=stage_settings["target"] == "representative",
             on_epoch=on_epoch,
+            on_curve=on_curve,
         )
         latents = encode(result.encoder, sources, norm)
         torch.save(result.decoder.state_dict(), folder / "decoder.pt")
         torch.save(result.encoder.state_dict(), folder / "encoder.pt")
         save_arrays(folder, latents=latents, latent_of_texel=source_of_texel.astype(np.int32))
         save_json(folder, "losses", result.epoch_losses)
+        save_json(folder, "curve", result.curve)
         return {
             "steps": result.steps,
             "seconds": result.seconds,
@@ -113,6 +120,12 @@ def train_stage(
         }
 
     return ctx.run("train", stage_settings, inputs, compute)
+
+
+def log_curve_point(point: dict) -> None:
+    """One point of the RMSE-versus-time curve, as MLflow metrics keyed by step."""
+    mlflow.log_metrics({"curve_rmse": point["rmse"], "curve_seconds": point["seconds"],
+                        "curve_queries": point["queries"]}, step=point["step"])
 
 
 def load_decoder(trained: Entry):
@@ -212,6 +225,8 @@ def run(ctx: Context) -> dict[str, float]:
         # A cached model: replay its loss curve so every run shows one.
         for epoch, loss in enumerate(trained.json("losses")):
             mlflow.log_metric("loss", loss, step=epoch)
+        for point in trained.json("curve"):
+            log_curve_point(point)
     evaluated = evaluate_stage(ctx, cropped, prep, trained)
     metrics = dict(evaluated.json("metrics"))
     metrics.update(extra)

@@ -2,8 +2,9 @@
 
 A step takes ``batch_size`` texels (the paper's batch of 5 ABRDFs), encodes each one's
 input ABRDF (its own for Neural BTF, its cluster's median for the clustered method), and
-decodes ``queries_per_abrdf`` random training directions per texel against its target
-values. An epoch visits every texel once in a seeded random order.
+decodes ``queries_per_abrdf`` random training directions per texel (or all of them, in
+order, with -1) against its target values. An epoch visits every texel once in a seeded
+random order. The steps are deterministic for a seed and a number of threads.
 """
 
 from __future__ import annotations
@@ -11,13 +12,13 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from torch import nn
 from tqdm.auto import tqdm
 
+from pipeline.btf.fused import Batch, DecoderStep
 from pipeline.btf.model import Decoder, Encoder
 from pipeline.btf.preprocess import Normalization
 from pipeline.btf.train_settings import TrainSettings
@@ -42,6 +43,41 @@ class TrainResult:
     steps: int
     seconds: float
     queries: int
+    curve: list[dict] = field(default_factory=list)
+
+
+class _Curve:
+    """RMSE-versus-time points: the eq. 10 RMSE of fixed random texels at every training
+    direction, measured with the model as it would be stored (batch-norm in eval mode).
+    Its time is training time only; measuring is excluded from it."""
+
+    def __init__(self, abrdf, sources, source_of_texel, norm, features, train_dirs, texels,
+                 seed):
+        m = abrdf.shape[0]
+        rows = np.sort(np.random.default_rng(seed + 7919).choice(m, min(texels, m),
+                                                                  replace=False))
+        self.inputs = norm.encoder_input(sources[source_of_texel[rows]])
+        self.targets = torch.from_numpy(norm.target(abrdf[rows][:, train_dirs]))
+        self.features = features[torch.from_numpy(np.asarray(train_dirs))]
+        self.points: list[dict] = []
+
+    @torch.no_grad()
+    def measure(self, encoder, decoder, step, epoch, seconds, queries) -> dict:
+        encoder.eval()
+        decoder.eval()
+        device = self.features.device
+        x = torch.from_numpy(np.ascontiguousarray(self.inputs.transpose(0, 2, 1))).to(device)
+        latents = encoder(x)
+        # 16 texels at a time: the whole subsample's hidden layer would not fit in cache.
+        pred = torch.cat([decoder.decode_grid(latents[i : i + 16], self.features).cpu()
+                          for i in range(0, len(latents), 16)])
+        encoder.train()
+        decoder.train()
+        rmse = float(torch.sqrt(torch.mean(torch.square(pred - self.targets))))
+        point = {"step": step, "epoch": epoch, "seconds": seconds, "queries": queries,
+                 "rmse": rmse}
+        self.points.append(point)
+        return point
 
 
 def train(
@@ -56,8 +92,12 @@ def train(
     encoder_channels: tuple[int, ...] = (16, 32, 64),
     target_from_source: bool = False,
     on_epoch: Callable[[int, float], None] | None = None,
+    on_curve: Callable[[dict], None] | None = None,
 ) -> TrainResult:
     """Train encoder and decoder jointly.
+
+    The encoder runs under autograd; the decoder's forward and backward are computed by
+    :class:`pipeline.btf.fused.DecoderStep` (chunked, on ``settings.threads`` threads).
 
     Parameters
     ----------
@@ -72,10 +112,11 @@ def train(
     train_dirs : ndarray of int
         Indices of the directions training may query (held-out ones excluded).
     target_from_source : train against the representative's values instead of the texel's.
+    on_curve : called with each point of the RMSE-versus-time curve.
     """
     device = resolve_device(settings.device)
-    if settings.threads:
-        torch.set_num_threads(int(settings.threads))
+    workers = 1 if device.type == "cuda" else (settings.threads or torch.get_num_threads())
+    previous_threads = torch.get_num_threads()
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     m, n, _ = abrdf.shape
@@ -86,11 +127,10 @@ def train(
         optimizer = torch.optim.Adam(params, lr=settings.lr)
     else:
         optimizer = torch.optim.SGD(params, lr=settings.lr, momentum=settings.momentum)
-    loss_fn = nn.MSELoss()
     features = torch.from_numpy(dir_features).to(device)
     train_dirs = np.asarray(train_dirs)
-    q = len(train_dirs) if settings.queries_per_abrdf < 0 else settings.queries_per_abrdf
-    q = min(q, len(train_dirs))
+    all_queries = settings.queries_per_abrdf < 0 or settings.queries_per_abrdf >= len(train_dirs)
+    q = len(train_dirs) if all_queries else settings.queries_per_abrdf
     b = settings.batch_size
     steps_per_epoch = m // b  # drop the last partial batch: batch-norm needs >= 2 samples
     total = steps_per_epoch * settings.epochs
@@ -98,51 +138,96 @@ def train(
         total = min(total, settings.max_steps)
     if total < 1:
         raise ConfigError(f"no training step: M={m} texels, batch_size={b}, max_steps")
+    if settings.lr_half_life > 0:
+        half_life_steps = settings.lr_half_life * steps_per_epoch
+        schedule = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: 0.5 ** (step / half_life_steps))
+    else:
+        schedule = None
+    step_fn = DecoderStep(decoder, features, workers=workers,
+                          chunk=settings.chunk if device.type == "cpu" else 1 << 20)
+    all_dirs = torch.from_numpy(np.tile(train_dirs, (b, 1))).to(device)
+    curve = None
+    if settings.curve_every > 0:
+        curve = _Curve(abrdf, sources, source_of_texel, norm, features, train_dirs,
+                       settings.curve_texels, seed)
 
     losses: list[float] = []
     step = 0
-    start = time.perf_counter()
+    seconds = 0.0
     encoder.train()
     decoder.train()
-    with tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar:
-        for epoch in range(settings.epochs):
-            order = rng.permutation(m)
-            running, count = 0.0, 0
-            for first in range(0, steps_per_epoch * b, b):
+
+    def measure(epoch: int) -> None:
+        point = curve.measure(encoder, decoder, step, epoch, seconds, step * b * q)
+        log.info("curve: step %d, %.0f s, RMSE %.4f", step, seconds, point["rmse"])
+        if on_curve is not None:
+            on_curve(point)
+
+    try:
+        with tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar:
+            if curve is not None:
+                measure(0)
+            for epoch in range(settings.epochs):
+                order = rng.permutation(m)
+                running, count = 0.0, 0
+                clock = time.perf_counter()
+                for first in range(0, steps_per_epoch * b, b):
+                    if step >= total:
+                        break
+                    texels = np.sort(order[first : first + b])
+                    inputs = norm.encoder_input(sources[source_of_texel[texels]])
+                    x = torch.from_numpy(np.ascontiguousarray(inputs.transpose(0, 2, 1)))
+                    rows = source_of_texel[texels] if target_from_source else texels
+                    values = (sources if target_from_source else abrdf)[rows]
+                    if all_queries:
+                        queries = train_dirs
+                        target = norm.target(values[:, train_dirs])
+                        directions = all_dirs
+                    else:
+                        queries = train_dirs[rng.integers(0, len(train_dirs), size=(b, q))]
+                        target = norm.target(np.take_along_axis(values, queries[:, :, None], 1))
+                        directions = torch.from_numpy(queries).to(device)
+                    # The encoder's convolutions use every core; the decoder's chunks run
+                    # one per thread on the step's workers, each op single-threaded.
+                    torch.set_num_threads(workers)
+                    latents = encoder(x.to(device))
+                    torch.set_num_threads(1 if workers > 1 else workers)
+                    grads = step_fn(Batch(latents, directions,
+                                          torch.from_numpy(target).to(device)))
+                    torch.set_num_threads(workers)
+                    optimizer.zero_grad(set_to_none=True)
+                    step_fn.assign(grads)
+                    latents.backward(grads.latents)
+                    optimizer.step()
+                    if schedule is not None:
+                        schedule.step()
+                    running += grads.loss
+                    count += 1
+                    step += 1
+                    bar.update(1)
+                    if curve is not None and step % settings.curve_every == 0:
+                        seconds += time.perf_counter() - clock
+                        measure(epoch)
+                        clock = time.perf_counter()
+                seconds += time.perf_counter() - clock
+                if count:
+                    losses.append(running / count)
+                    bar.set_postfix(epoch=epoch, loss=f"{losses[-1]:.3g}")
+                    if on_epoch is not None:
+                        on_epoch(epoch, losses[-1])
                 if step >= total:
                     break
-                texels = np.sort(order[first : first + b])
-                inputs = norm.encoder_input(sources[source_of_texel[texels]])
-                x = torch.from_numpy(np.ascontiguousarray(inputs.transpose(0, 2, 1)))
-                queries = train_dirs[rng.integers(0, len(train_dirs), size=(b, q))]
-                rows = source_of_texel[texels] if target_from_source else texels
-                values = (sources if target_from_source else abrdf)[rows]
-                target = norm.target(np.take_along_axis(values, queries[:, :, None], axis=1))
-                target = torch.from_numpy(target.reshape(-1, 3)).to(device)
-                latents = encoder(x.to(device))
-                pred = decoder(
-                    latents.repeat_interleave(q, dim=0),
-                    features[torch.from_numpy(queries.reshape(-1)).to(device)],
-                )
-                loss = loss_fn(pred, target)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                running += float(loss.detach())
-                count += 1
-                step += 1
-                bar.update(1)
-            if count:
-                losses.append(running / count)
-                bar.set_postfix(epoch=epoch, loss=f"{losses[-1]:.3g}")
-                if on_epoch is not None:
-                    on_epoch(epoch, losses[-1])
-            if step >= total:
-                break
-    seconds = time.perf_counter() - start
-    log.info("trained %d steps (%d epochs) in %.1f s, last loss %.4g", step, len(losses),
-             seconds, losses[-1] if losses else float("nan"))
-    return TrainResult(encoder.cpu(), decoder.cpu(), losses, step, seconds, step * b * q)
+            if curve is not None and step % settings.curve_every:
+                measure(len(losses) - 1)
+    finally:
+        step_fn.close()
+        torch.set_num_threads(previous_threads)
+    log.info("trained %d steps (%d epochs) in %.1f s, %.3f M queries/s, last loss %.4g",
+             step, len(losses), seconds, step * b * q / max(seconds, 1e-9) / 1e6,
+             losses[-1] if losses else float("nan"))
+    return TrainResult(encoder.cpu(), decoder.cpu(), losses, step, seconds, step * b * q,
+                       curve.points if curve is not None else [])
 
 
 @torch.no_grad()

@@ -19,9 +19,17 @@ class TrainSettings:
     device : ``auto`` (CUDA when present), ``cpu`` or ``cuda``.
     momentum : SGD momentum (the paper: plain SGD, 0).
     optimizer : ``sgd`` (the paper) or ``adam`` (converges in far fewer steps on a CPU).
-    threads : CPU threads of torch; None keeps torch's default (all cores). Set it when
-        jobs run side by side: torch's threads spin-wait, and two jobs with all cores each
-        run several times slower than with their share.
+    lr_half_life : epochs over which the learning rate halves (per step, exponentially);
+        0 keeps it constant. The schedule does not depend on the length of the run, so a
+        shorter run is exactly the start of a longer one (the RMSE-versus-time curve).
+    curve_every : steps between two points of the RMSE-versus-time curve (RMSE of
+        ``curve_texels`` fixed random texels at every training direction); 0 for none.
+    curve_texels : texels of that subsample.
+    threads : CPU threads that run the decoder's chunks side by side (each op on one
+        thread; see ``pipeline/btf/fused.py``); None = all cores. Use 1 when jobs run side
+        by side: competing threads spin-wait and run several times slower.
+    chunk : queries per chunk of the fused decoder step (speed only: the chunk's
+        activations should fit in a core's L2 cache).
     """
 
     epochs: int = 1
@@ -32,7 +40,11 @@ class TrainSettings:
     device: str = "auto"
     momentum: float = 0.0
     optimizer: str = "sgd"
+    lr_half_life: float = 0.0
+    curve_every: int = 0
+    curve_texels: int = 256
     threads: int | None = None
+    chunk: int = 1024
 
     def __post_init__(self):
         if self.epochs < 1:
@@ -44,5 +56,11 @@ class TrainSettings:
             raise ConfigError(f"train.lr={self.lr} must be > 0")
         if self.optimizer not in ("sgd", "adam"):
             raise ConfigError(f"train.optimizer={self.optimizer!r} must be sgd or adam")
+        if self.lr_half_life < 0:
+            raise ConfigError(f"train.lr_half_life={self.lr_half_life} must be >= 0")
+        if self.curve_every < 0 or self.curve_texels < 1:
+            raise ConfigError("train.curve_every must be >= 0 and train.curve_texels >= 1")
+        if self.chunk < 1 or (self.threads is not None and self.threads < 1):
+            raise ConfigError("train.chunk and train.threads must be >= 1")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"train.device={self.device!r} must be auto, cpu or cuda")

@@ -1,0 +1,69 @@
+"""The RMSE-versus-time curves of training (``train.curve_every``), from MLflow.
+
+Each point is the eq. 10 RMSE of a fixed subsample of texels at every training direction
+(``curve_rmse``) against the training seconds so far (``curve_seconds``), logged by the
+train stage at the same step. Runs of one model trained for different lengths share the
+start of their curve (the learning-rate schedule does not depend on the length), so the
+plot shows directly what a longer run would gain.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+
+
+def curve_points(runs: pd.DataFrame) -> pd.DataFrame:
+    """One row per curve point of every run that logged a curve."""
+    from mlflow.tracking import MlflowClient
+
+    if "metrics.curve_rmse" not in runs:
+        return pd.DataFrame()
+    client = MlflowClient()
+    rows = []
+    for _, run in runs[runs["metrics.curve_rmse"].notna()].iterrows():
+        seconds = {m.step: m.value for m in client.get_metric_history(run.run_id,
+                                                                      "curve_seconds")}
+        epochs = run.get("params.train.epochs", "?")
+        for m in client.get_metric_history(run.run_id, "curve_rmse"):
+            rows.append({"dataset": run["dataset"], "model": run["model"], "epochs": epochs,
+                         "seed": run["seed"], "run_id": run.run_id, "step": m.step,
+                         "seconds": seconds.get(m.step), "rmse": m.value})
+    return pd.DataFrame(rows).sort_values(["dataset", "model", "epochs", "run_id", "step"])
+
+
+def curves_section(runs: pd.DataFrame, out: Path) -> str:
+    """Plot the curves (one figure per dataset), write their points; return the section."""
+    points = curve_points(runs)
+    if points.empty:
+        return ""
+    points.to_csv(out / "training_curves.csv", index=False)
+    lines = ["## Training: RMSE versus time\n",
+             "Points: `training_curves.csv`. RMSE of a fixed subsample of texels at every "
+             "training direction; time = training seconds (measuring excluded).\n"]
+    for i, (dataset, group) in enumerate(points.groupby("dataset")):
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for (model, epochs, _run), curve in group.groupby(["model", "epochs", "run_id"]):
+            ax.plot(curve["seconds"] / 60, curve["rmse"], marker=".",
+                    label=f"{model}, {epochs} epochs")
+        ax.set_xlabel("training time [min]")
+        ax.set_ylabel("RMSE (normalized)")
+        ax.set_yscale("log")
+        ax.set_title(dataset, fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        name = f"training_curves_{i}.png"
+        fig.savefig(out / name, dpi=110)
+        plt.close(fig)
+        last = group.groupby(["model", "epochs", "run_id"]).tail(1)
+        summary = last[["model", "epochs", "seconds", "rmse"]].rename(
+            columns={"seconds": "training [s]", "rmse": "last curve RMSE"})
+        lines.append(f"### {dataset}\n\n![curves]({name})\n\n"
+                     f"{summary.to_markdown(index=False, floatfmt='.4g')}\n")
+    return "\n".join(lines)

@@ -1,0 +1,52 @@
+"""The hand-written decoder gradient (pipeline/btf/fused.py) against autograd."""
+
+import pytest
+import torch
+
+from pipeline.btf.fused import Batch, DecoderStep
+from pipeline.btf.model import Decoder
+
+
+def _autograd(decoder, batch, features):
+    latents = batch.latents.detach().clone().requires_grad_()
+    b, q = batch.directions.shape
+    pred = decoder(latents.repeat_interleave(q, 0), features[batch.directions.reshape(-1)])
+    loss = torch.nn.functional.mse_loss(pred, batch.targets.reshape(-1, 3))
+    decoder.zero_grad()
+    loss.backward()
+    grads = [p.grad.clone() for p in decoder.parameters()]
+    return loss.item(), grads, latents.grad
+
+
+@pytest.mark.parametrize("workers,chunk", [(1, 1000), (1, 7), (2, 5), (3, 64)])
+def test_fused_gradient_equals_autograd(workers, chunk):
+    torch.manual_seed(0)
+    decoder = Decoder().double()
+    features = torch.rand(50, 4, dtype=torch.float64) * 2 - 1
+    batch = Batch(
+        latents=torch.randn(4, 8, dtype=torch.float64),
+        directions=torch.randint(0, 50, (4, 33)),
+        targets=torch.rand(4, 33, 3, dtype=torch.float64),
+    )
+    loss, expected, expected_latents = _autograd(decoder, batch, features)
+    step = DecoderStep(decoder, features, workers=workers, chunk=chunk)
+    grads = step(batch)
+    step.close()
+    assert grads.loss == pytest.approx(loss, rel=1e-12)
+    decoder.zero_grad(set_to_none=True)
+    step.assign(grads)
+    for param, want in zip(decoder.parameters(), expected, strict=True):
+        torch.testing.assert_close(param.grad, want, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(grads.latents, expected_latents, rtol=1e-10, atol=1e-12)
+
+
+def test_fused_step_is_deterministic_for_a_number_of_workers():
+    torch.manual_seed(1)
+    decoder = Decoder()
+    features = torch.rand(300, 4)
+    batch = Batch(torch.randn(5, 8), torch.randint(0, 300, (5, 300)), torch.rand(5, 300, 3))
+    step = DecoderStep(decoder, features, workers=2, chunk=64)
+    first, second = step(batch), step(batch)
+    step.close()
+    for a, b in zip(first.weights + first.biases, second.weights + second.biases, strict=True):
+        assert torch.equal(a, b)
