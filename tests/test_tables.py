@@ -26,7 +26,8 @@ def _store(tmp_path, mlflow_template):
     mlflow_template(tmp_path)
 
 
-def _log_runs(runs_dir, rows, experiment="btf", failed=False, evaluate_key=None):
+def _log_runs(runs_dir, rows, experiment="btf", failed=False, evaluate_key=None, epochs=16,
+              curve=()):
     experiment_id = init_store(runs_dir, experiment)
     for method, k, seed, rmse in rows:
         m = 10_000
@@ -36,7 +37,10 @@ def _log_runs(runs_dir, rows, experiment="btf", failed=False, evaluate_key=None)
         with mlflow.start_run(experiment_id=experiment_id, tags=tags) as run:
             mlflow.log_params({"method.name": method, "method.k": k, "seed": seed,
                                "dataset.name": "synthetic", "dataset.root": None,
-                               "method.texel_scale": "none", "method.target": "texel"})
+                               "method.texel_scale": "none", "method.target": "texel",
+                               "train.epochs": epochs})
+            for step, seconds, value in curve:
+                mlflow.log_metrics({"curve_rmse": value, "curve_seconds": seconds}, step=step)
             mlflow.log_metrics({
                 "rmse": rmse, "bytes_decoder": 97_532, "bytes_latents": latents,
                 "bytes_list": listing, "bytes_extra": 0,
@@ -135,3 +139,19 @@ def test_different_crops_of_one_source_are_different_datasets(tmp_path, settings
     rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
     assert dict(zip(rmse["dataset"], rmse["k = 8"], strict=True)) == {
         "synthetic 12²×729": "0.1600 (n=1)", "synthetic 48²×6561": "0.0300 (n=1)"}
+
+
+def test_a_longer_run_is_its_own_model_and_its_curve_is_drawn(tmp_path, settings):
+    _log_runs(tmp_path, RUNS)
+    _log_runs(tmp_path, [("neural_btf", None, 0, 0.019)], epochs=64,
+              curve=[(0, 0.0, 0.2), (100, 60.0, 0.05), (200, 120.0, 0.02)])
+    out = build_tables(tmp_path, settings)
+    rmse = pd.read_csv(out / "table2_rmse.csv").set_index("dataset")
+    assert rmse.loc["synthetic", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"  # not mixed in
+    assert rmse.loc["synthetic", "Neural BTF (64 epochs)"] == "0.0190 (n=1)"
+    points = pd.read_csv(out / "training_curves.csv")
+    assert list(points["step"]) == [0, 100, 200]
+    assert list(points["seconds"]) == [0.0, 60.0, 120.0]
+    assert set(points["model"]) == {"Neural BTF (64 epochs)"}
+    assert (out / "training_curves_0.png").is_file()
+    assert "Training: RMSE versus time" in (out / "summary.md").read_text()

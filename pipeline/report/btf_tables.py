@@ -37,7 +37,8 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
 
     The model label is ``Neural BTF`` or ``k = <k>`` like the paper's columns, with
     ``+scale`` when the graininess fix is on and ``(rep. target)`` when the clustered
-    model was trained against the representatives.
+    model was trained against the representatives, and ``(<E> epochs)`` when it was trained
+    for another number of epochs than most runs of its dataset.
     """
     runs = runs.copy()
     root = runs.get("params.dataset.root", pd.Series("", index=runs.index)).fillna("")
@@ -65,6 +66,11 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     target = runs.get("params.method.target", pd.Series("texel", index=runs.index))
     label = np.where((method == "clustered") & (target == "representative"),
                      label + " (rep. target)", label)
+    # A run trained for another number of epochs than most runs of its dataset (say, a 4x
+    # longer convergence check) is another model, not another seed.
+    epochs = runs.get("params.train.epochs", pd.Series("", index=runs.index)).fillna("")
+    usual = epochs.groupby(runs["dataset"]).transform(lambda e: e.mode().iloc[0])
+    label = np.where(epochs != usual, label + " (" + epochs + " epochs)", label)
     runs["model"] = label
     runs["order"] = np.where(method == "neural_btf", -1.0,
                              np.where(method == "pca", 1e9 + components.fillna(0), runs["k"]))
