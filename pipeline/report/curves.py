@@ -31,10 +31,12 @@ def curve_points(runs: pd.DataFrame) -> pd.DataFrame:
                                                                       "curve_seconds")}
         epochs = run.get("params.train.epochs", "?")
         for m in client.get_metric_history(run.run_id, "curve_rmse"):
-            rows.append({"dataset": run["dataset"], "model": run["model"], "epochs": epochs,
+            rows.append({"dataset": run["dataset"], "model": run["model"], "order": run["order"],
+                         "epochs": epochs,
                          "seed": run["seed"], "run_id": run.run_id, "step": m.step,
                          "seconds": seconds.get(m.step), "rmse": m.value})
-    return pd.DataFrame(rows).sort_values(["dataset", "model", "epochs", "run_id", "step"])
+    points = pd.DataFrame(rows).sort_values(["dataset", "order", "epochs", "run_id", "step"])
+    return points.drop(columns="order")
 
 
 def curves_section(runs: pd.DataFrame, out: Path) -> str:
@@ -48,7 +50,8 @@ def curves_section(runs: pd.DataFrame, out: Path) -> str:
              "training direction; time = training seconds (measuring excluded).\n"]
     for i, (dataset, group) in enumerate(points.groupby("dataset")):
         fig, ax = plt.subplots(figsize=(6, 4))
-        for (model, epochs, _run), curve in group.groupby(["model", "epochs", "run_id"]):
+        runs_in_order = group.groupby(["model", "epochs", "run_id"], sort=False)
+        for (model, epochs, _run), curve in runs_in_order:
             ax.plot(curve["seconds"] / 60, curve["rmse"], marker=".",
                     label=f"{model}, {epochs} epochs")
         ax.set_xlabel("training time [min]")
@@ -61,7 +64,7 @@ def curves_section(runs: pd.DataFrame, out: Path) -> str:
         name = f"training_curves_{i}.png"
         fig.savefig(out / name, dpi=110)
         plt.close(fig)
-        last = group.groupby(["model", "epochs", "run_id"]).tail(1)
+        last = runs_in_order.tail(1)
         summary = last[["model", "epochs", "seconds", "rmse"]].rename(
             columns={"seconds": "training [s]", "rmse": "last curve RMSE"})
         lines.append(f"### {dataset}\n\n![curves]({name})\n\n"
