@@ -6,7 +6,7 @@ Prints, in one run on one machine:
 - decoder training throughput at the paper's batch (5 ABRDFs x all 6561 directions per
   step) of a naive autograd loop and of ``pipeline.btf.train.train`` (the fused, chunked,
   threaded step), in queries/s, GFLOP/s and as a share of the peak, and of the recipe
-  ``experiment=paper`` uses (32 ABRDFs x 1024 directions);
+  ``experiment=paper_cpu`` uses (``conf/train/cpu.yaml``: 32 ABRDFs x 256 directions);
 - encoder throughput (ABRDFs/s, forward and backward);
 - reconstruction throughput: Neural BTF (all M x N) and clustered (k x N decoded once);
 - with ``--paper-run``: time and peak resident memory of every stage of a paper-size run
@@ -232,11 +232,11 @@ def main(argv=None) -> dict:
     figures["train_speedup"] = (figures["train_fused"]["queries_per_s"]
                                 / figures["train_naive"]["queries_per_s"])
     print(f"  speed-up over the naive loop: {figures['train_speedup']:.2f}x")
-    paper = OmegaConf.load(CONF / "experiment" / "paper.yaml").train
+    recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
     figures["train_paper_recipe"] = pipeline_training(
-        paper.batch_size, paper.queries_per_abrdf, args.steps, channels, threads)
-    _print_training(f"pipeline loop, experiment=paper recipe ({paper.batch_size} x "
-                    f"{paper.queries_per_abrdf})", figures["train_paper_recipe"], peak)
+        recipe.batch_size, recipe.queries_per_abrdf, args.steps, channels, threads)
+    _print_training(f"pipeline loop, experiment=paper_cpu recipe ({recipe.batch_size} x "
+                    f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
     figures["encoder_abrdfs_per_s"] = encoder_throughput(32, channels)
     print(f"encoder: {figures['encoder_abrdfs_per_s']:.0f} ABRDFs/s (forward + backward)")
     seconds = reconstruction_seconds(256)

@@ -52,8 +52,8 @@ def curves_section(runs: pd.DataFrame, out: Path) -> str:
         fig, ax = plt.subplots(figsize=(6, 4))
         runs_in_order = group.groupby(["model", "epochs", "run_id"], sort=False)
         for (model, epochs, _run), curve in runs_in_order:
-            ax.plot(curve["seconds"] / 60, curve["rmse"], marker=".",
-                    label=f"{model}, {epochs} epochs")
+            label = model if model.endswith("epochs)") else f"{model} ({epochs} epochs)"
+            ax.plot(curve["seconds"] / 60, curve["rmse"], marker=".", label=label)
         ax.set_xlabel("training time [min]")
         ax.set_ylabel("RMSE (normalized)")
         ax.set_yscale("log")
