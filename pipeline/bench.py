@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -70,9 +71,10 @@ def _rates(queries_per_step: float, seconds_per_step: float) -> dict:
             "steps_per_s": 1 / seconds_per_step}
 
 
-def naive_training(steps: int, channels) -> dict:
+def naive_training(steps: int, channels):
     """A plain autograd loop at the paper's batch: each step encodes 5 ABRDFs, repeats each
-    latent for all N directions, concatenates the direction inputs and backpropagates."""
+    latent for all N directions, concatenates the direction inputs and backpropagates.
+    Returns a callable that runs ``steps`` steps and returns their seconds."""
     torch.manual_seed(0)
     encoder, decoder = Encoder(N_PAPER, channels), Decoder()
     params = list(encoder.parameters()) + list(decoder.parameters())
@@ -82,7 +84,8 @@ def naive_training(steps: int, channels) -> dict:
     targets = torch.rand(5 * N_PAPER, 3)
     index = torch.arange(N_PAPER).repeat(5)
 
-    def run():
+    def run() -> float:
+        start = time.perf_counter()
         for _ in range(steps):
             latents = encoder(abrdfs)
             pred = decoder(latents.repeat_interleave(N_PAPER, 0), directions[index])
@@ -90,13 +93,15 @@ def naive_training(steps: int, channels) -> dict:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
+        return time.perf_counter() - start
 
-    return _rates(5 * N_PAPER, _median_seconds(run, 3) / steps)
+    return run
 
 
-def pipeline_training(batch: int, queries: int, steps: int, channels, threads: int) -> dict:
+def pipeline_training(batch: int, queries: int, steps: int, channels, threads: int):
     """The project's training loop (``pipeline.btf.train.train``) on random ABRDFs: data
-    handling, normalization, encoder, fused decoder step and optimizer, as in a real run."""
+    handling, normalization, encoder, fused decoder step and optimizer, as in a real run.
+    Returns a callable that runs ``steps`` steps and returns their training seconds."""
     from pipeline.btf.preprocess import fit_normalization
     from pipeline.btf.train import train
     from pipeline.btf.train_settings import TrainSettings
@@ -110,14 +115,24 @@ def pipeline_training(batch: int, queries: int, steps: int, channels, threads: i
                              max_steps=steps, optimizer="adam", lr=1e-3, threads=threads,
                              device="cpu")
 
-    def run():
+    def run() -> float:
         return train(abrdf, abrdf, np.arange(m), norm, features, np.arange(N_PAPER), settings,
-                     seed=0, encoder_channels=channels)
+                     seed=0, encoder_channels=channels).seconds
 
-    run()  # warm-up
-    times = [run().seconds for _ in range(3)]
-    q = N_PAPER if queries < 0 else queries
-    return _rates(batch * q, float(np.median(times)) / steps)
+    return run
+
+
+def interleaved(loops: dict, queries_per_step: dict, steps: int, rounds: int = 3) -> dict:
+    """Time the loops in turn, ``rounds`` times after one warm-up each, so that a machine
+    that slows down or speeds up meanwhile affects all of them alike; medians per loop."""
+    for run in loops.values():
+        run()
+    times = {name: [] for name in loops}
+    for _ in range(rounds):
+        for name, run in loops.items():
+            times[name].append(run() / steps)
+    return {name: _rates(queries_per_step[name], float(np.median(t)))
+            for name, t in times.items()}
 
 
 def encoder_throughput(batch: int, channels) -> float:
@@ -184,13 +199,24 @@ def load_times(runs: str, size: int) -> dict:
             "experiment=smoke", "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null",
             f"paths.runs={runs}", f"paths.cache={Path(runs) / 'bench_cache'}"])
     shutil.rmtree(cfg.paths.cache, ignore_errors=True)
-    times = {}
+    times = {"load_cold": _drop_page_cache()}
     for name in ("decode", "cached"):
         start = time.perf_counter()
         entry = load(Context.from_config(cfg))
         times[f"load_{name}_s"] = time.perf_counter() - start
     times["load_images"] = int(entry.manifest["summary"]["n_images"])
     return times
+
+
+def _drop_page_cache() -> bool:
+    """Empty the OS page cache so that the first load reads from disk (root on Linux
+    only); returns whether it could."""
+    os.sync()
+    try:
+        Path("/proc/sys/vm/drop_caches").write_text("3")
+        return True
+    except OSError:
+        return False
 
 
 def _print_training(name: str, row: dict, peak: float) -> None:
@@ -225,16 +251,20 @@ def main(argv=None) -> dict:
     peak = figures["matmul_gflops"] = matmul_peak()
     print(f"matmul peak: {peak:.1f} GFLOP/s ({threads} threads, device {figures['device']}; "
           f"the training figures below run on the CPU)")
-    figures["train_naive"] = naive_training(args.steps, channels)
+    recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
+    figures |= interleaved(
+        {"train_naive": naive_training(args.steps, channels),
+         "train_fused": pipeline_training(5, -1, args.steps, channels, threads),
+         "train_paper_recipe": pipeline_training(recipe.batch_size, recipe.queries_per_abrdf,
+                                                 args.steps, channels, threads)},
+        {"train_naive": 5 * N_PAPER, "train_fused": 5 * N_PAPER,
+         "train_paper_recipe": recipe.batch_size * recipe.queries_per_abrdf},
+        args.steps)
     _print_training("naive autograd loop (5 x all N)", figures["train_naive"], peak)
-    figures["train_fused"] = pipeline_training(5, -1, args.steps, channels, threads)
     _print_training("pipeline loop (5 x all N)", figures["train_fused"], peak)
     figures["train_speedup"] = (figures["train_fused"]["queries_per_s"]
                                 / figures["train_naive"]["queries_per_s"])
     print(f"  speed-up over the naive loop: {figures['train_speedup']:.2f}x")
-    recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
-    figures["train_paper_recipe"] = pipeline_training(
-        recipe.batch_size, recipe.queries_per_abrdf, args.steps, channels, threads)
     _print_training(f"pipeline loop, experiment=paper_cpu recipe ({recipe.batch_size} x "
                     f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
     figures["encoder_abrdfs_per_s"] = encoder_throughput(32, channels)
@@ -258,8 +288,9 @@ def main(argv=None) -> dict:
                           f"{row[f'{stage}_peak_rss_mb']:8.0f} MiB")
     if args.load_size:
         figures.update(load_times(args.runs, args.load_size))
+        cold = "cold page cache" if figures["load_cold"] else "page cache NOT dropped"
         print(f"load {figures['load_images']} JPEGs of {args.load_size}^2: decode "
-              f"{figures['load_decode_s']:.1f} s, from the stage cache "
+              f"{figures['load_decode_s']:.1f} s ({cold}), from the stage cache "
               f"{figures['load_cached_s']:.2f} s")
     if not args.no_mlflow:
         _record(args.runs, figures)
