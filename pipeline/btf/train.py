@@ -181,7 +181,6 @@ def train(
                     rows = source_of_texel[texels] if target_from_source else texels
                     values = (sources if target_from_source else abrdf)[rows]
                     if all_queries:
-                        queries = train_dirs
                         target = norm.target(values[:, train_dirs])
                         directions = all_dirs
                     else:
@@ -192,7 +191,7 @@ def train(
                     # one per thread on the step's workers, each op single-threaded.
                     torch.set_num_threads(workers)
                     latents = encoder(x.to(device))
-                    torch.set_num_threads(1 if workers > 1 else workers)
+                    torch.set_num_threads(1)
                     grads = step_fn(Batch(latents, directions,
                                           torch.from_numpy(target).to(device)))
                     torch.set_num_threads(workers)
