@@ -156,6 +156,10 @@ def reconstruction_seconds(latents: int, repeats: int = 3) -> float:
 def paper_run(runs: str, steps: int, threads: int) -> dict:
     """Per-stage seconds and peak RSS of paper-size jobs on the synthetic BTF (128 x 128,
     crop 100 x 100), one process per job, with ``steps`` training steps each."""
+    import mlflow
+
+    from pipeline.tracking import use_store
+
     root = Path(runs) / "bench_paper"
     figures: dict = {}
     for variant in ("neural_btf", "k1000"):
@@ -165,10 +169,6 @@ def paper_run(runs: str, steps: int, threads: int) -> dict:
         start = time.perf_counter()
         subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - start
-        import mlflow
-
-        from pipeline.tracking import use_store
-
         use_store(str(root))
         run = mlflow.search_runs(experiment_names=["bench_paper"], output_format="list",
                                  order_by=["attributes.start_time DESC"], max_results=1)[0]

@@ -205,7 +205,7 @@ def test_a_shorter_run_is_the_start_of_a_longer_one_with_its_curve():
     assert short.curve[-1]["rmse"] == pytest.approx(expected, rel=1e-5)
 
 
-def test_learning_rate_halves_every_half_life():
+def test_learning_rate_halves_every_half_life(monkeypatch):
     abrdf, features = _tiny_btf(m=40)
     settings = TrainSettings(epochs=2, lr=0.01, optimizer="sgd", queries_per_abrdf=4,
                              lr_half_life=1.0, device="cpu", threads=1)
@@ -216,12 +216,9 @@ def test_learning_rate_halves_every_half_life():
         seen.append(self.param_groups[0]["lr"])
         return original(self, *args, **kwargs)
 
-    torch.optim.SGD.step = spy
-    try:
-        train(abrdf, abrdf, np.arange(40), fit_normalization(abrdf), features, np.arange(27),
-              settings, seed=0, encoder_channels=(4, 8))
-    finally:
-        torch.optim.SGD.step = original
+    monkeypatch.setattr(torch.optim.SGD, "step", spy)
+    train(abrdf, abrdf, np.arange(40), fit_normalization(abrdf), features, np.arange(27),
+          settings, seed=0, encoder_channels=(4, 8))
     steps_per_epoch = 40 // 5
     assert seen[0] == pytest.approx(0.01)
     assert seen[steps_per_epoch] == pytest.approx(0.005)
