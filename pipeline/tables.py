@@ -120,6 +120,15 @@ def build_tables(runs_dir: str | Path, settings: DictConfig | None = None) -> Pa
         sections.append(_write(verdict, out, "k_verdict", "Does k change the error?",
                                "One-way ANOVA over k (seed-to-seed spread as the noise), "
                                "Kruskal-Wallis as a check without normality."))
+    tolerance = float(settings.convergence_tolerance)
+    convergence = btf_tables.table_convergence(runs, tolerance)
+    if not convergence.empty:
+        sections.append(_write(convergence, out, "convergence",
+                               "Converged? RMSE against the same model trained longer",
+                               f"excess = RMSE / reference RMSE - 1, the reference being the "
+                               f"longest run of the same model and seed; the goal is within "
+                               f"{100 * tolerance:g} % of a run 4x as long "
+                               f"(`tables.convergence_tolerance`)."))
     missing = btf_tables.missing_runs(runs, list(settings.paper_ks))
     sections.append("## Missing from the paper grid\n\n" + (
         "\n".join(f"- {m}" for m in missing) if missing else "Nothing.") + "\n")

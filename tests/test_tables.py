@@ -155,3 +155,26 @@ def test_a_longer_run_is_its_own_model_and_its_curve_is_drawn(tmp_path, settings
     assert set(points["model"]) == {"Neural BTF (64 epochs)"}
     assert (out / "training_curves_0.png").is_file()
     assert "Training: RMSE versus time" in (out / "summary.md").read_text()
+
+
+def test_convergence_compares_each_run_with_the_same_model_and_seed_trained_longest(
+        tmp_path, settings):
+    _log_runs(tmp_path, RUNS)  # 16 epochs: Neural BTF seeds 0 and 1, k = 500 and 1000
+    _log_runs(tmp_path, [("neural_btf", None, 0, 0.0195), ("clustered", 1000, 0, 0.0200)],
+              epochs=64)
+    out = build_tables(tmp_path, settings)
+    table = pd.read_csv(out / "convergence.csv")
+    # Only seed 0 of Neural BTF and k = 1000 has a longer run beside it; k = 500 has none.
+    assert list(zip(table["model"], table["seed"], table["epochs"], table["reference epochs"],
+                    strict=True)) == [("Neural BTF", 0, 16, 64), ("k = 1000", 0, 16, 64)]
+    # 0.0200 / 0.0195 - 1 = +2.6 %, within 5 %; 0.0250 / 0.0200 - 1 = +25.0 %, not.
+    assert list(table["excess"]) == ["+2.6 %", "+25.0 %"]
+    assert list(table["within 5 %"]) == [True, False]
+    assert list(table["length ratio"]) == [4, 4]
+    assert "Converged?" in (out / "summary.md").read_text()
+
+
+def test_no_convergence_table_without_runs_of_different_lengths(tmp_path, settings):
+    _log_runs(tmp_path, RUNS)
+    out = build_tables(tmp_path, settings)
+    assert not (out / "convergence.csv").exists()

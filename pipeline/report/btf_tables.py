@@ -70,6 +70,8 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     # longer convergence check) is another model, not another seed.
     epochs = runs.get("params.train.epochs", pd.Series("", index=runs.index)).fillna("")
     usual = epochs.groupby(runs["dataset"]).transform(lambda e: e.mode().iloc[0])
+    runs["base_model"] = label
+    runs["epochs"] = _num(epochs)
     label = np.where(epochs != usual, label + " (" + epochs + " epochs)", label)
     runs["model"] = label
     runs["order"] = np.where(method == "neural_btf", -1.0,
@@ -210,6 +212,35 @@ def k_verdict(runs: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
                 f"(ANOVA p={p_anova:.3g} >= {alpha})"
             )
         rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def table_convergence(runs: pd.DataFrame, tolerance: float = 0.05) -> pd.DataFrame:
+    """Is a model converged? Its RMSE against the same model and seed trained longest.
+
+    One row per (dataset, model, seed, epochs) that has a longer run beside it: the RMSE of
+    both, how many times longer the reference trained, and the excess of the shorter run's
+    RMSE over the reference's, judged against ``tolerance`` (0.05 = within 5 %).
+    """
+    if "epochs" not in runs or runs["epochs"].isna().all():
+        return pd.DataFrame()
+    rows = []
+    ordered = runs.sort_values(["dataset", "order", "base_model", "seed", "epochs"])
+    for (dataset, model, seed), group in ordered.groupby(["dataset", "base_model", "seed"],
+                                                         sort=False):
+        rmse = _num(group["metrics.rmse"]).groupby(group["epochs"]).mean().dropna()
+        if len(rmse) < 2:
+            continue
+        longest = rmse.index.max()
+        for epochs, value in rmse.drop(longest).items():
+            excess = value / rmse[longest] - 1
+            rows.append({"dataset": dataset, "model": model, "seed": int(seed),
+                         "epochs": int(epochs), "RMSE": f"{value:.4f}",
+                         "reference epochs": int(longest),
+                         "reference RMSE": f"{rmse[longest]:.4f}",
+                         "length ratio": f"{longest / epochs:g}",
+                         "excess": f"{100 * excess:+.1f} %",
+                         f"within {100 * tolerance:g} %": bool(abs(excess) <= tolerance)})
     return pd.DataFrame(rows)
 
 
