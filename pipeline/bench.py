@@ -7,6 +7,7 @@ Prints, in one run on one machine:
   step) of a naive autograd loop and of ``pipeline.btf.train.train`` (the fused, chunked,
   threaded step), in queries/s, GFLOP/s and as a share of the peak, and of the recipe
   ``experiment=paper_cpu`` uses (``conf/train/cpu.yaml``: 32 ABRDFs x 256 directions);
+  the same for the decoder alone (autograd against the fused step, no encoder);
 - encoder throughput (ABRDFs/s, forward and backward);
 - reconstruction throughput: Neural BTF (all M x N) and clustered (k x N decoded once);
 - with ``--paper-run``: time and peak resident memory of every stage of a paper-size run
@@ -92,6 +93,43 @@ def naive_training(steps: int, channels):
             loss = torch.nn.functional.mse_loss(pred, targets)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            optimizer.step()
+        return time.perf_counter() - start
+
+    return run
+
+
+def decoder_training(fused: bool, steps: int, threads: int):
+    """The decoder alone at the paper's batch (5 fixed latents x all N directions): autograd
+    on the concatenated (latent, direction) rows, or the pipeline's fused step
+    (``pipeline.btf.fused.DecoderStep``) with its default chunk. Both compute the latents'
+    gradient and take an SGD step on the decoder, so the two differ only in how the
+    decoder's forward and backward are computed. Returns a callable that runs ``steps``
+    steps and returns their seconds."""
+    from pipeline.btf.fused import Batch, DecoderStep
+    from pipeline.btf.train_settings import TrainSettings
+
+    torch.manual_seed(0)
+    decoder = Decoder()
+    optimizer = torch.optim.SGD(decoder.parameters(), lr=1e-3)
+    latents = torch.randn(5, 8, requires_grad=True)
+    features = torch.rand(N_PAPER, 4)
+    targets = torch.rand(5, N_PAPER, 3)
+    directions = torch.arange(N_PAPER).repeat(5, 1)
+    step = DecoderStep(decoder, features, workers=threads, chunk=TrainSettings.chunk)
+
+    def run() -> float:
+        start = time.perf_counter()
+        for _ in range(steps):
+            optimizer.zero_grad(set_to_none=True)
+            if fused:
+                torch.set_num_threads(1)  # as in training: one op per thread, chunks side by side
+                step.assign(step(Batch(latents.detach(), directions, targets)))
+                torch.set_num_threads(threads)
+            else:
+                pred = decoder(latents.repeat_interleave(N_PAPER, 0),
+                               features[directions.reshape(-1)])
+                torch.nn.functional.mse_loss(pred, targets.reshape(-1, 3)).backward()
             optimizer.step()
         return time.perf_counter() - start
 
@@ -256,15 +294,23 @@ def main(argv=None) -> dict:
         {"train_naive": naive_training(args.steps, channels),
          "train_fused": pipeline_training(5, -1, args.steps, channels, threads),
          "train_paper_recipe": pipeline_training(recipe.batch_size, recipe.queries_per_abrdf,
-                                                 args.steps, channels, threads)},
+                                                 args.steps, channels, threads),
+         "decoder_naive": decoder_training(False, args.steps, threads),
+         "decoder_fused": decoder_training(True, args.steps, threads)},
         {"train_naive": 5 * N_PAPER, "train_fused": 5 * N_PAPER,
-         "train_paper_recipe": recipe.batch_size * recipe.queries_per_abrdf},
+         "train_paper_recipe": recipe.batch_size * recipe.queries_per_abrdf,
+         "decoder_naive": 5 * N_PAPER, "decoder_fused": 5 * N_PAPER},
         args.steps)
     _print_training("naive autograd loop (5 x all N)", figures["train_naive"], peak)
     _print_training("pipeline loop (5 x all N)", figures["train_fused"], peak)
     figures["train_speedup"] = (figures["train_fused"]["queries_per_s"]
                                 / figures["train_naive"]["queries_per_s"])
     print(f"  speed-up over the naive loop: {figures['train_speedup']:.2f}x")
+    _print_training("decoder alone, autograd (5 x all N)", figures["decoder_naive"], peak)
+    _print_training("decoder alone, fused step (5 x all N)", figures["decoder_fused"], peak)
+    figures["decoder_speedup"] = (figures["decoder_fused"]["queries_per_s"]
+                                  / figures["decoder_naive"]["queries_per_s"])
+    print(f"  speed-up of the decoder's step: {figures['decoder_speedup']:.2f}x")
     _print_training(f"pipeline loop, experiment=paper_cpu recipe ({recipe.batch_size} x "
                     f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
     figures["encoder_abrdfs_per_s"] = encoder_throughput(32, channels)

@@ -41,6 +41,8 @@ def test_bench_prints_its_figures_as_json(capsys):
     assert figures["train_fused"]["queries_per_s"] > 0
     assert figures["train_speedup"] == pytest.approx(
         figures["train_fused"]["queries_per_s"] / figures["train_naive"]["queries_per_s"])
+    assert figures["decoder_speedup"] == pytest.approx(
+        figures["decoder_fused"]["queries_per_s"] / figures["decoder_naive"]["queries_per_s"])
     assert figures["encoder_channels"] == [16, 32, 64]
     assert figures["reconstruct_neural_btf_s"] == pytest.approx(
         10_000 * 6561 / figures["reconstruct_queries_per_s"])
