@@ -133,7 +133,7 @@ def build_tables(runs_dir: str | Path, settings: DictConfig | None = None) -> Pa
     sections.append("## Missing from the paper grid\n\n" + (
         "\n".join(f"- {m}" for m in missing) if missing else "Nothing.") + "\n")
     sections.append(_plot_rmse_vs_k(runs, out))
-    sections.append(curves_section(runs, out))
+    sections.append(curves_section(runs, out, tolerance))
     if settings.fig7.enabled:
         from pipeline.report.fig7 import draw_fig7
 

@@ -159,10 +159,11 @@ def test_a_longer_run_is_its_own_model_and_its_curve_is_drawn(tmp_path, settings
 
 def test_convergence_compares_each_run_with_the_same_model_and_seed_trained_longest(
         tmp_path, settings):
-    _log_runs(tmp_path, RUNS)  # 16 epochs: Neural BTF seeds 0 and 1, k = 500 and 1000
+    _log_runs(tmp_path, RUNS, curve=[(0, 0.0, 0.2), (100, 60.0, 0.03)])  # 16 epochs
     _log_runs(tmp_path, [("neural_btf", None, 0, 0.0195), ("clustered", 1000, 0, 0.0200)],
-              epochs=64)
+              epochs=64, curve=[(0, 0.0, 0.2), (100, 60.0, 0.03), (400, 240.0, 0.02)])
     out = build_tables(tmp_path, settings)
+    assert (out / "training_curves_0.png").is_file()  # with the models' 5 % lines
     table = pd.read_csv(out / "convergence.csv")
     # Only seed 0 of Neural BTF and k = 1000 has a longer run beside it; k = 500 has none.
     assert list(zip(table["model"], table["seed"], table["epochs"], table["reference epochs"],

@@ -32,15 +32,18 @@ def curve_points(runs: pd.DataFrame) -> pd.DataFrame:
         epochs = run.get("params.train.epochs", "?")
         for m in client.get_metric_history(run.run_id, "curve_rmse"):
             rows.append({"dataset": run["dataset"], "model": run["model"], "order": run["order"],
-                         "epochs": epochs,
+                         "base_model": run.get("base_model", run["model"]), "epochs": epochs,
                          "seed": run["seed"], "run_id": run.run_id, "step": m.step,
                          "seconds": seconds.get(m.step), "rmse": m.value})
     points = pd.DataFrame(rows).sort_values(["dataset", "order", "epochs", "run_id", "step"])
     return points.drop(columns="order")
 
 
-def curves_section(runs: pd.DataFrame, out: Path) -> str:
-    """Plot the curves (one figure per dataset), write their points; return the section."""
+def curves_section(runs: pd.DataFrame, out: Path, tolerance: float = 0.05) -> str:
+    """Plot the curves (one figure per dataset), write their points; return the section.
+
+    Where a model was trained for several lengths, a dotted line marks ``tolerance`` above
+    the end of its longest curve: a shorter run ending under it is converged."""
     points = curve_points(runs)
     if points.empty:
         return ""
@@ -51,9 +54,19 @@ def curves_section(runs: pd.DataFrame, out: Path) -> str:
     for i, (dataset, group) in enumerate(points.groupby("dataset")):
         fig, ax = plt.subplots(figsize=(6, 4))
         runs_in_order = group.groupby(["model", "epochs", "run_id"], sort=False)
-        for (model, epochs, _run), curve in runs_in_order:
+        colours = {}
+        for (model, epochs, run_id), curve in runs_in_order:
             label = model if model.endswith("epochs)") else f"{model} ({epochs} epochs)"
-            ax.plot(curve["seconds"] / 60, curve["rmse"], marker=".", label=label)
+            (line,) = ax.plot(curve["seconds"] / 60, curve["rmse"], marker=".", label=label)
+            colours[run_id] = line.get_color()
+        for base, runs_of_model in group.groupby("base_model", sort=False):
+            lengths = pd.to_numeric(runs_of_model["epochs"], errors="coerce")
+            if lengths.nunique() < 2:
+                continue
+            longest = runs_of_model[lengths == lengths.max()]
+            end = longest.iloc[-1]
+            ax.axhline(end["rmse"] * (1 + tolerance), color=colours[end["run_id"]], ls=":",
+                       lw=1, label=f"{base}: {end['epochs']}-epoch end + {tolerance:.0%}")
         ax.set_xlabel("training time [min]")
         ax.set_ylabel("RMSE (normalized)")
         ax.set_yscale("log")
