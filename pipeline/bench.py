@@ -162,15 +162,20 @@ def pipeline_training(batch: int, queries: int, steps: int, channels, threads: i
 
 def interleaved(loops: dict, queries_per_step: dict, steps: int, rounds: int = 3) -> dict:
     """Time the loops in turn, ``rounds`` times after one warm-up each, so that a machine
-    that slows down or speeds up meanwhile affects all of them alike; medians per loop."""
+    that slows down or speeds up meanwhile affects all of them alike; medians per loop.
+    The matmul peak is measured in every round too (``matmul_gflops``, the median;
+    ``matmul_gflops_rounds``, each round's), so the shares of it compare like with like."""
     for run in loops.values():
         run()
     times = {name: [] for name in loops}
+    peaks = []
     for _ in range(rounds):
+        peaks.append(matmul_peak())
         for name, run in loops.items():
             times[name].append(run() / steps)
-    return {name: _rates(queries_per_step[name], float(np.median(t)))
-            for name, t in times.items()}
+    figures = {name: _rates(queries_per_step[name], float(np.median(t)))
+               for name, t in times.items()}
+    return figures | {"matmul_gflops": float(np.median(peaks)), "matmul_gflops_rounds": peaks}
 
 
 def encoder_throughput(batch: int, channels) -> float:
@@ -286,9 +291,6 @@ def main(argv=None) -> dict:
                      "machine": platform.processor() or platform.machine(),
                      "torch": torch.__version__, "decoder_parameters": parameter_count(Decoder()),
                      "encoder_channels": list(channels)}
-    peak = figures["matmul_gflops"] = matmul_peak()
-    print(f"matmul peak: {peak:.1f} GFLOP/s ({threads} threads, device {figures['device']}; "
-          f"the training figures below run on the CPU)")
     recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
     figures |= interleaved(
         {"train_naive": naive_training(args.steps, channels),
@@ -301,6 +303,11 @@ def main(argv=None) -> dict:
          "train_paper_recipe": recipe.batch_size * recipe.queries_per_abrdf,
          "decoder_naive": 5 * N_PAPER, "decoder_fused": 5 * N_PAPER},
         args.steps)
+    peak = figures["matmul_gflops"]
+    print(f"matmul peak: {peak:.1f} GFLOP/s (median of "
+          f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_rounds'])}, one per round "
+          f"of the training loops; {threads} threads, device {figures['device']}; the "
+          f"training figures below run on the CPU)")
     _print_training("naive autograd loop (5 x all N)", figures["train_naive"], peak)
     _print_training("pipeline loop (5 x all N)", figures["train_fused"], peak)
     figures["train_speedup"] = (figures["train_fused"]["queries_per_s"]
