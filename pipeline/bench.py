@@ -116,7 +116,8 @@ def decoder_training(fused: bool, steps: int, threads: int):
     features = torch.rand(N_PAPER, 4)
     targets = torch.rand(5, N_PAPER, 3)
     directions = torch.arange(N_PAPER).repeat(5, 1)
-    step = DecoderStep(decoder, features, workers=threads, chunk=TrainSettings.chunk)
+    step = (DecoderStep(decoder, features, workers=threads, chunk=TrainSettings.chunk)
+            if fused else None)
 
     def run() -> float:
         start = time.perf_counter()

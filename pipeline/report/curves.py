@@ -32,7 +32,7 @@ def curve_points(runs: pd.DataFrame) -> pd.DataFrame:
         epochs = run.get("params.train.epochs", "?")
         for m in client.get_metric_history(run.run_id, "curve_rmse"):
             rows.append({"dataset": run["dataset"], "model": run["model"], "order": run["order"],
-                         "base_model": run.get("base_model", run["model"]), "epochs": epochs,
+                         "base_model": run["base_model"], "epochs": epochs,
                          "seed": run["seed"], "run_id": run.run_id, "step": m.step,
                          "seconds": seconds.get(m.step), "rmse": m.value})
     points = pd.DataFrame(rows).sort_values(["dataset", "order", "epochs", "run_id", "step"])
