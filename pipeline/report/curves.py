@@ -32,11 +32,12 @@ def curve_points(runs: pd.DataFrame) -> pd.DataFrame:
         epochs = run.get("params.train.epochs", "?")
         for m in client.get_metric_history(run.run_id, "curve_rmse"):
             rows.append({"dataset": run["dataset"], "model": run["model"], "order": run["order"],
+                         "length": run["epochs"],  # numeric, for sorting: "100" < "24"
                          "base_model": run["base_model"], "epochs": epochs,
                          "seed": run["seed"], "run_id": run.run_id, "step": m.step,
                          "seconds": seconds.get(m.step), "rmse": m.value})
-    points = pd.DataFrame(rows).sort_values(["dataset", "order", "epochs", "run_id", "step"])
-    return points.drop(columns="order")
+    points = pd.DataFrame(rows).sort_values(["dataset", "order", "length", "run_id", "step"])
+    return points.drop(columns=["order", "length"])
 
 
 def curves_section(runs: pd.DataFrame, out: Path, tolerance: float = 0.05) -> str:
