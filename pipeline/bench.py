@@ -60,10 +60,21 @@ def paper_channels() -> tuple[int, ...]:
     return tuple(OmegaConf.load(CONF / "config.yaml").model.encoder_channels)
 
 
-def matmul_peak(size: int = 2048, repeats: int = 5) -> float:
-    """GFLOP/s of a float32 square matrix product."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
+def matmul_peak(size: int = 2048, repeats: int = 5, dtype=torch.float32) -> float:
+    """GFLOP/s of a square matrix product (float32, or bfloat16 for the bfloat16 loops)."""
+    a, b = torch.randn(size, size, dtype=dtype), torch.randn(size, size, dtype=dtype)
     return 2 * size**3 / _median_seconds(lambda: a @ b, repeats) / 1e9
+
+
+def cpu_bfloat16_support() -> str:
+    """The CPU's native bfloat16 instructions from /proc/cpuinfo (``amx_bf16``,
+    ``avx512_bf16``), or ``none``: without them oneDNN emulates bfloat16 products."""
+    try:
+        flags = set(Path("/proc/cpuinfo").read_text().split())
+    except OSError:
+        return "unknown"
+    found = [f for f in ("amx_bf16", "avx512_bf16") if f in flags]
+    return ",".join(found) or "none"
 
 
 def _rates(queries_per_step: float, seconds_per_step: float) -> dict:
@@ -99,13 +110,13 @@ def naive_training(steps: int, channels):
     return run
 
 
-def decoder_training(fused: bool, steps: int, threads: int):
+def decoder_training(fused: bool, steps: int, threads: int, precision: str = "float32"):
     """The decoder alone at the paper's batch (5 fixed latents x all N directions): autograd
     on the concatenated (latent, direction) rows, or the pipeline's fused step
-    (``pipeline.btf.fused.DecoderStep``) with its default chunk. Both compute the latents'
-    gradient and take an SGD step on the decoder, so the two differ only in how the
-    decoder's forward and backward are computed. Returns a callable that runs ``steps``
-    steps and returns their seconds."""
+    (``pipeline.btf.fused.DecoderStep``) with its default chunk, in ``precision``. Both
+    compute the latents' gradient and take an SGD step on the decoder, so the two differ only
+    in how the decoder's forward and backward are computed. Returns a callable that runs
+    ``steps`` steps and returns their seconds."""
     from pipeline.btf.fused import Batch, DecoderStep
     from pipeline.btf.train_settings import TrainSettings
 
@@ -116,8 +127,8 @@ def decoder_training(fused: bool, steps: int, threads: int):
     features = torch.rand(N_PAPER, 4)
     targets = torch.rand(5, N_PAPER, 3)
     directions = torch.arange(N_PAPER).repeat(5, 1)
-    step = (DecoderStep(decoder, features, workers=threads, chunk=TrainSettings.chunk)
-            if fused else None)
+    step = (DecoderStep(decoder, features, workers=threads, chunk=TrainSettings.chunk,
+                        precision=precision) if fused else None)
 
     def run() -> float:
         start = time.perf_counter()
@@ -137,7 +148,8 @@ def decoder_training(fused: bool, steps: int, threads: int):
     return run
 
 
-def pipeline_training(batch: int, queries: int, steps: int, channels, threads: int):
+def pipeline_training(batch: int, queries: int, steps: int, channels, threads: int,
+                      precision: str = "float32"):
     """The project's training loop (``pipeline.btf.train.train``) on random ABRDFs: data
     handling, normalization, encoder, fused decoder step and optimizer, as in a real run.
     Returns a callable that runs ``steps`` steps and returns their training seconds."""
@@ -152,7 +164,7 @@ def pipeline_training(batch: int, queries: int, steps: int, channels, threads: i
     features = rng.random((N_PAPER, 4), dtype=np.float32) * 2 - 1
     settings = TrainSettings(epochs=10**6, batch_size=batch, queries_per_abrdf=queries,
                              max_steps=steps, optimizer="adam", lr=1e-3, threads=threads,
-                             device="cpu")
+                             device="cpu", precision=precision)
 
     def run() -> float:
         return train(abrdf, abrdf, np.arange(m), norm, features, np.arange(N_PAPER), settings,
@@ -164,19 +176,23 @@ def pipeline_training(batch: int, queries: int, steps: int, channels, threads: i
 def interleaved(loops: dict, queries_per_step: dict, steps: int, rounds: int = 3) -> dict:
     """Time the loops in turn, ``rounds`` times after one warm-up each, so that a machine
     that slows down or speeds up meanwhile affects all of them alike; medians per loop.
-    The matmul peak is measured in every round too (``matmul_gflops``, the median;
-    ``matmul_gflops_rounds``, each round's), so the shares of it compare like with like."""
+    The float32 and bfloat16 matmul peaks are measured in every round too
+    (``matmul_gflops`` and ``matmul_gflops_bf16``, the medians; ``..._rounds``, each
+    round's), so the shares of them compare like with like."""
     for run in loops.values():
         run()
     times = {name: [] for name in loops}
-    peaks = []
+    peaks, peaks_bf16 = [], []
     for _ in range(rounds):
         peaks.append(matmul_peak())
+        peaks_bf16.append(matmul_peak(dtype=torch.bfloat16))
         for name, run in loops.items():
             times[name].append(run() / steps)
     figures = {name: _rates(queries_per_step[name], float(np.median(t)))
                for name, t in times.items()}
-    return figures | {"matmul_gflops": float(np.median(peaks)), "matmul_gflops_rounds": peaks}
+    return figures | {"matmul_gflops": float(np.median(peaks)), "matmul_gflops_rounds": peaks,
+                      "matmul_gflops_bf16": float(np.median(peaks_bf16)),
+                      "matmul_gflops_bf16_rounds": peaks_bf16}
 
 
 def encoder_throughput(batch: int, channels) -> float:
@@ -263,10 +279,16 @@ def _drop_page_cache() -> bool:
         return False
 
 
-def _print_training(name: str, row: dict, peak: float) -> None:
+def _print_training(name: str, row: dict, peak: float, peak_bf16: float | None = None) -> None:
+    """One loop's line; a bfloat16 loop gets its share of both peaks (``share_of_peak``
+    and ``share_of_bf16_peak`` in the JSON)."""
+    row["share_of_peak"] = row["gflops"] / peak
+    shares = f"{row['share_of_peak']:.0%} of the float32 peak"
+    if peak_bf16 is not None:
+        row["share_of_bf16_peak"] = row["gflops"] / peak_bf16
+        shares += f", {row['share_of_bf16_peak']:.0%} of the bfloat16 peak"
     print(f"training {name}: {row['queries_per_s'] / 1e6:.3f} M queries/s, "
-          f"{row['gflops']:.1f} GFLOP/s = {row['gflops'] / peak:.0%} of peak, "
-          f"{row['steps_per_s']:.1f} steps/s")
+          f"{row['gflops']:.1f} GFLOP/s = {shares}, {row['steps_per_s']:.1f} steps/s")
 
 
 def main(argv=None) -> dict:
@@ -290,7 +312,8 @@ def main(argv=None) -> dict:
     figures: dict = {"device": f"{device} ({torch.cuda.get_device_name()})" if device == "cuda"
                      else "cpu", "threads": threads,
                      "machine": platform.processor() or platform.machine(),
-                     "torch": torch.__version__, "decoder_parameters": parameter_count(Decoder()),
+                     "torch": torch.__version__, "cpu_bf16": cpu_bfloat16_support(),
+                     "decoder_parameters": parameter_count(Decoder()),
                      "encoder_channels": list(channels)}
     recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
     figures |= interleaved(
@@ -298,11 +321,15 @@ def main(argv=None) -> dict:
          "train_fused": pipeline_training(5, -1, args.steps, channels, threads),
          "train_paper_recipe": pipeline_training(recipe.batch_size, recipe.queries_per_abrdf,
                                                  args.steps, channels, threads),
+         "train_fused_bf16": pipeline_training(5, -1, args.steps, channels, threads,
+                                               precision="bfloat16"),
          "decoder_naive": decoder_training(False, args.steps, threads),
-         "decoder_fused": decoder_training(True, args.steps, threads)},
+         "decoder_fused": decoder_training(True, args.steps, threads),
+         "decoder_fused_bf16": decoder_training(True, args.steps, threads, "bfloat16")},
         {"train_naive": 5 * N_PAPER, "train_fused": 5 * N_PAPER,
          "train_paper_recipe": recipe.batch_size * recipe.queries_per_abrdf,
-         "decoder_naive": 5 * N_PAPER, "decoder_fused": 5 * N_PAPER},
+         "train_fused_bf16": 5 * N_PAPER, "decoder_naive": 5 * N_PAPER,
+         "decoder_fused": 5 * N_PAPER, "decoder_fused_bf16": 5 * N_PAPER},
         args.steps)
     peak = figures["matmul_gflops"]
     print(f"matmul peak: {peak:.1f} GFLOP/s (median of "
@@ -314,11 +341,25 @@ def main(argv=None) -> dict:
     figures["train_speedup"] = (figures["train_fused"]["queries_per_s"]
                                 / figures["train_naive"]["queries_per_s"])
     print(f"  speed-up over the naive loop: {figures['train_speedup']:.2f}x")
+    peak_bf16 = figures["matmul_gflops_bf16"]
+    print(f"bfloat16 matmul peak: {peak_bf16:.1f} GFLOP/s (median of "
+          f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_bf16_rounds'])}); the CPU's "
+          f"bfloat16 instructions: {figures['cpu_bf16']}")
+    _print_training("pipeline loop, train.precision=bfloat16 (5 x all N)",
+                    figures["train_fused_bf16"], peak, peak_bf16)
+    figures["train_speedup_bf16"] = (figures["train_fused_bf16"]["queries_per_s"]
+                                     / figures["train_naive"]["queries_per_s"])
+    print(f"  speed-up over the naive loop: {figures['train_speedup_bf16']:.2f}x")
     _print_training("decoder alone, autograd (5 x all N)", figures["decoder_naive"], peak)
     _print_training("decoder alone, fused step (5 x all N)", figures["decoder_fused"], peak)
     figures["decoder_speedup"] = (figures["decoder_fused"]["queries_per_s"]
                                   / figures["decoder_naive"]["queries_per_s"])
     print(f"  speed-up of the decoder's step: {figures['decoder_speedup']:.2f}x")
+    _print_training("decoder alone, fused step in bfloat16 (5 x all N)",
+                    figures["decoder_fused_bf16"], peak, peak_bf16)
+    figures["decoder_speedup_bf16"] = (figures["decoder_fused_bf16"]["queries_per_s"]
+                                       / figures["decoder_naive"]["queries_per_s"])
+    print(f"  speed-up of the decoder's step: {figures['decoder_speedup_bf16']:.2f}x")
     _print_training(f"pipeline loop, experiment=paper_cpu recipe ({recipe.batch_size} x "
                     f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
     figures["encoder_abrdfs_per_s"] = encoder_throughput(32, channels)

@@ -50,3 +50,58 @@ def test_fused_step_is_deterministic_for_a_number_of_workers():
     step.close()
     for a, b in zip(first.weights + first.biases, second.weights + second.biases, strict=True):
         assert torch.equal(a, b)
+
+
+def _relative_error(got, want):
+    return float((got.double() - want.double()).norm() / want.double().norm())
+
+
+@pytest.mark.parametrize("workers,chunk", [(1, 1000), (2, 64), (3, 50)])
+def test_bfloat16_gradient_is_autograds_to_bfloat16_rounding(workers, chunk):
+    """bfloat16 keeps 8 significant bits (relative rounding 0.4 %): each gradient must be
+    autograd's (float64) to within a few of those, and the loss to float32's accuracy of
+    the residual; a wrong transpose, bias or layer would be off by order one."""
+    torch.manual_seed(0)
+    decoder = Decoder()
+    features = torch.rand(300, 4) * 2 - 1
+    batch = Batch(torch.randn(4, 8), torch.randint(0, 300, (4, 257)), torch.rand(4, 257, 3))
+    loss, expected, expected_latents = _autograd(decoder.double(), Batch(
+        batch.latents.double(), batch.directions, batch.targets.double()), features.double())
+    decoder.float()
+    step = DecoderStep(decoder, features, workers=workers, chunk=chunk, precision="bfloat16")
+    grads = step(batch)
+    step.close()
+    assert grads.loss == pytest.approx(loss, rel=1e-3)
+    decoder.zero_grad(set_to_none=True)
+    step.assign(grads)
+    errors = [_relative_error(p.grad, want) for p, want in zip(decoder.parameters(), expected,
+                                                               strict=True)]
+    errors.append(_relative_error(grads.latents, expected_latents))
+    assert max(errors) < 0.03, errors
+    assert all(p.grad.dtype == torch.float32 for p in decoder.parameters())
+
+
+def test_bfloat16_step_is_deterministic_and_splits_rows_evenly():
+    torch.manual_seed(1)
+    decoder = Decoder()
+    features = torch.rand(300, 4)
+    batch = Batch(torch.randn(5, 8), torch.randint(0, 300, (5, 301)), torch.rand(5, 301, 3))
+    step = DecoderStep(decoder, features, workers=2, chunk=64, precision="bfloat16")
+    rows = []
+    original = step._work_bfloat16
+
+    def counting(items, *shared):
+        rows.append(sum(stop - start for _, start, stop in items))
+        return original(items, *shared)
+
+    step._work_bfloat16 = counting
+    first, second = step(batch), step(batch)
+    step.close()
+    for a, b in zip(first.weights + first.biases, second.weights + second.biases, strict=True):
+        assert torch.equal(a, b)
+    assert rows[:2] == [5 * 151, 5 * 150]  # every query once, half to each worker
+
+
+def test_unknown_precision_is_refused():
+    with pytest.raises(ValueError, match="precision"):
+        DecoderStep(Decoder(), torch.rand(10, 4), precision="float16")

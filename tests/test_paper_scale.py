@@ -43,6 +43,17 @@ def test_bench_prints_its_figures_as_json(capsys):
         figures["train_fused"]["queries_per_s"] / figures["train_naive"]["queries_per_s"])
     assert figures["decoder_speedup"] == pytest.approx(
         figures["decoder_fused"]["queries_per_s"] / figures["decoder_naive"]["queries_per_s"])
+    assert figures["decoder_speedup_bf16"] == pytest.approx(
+        figures["decoder_fused_bf16"]["queries_per_s"]
+        / figures["decoder_naive"]["queries_per_s"])
+    assert figures["train_speedup_bf16"] == pytest.approx(
+        figures["train_fused_bf16"]["queries_per_s"] / figures["train_naive"]["queries_per_s"])
+    row = figures["decoder_fused_bf16"]
+    assert row["share_of_bf16_peak"] == pytest.approx(
+        row["gflops"] / figures["matmul_gflops_bf16"])
+    assert row["share_of_peak"] == pytest.approx(row["gflops"] / figures["matmul_gflops"])
+    assert figures["cpu_bf16"] in ("amx_bf16,avx512_bf16", "amx_bf16", "avx512_bf16", "none",
+                                   "unknown")
     assert figures["encoder_channels"] == [16, 32, 64]
     assert figures["reconstruct_neural_btf_s"] == pytest.approx(
         10_000 * 6561 / figures["reconstruct_queries_per_s"])

@@ -14,6 +14,15 @@ thin 106-wide products on one intra-op thread pool that barely scales past one c
   summed in a fixed order at the end (deterministic for a given number of workers).
 
 The result equals autograd's gradient of the mean squared error (``tests/test_fused.py``).
+
+``precision="bfloat16"`` (``train.precision``) runs the products in bfloat16 with float32
+master weights, what ``torch.autocast(dtype=torch.bfloat16)`` would do to the decoder:
+weights, biases, directions and activations are rounded to bfloat16, each product sums in
+float32 and rounds its output to bfloat16; the residual, the loss and the accumulated
+gradients stay float32. Each layer and its ReLU is one oneDNN call. On a CPU with AMX or
+AVX512-BF16 this is several times faster than float32 (``python -m pipeline.bench``); on
+one without, oneDNN emulates it and it is slower. The gradient differs from float32's by
+bfloat16's rounding (``tests/test_fused.py`` bounds it).
 """
 
 from __future__ import annotations
@@ -24,6 +33,8 @@ from dataclasses import dataclass
 import torch
 
 from pipeline.btf.model import Decoder
+
+PRECISIONS = ("float32", "bfloat16")
 
 
 @dataclass
@@ -59,11 +70,15 @@ class DecoderStep:
     """Computes :class:`Gradients` of a :class:`Batch`; reuse one instance across steps."""
 
     def __init__(self, decoder: Decoder, features: torch.Tensor, workers: int = 1,
-                 chunk: int = 2048):
+                 chunk: int = 2048, precision: str = "float32"):
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision={precision!r} must be one of {PRECISIONS}")
         self.decoder = decoder
         self.features = features
         self.workers = max(1, int(workers))
         self.chunk = max(1, int(chunk))
+        self.precision = precision
+        self._features_bf16 = features.to(torch.bfloat16) if precision == "bfloat16" else None
         self._pool = ThreadPoolExecutor(self.workers) if self.workers > 1 else None
 
     def close(self) -> None:
@@ -71,6 +86,8 @@ class DecoderStep:
             self._pool.shutdown()
 
     def __call__(self, batch: Batch) -> Gradients:
+        if self.precision == "bfloat16":
+            return self._bfloat16(batch)
         layers = _layers(self.decoder)
         weights = [layer.weight.detach() for layer in layers]
         biases = [layer.bias.detach() for layer in layers]
@@ -83,21 +100,81 @@ class DecoderStep:
         items = [(i, s) for i in range(b) for s in range(0, q, self.chunk)]
         scale = 2.0 / (b * q * batch.targets.shape[-1])
         shared = (weights, biases, z, direction_part, latent_part, batch, scale)
+        parts = self._run(self._work, [items[w :: self.workers] for w in range(self.workers)],
+                          *shared)
+        return _sum(parts, b * q * batch.targets.shape[-1])
+
+    def _run(self, work, items_of_worker: list[list], *shared) -> list[Gradients]:
         if self._pool is None:
-            parts = [self._work(items, *shared)]
-        else:
-            futures = [self._pool.submit(self._work, items[w :: self.workers], *shared)
-                       for w in range(self.workers)]
-            parts = [f.result() for f in futures]
-        first, *rest = parts
-        for part in rest:  # fixed order: deterministic for a given number of workers
-            for total, add in zip(first.weights + first.biases, part.weights + part.biases,
-                                  strict=True):
-                total += add
-            first.latents += part.latents
-            first.loss += part.loss
-        first.loss /= b * q * batch.targets.shape[-1]
-        return first
+            return [work(items_of_worker[0], *shared)]
+        futures = [self._pool.submit(work, items, *shared) for items in items_of_worker]
+        return [f.result() for f in futures]
+
+    def _bfloat16(self, batch: Batch) -> Gradients:
+        bf16 = torch.bfloat16
+        layers = _layers(self.decoder)
+        weights = [layer.weight.detach() for layer in layers]
+        biases = [layer.bias.detach() for layer in layers]
+        n_latent = self.decoder.latent
+        z = batch.latents.detach()
+        # The first layer as a product over the directions alone, its latent part folded
+        # into a bias per ABRDF: W1 [z; d] + b1 = W1d d + (W1z z + b1).
+        first_bias = torch.addmm(biases[0], z, weights[0][:, :n_latent].T).to(bf16)
+        low = [weights[0][:, n_latent:].to(bf16)] + [w.to(bf16) for w in weights[1:]]
+        low_biases = [None] + [bias.to(bf16) for bias in biases[1:]]
+        b, q = batch.directions.shape
+        # Worker w takes the w-th of ``workers`` equal parts of every ABRDF's queries, in
+        # chunks that never span two ABRDFs (a chunk's first-layer bias is its ABRDF's), so
+        # that all workers get the same number of rows.
+        part = -(-q // self.workers)
+        items = [[(i, s, min(s + self.chunk, p + part, q)) for i in range(b)
+                  for s in range(p, min(p + part, q), self.chunk)]
+                 for p in range(0, part * self.workers, part)]
+        scale = 2.0 / (b * q * batch.targets.shape[-1])
+        shared = (low, low_biases, first_bias, batch, scale)
+        parts = self._run(self._work_bfloat16, items, *shared)
+        total = _sum(parts, b * q * batch.targets.shape[-1])
+        # The workers summed dL/d(W1z z) per ABRDF in ``latents``; W1z's and z's gradients
+        # follow from it in float32.
+        hidden = total.latents
+        total.weights[0][:, :n_latent] = hidden.T @ z.float()
+        total.latents = hidden @ weights[0][:, :n_latent]
+        return total
+
+    def _work_bfloat16(self, items, weights, biases, first_bias, batch, scale):
+        torch.set_num_threads(1)  # this worker thread's own setting (OpenMP's is per thread)
+        threshold_backward = torch.ops.aten.threshold_backward
+        n_latent = self.decoder.latent
+        master = _layers(self.decoder)
+        g_w = [torch.zeros_like(layer.weight, dtype=torch.float32) for layer in master]
+        g_b = [torch.zeros_like(layer.bias, dtype=torch.float32) for layer in master]
+        device = first_bias.device
+        g_hidden = torch.zeros(first_bias.shape, device=device)  # (B, 106): dL/d(W1z z)
+        loss = torch.zeros((), dtype=torch.float64, device=device)
+        for i, start, stop in items:
+            index = batch.directions[i, start:stop]
+            x = self._features_bf16.index_select(0, index)
+            a1 = _linear(x, weights[0], first_bias[i], relu=True)
+            a2 = _linear(a1, weights[1], biases[1], relu=True)
+            a3 = _linear(a2, weights[2], biases[2], relu=True)
+            residual = _linear(a3, weights[3], biases[3], relu=False).float().sub_(
+                batch.targets[i, start:stop])
+            loss += residual.square().sum(dtype=torch.float64)
+            g = residual.mul_(scale).to(torch.bfloat16)  # d(mean squared error)/d(output)
+            g_w[3] += g.T @ a3
+            g_b[3] += g.sum(0, dtype=torch.float32)
+            g = threshold_backward(g @ weights[3], a3, 0)
+            g_w[2] += g.T @ a2
+            g_b[2] += g.sum(0, dtype=torch.float32)
+            g = threshold_backward(g @ weights[2], a2, 0)
+            g_w[1] += g.T @ a1
+            g_b[1] += g.sum(0, dtype=torch.float32)
+            g = threshold_backward(g @ weights[1], a1, 0)
+            g_sum = g.sum(0, dtype=torch.float32)
+            g_w[0][:, n_latent:] += g.T @ x
+            g_b[0] += g_sum
+            g_hidden[i] += g_sum
+        return Gradients(g_w, g_b, g_hidden, float(loss))
 
     def _work(self, items, weights, biases, z, direction_part, latent_part, batch, scale):
         threshold_backward = torch.ops.aten.threshold_backward
@@ -140,3 +217,27 @@ class DecoderStep:
                     param.grad = grad
                 else:
                     param.grad += grad
+
+
+def _sum(parts: list[Gradients], count: int) -> Gradients:
+    """The workers' gradients summed in a fixed order (deterministic for a number of
+    workers); the loss becomes the mean over ``count`` values."""
+    first, *rest = parts
+    for part in rest:
+        for total, add in zip(first.weights + first.biases, part.weights + part.biases,
+                              strict=True):
+            total += add
+        first.latents += part.latents
+        first.loss += part.loss
+    first.loss /= count
+    return first
+
+
+def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, relu: bool):
+    """``x @ weight.T + bias``, then ReLU if ``relu``: one oneDNN call on the CPU (a separate
+    bfloat16 ReLU pass costs as much as the product), addmm elsewhere."""
+    if x.is_cpu and torch.backends.mkldnn.is_available():
+        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "relu" if relu else "none",
+                                                  [], "")
+    out = torch.addmm(bias, x, weight.T)
+    return out.relu_() if relu else out

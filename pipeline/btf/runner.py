@@ -60,7 +60,10 @@ def train_stage(
     stage_settings = {
         "method": method.name,
         "target": method.get("target", "texel"),
-        "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY},
+        "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY
+                  # float32 was the only precision before train.precision: runs that use
+                  # it keep their keys and cached results.
+                  and not (k == "precision" and v == "float32")},
         "model": plain_settings(cfg.model),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),

@@ -145,7 +145,8 @@ def train(
     else:
         schedule = None
     step_fn = DecoderStep(decoder, features, workers=workers,
-                          chunk=settings.chunk if device.type == "cpu" else 1 << 20)
+                          chunk=settings.chunk if device.type == "cpu" else 1 << 20,
+                          precision=settings.precision)
     all_dirs = torch.from_numpy(np.tile(train_dirs, (b, 1))).to(device)
     curve = None
     if settings.curve_every > 0:

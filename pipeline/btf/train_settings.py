@@ -30,6 +30,9 @@ class TrainSettings:
         by side: competing threads spin-wait and run several times slower.
     chunk : queries per chunk of the fused decoder step (speed only: the chunk's
         activations should fit in a core's L2 cache).
+    precision : ``float32``, or ``bfloat16`` for the decoder's products (float32 master
+        weights and optimizer; see ``pipeline/btf/fused.py``). bfloat16 is several times
+        faster on CPUs with AMX or AVX512-BF16 and slower on CPUs without.
     """
 
     epochs: int = 1
@@ -45,6 +48,7 @@ class TrainSettings:
     curve_texels: int = 256
     threads: int | None = None
     chunk: int = 1024
+    precision: str = "float32"
 
     def __post_init__(self):
         if self.epochs < 1:
@@ -62,5 +66,7 @@ class TrainSettings:
             raise ConfigError("train.curve_every must be >= 0 and train.curve_texels >= 1")
         if self.chunk < 1 or (self.threads is not None and self.threads < 1):
             raise ConfigError("train.chunk and train.threads must be >= 1")
+        if self.precision not in ("float32", "bfloat16"):
+            raise ConfigError(f"train.precision={self.precision!r} must be float32 or bfloat16")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"train.device={self.device!r} must be auto, cpu or cuda")
