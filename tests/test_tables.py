@@ -27,18 +27,20 @@ def _store(tmp_path, mlflow_template):
 
 
 def _log_runs(runs_dir, rows, experiment="btf", failed=False, evaluate_key=None, epochs=16,
-              curve=()):
+              curve=(), precision=None):
     experiment_id = init_store(runs_dir, experiment)
     for method, k, seed, rmse in rows:
         m = 10_000
         latents = (k or m) * 8 * 4
         listing = m * 4 if k else 0
-        tags = {"cache.evaluate": evaluate_key or f"{method}-{k}-{seed}-{rmse}"}
+        tags = {"cache.evaluate": evaluate_key or f"{method}-{k}-{seed}-{rmse}-{precision}"}
         with mlflow.start_run(experiment_id=experiment_id, tags=tags) as run:
             mlflow.log_params({"method.name": method, "method.k": k, "seed": seed,
                                "dataset.name": "synthetic", "dataset.root": None,
                                "method.texel_scale": "none", "method.target": "texel",
                                "train.epochs": epochs})
+            if precision is not None:  # runs from before train.precision have none
+                mlflow.log_param("train.precision", precision)
             for step, seconds, value in curve:
                 mlflow.log_metrics({"curve_rmse": value, "curve_seconds": seconds}, step=step)
             mlflow.log_metrics({
@@ -155,6 +157,16 @@ def test_a_longer_run_is_its_own_model_and_its_curve_is_drawn(tmp_path, settings
     assert set(points["model"]) == {"Neural BTF (64 epochs)"}
     assert (out / "training_curves_0.png").is_file()
     assert "Training: RMSE versus time" in (out / "summary.md").read_text()
+
+
+def test_a_bfloat16_run_is_its_own_model_not_another_seed(tmp_path, settings):
+    _log_runs(tmp_path, RUNS[:1])
+    _log_runs(tmp_path, RUNS[1:2], precision="float32")
+    _log_runs(tmp_path, [("neural_btf", None, 0, 0.0230)], precision="bfloat16")
+    rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv").set_index(
+        "dataset")
+    assert rmse.loc["synthetic", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"
+    assert rmse.loc["synthetic", "Neural BTF (bfloat16)"] == "0.0230 (n=1)"
 
 
 def test_convergence_compares_each_run_with_the_same_model_and_seed_trained_longest(

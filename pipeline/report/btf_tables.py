@@ -37,8 +37,9 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
 
     The model label is ``Neural BTF`` or ``k = <k>`` like the paper's columns, with
     ``+scale`` when the graininess fix is on and ``(rep. target)`` when the clustered
-    model was trained against the representatives, and ``(<E> epochs)`` when it was trained
-    for another number of epochs than most runs of its dataset.
+    model was trained against the representatives, ``(bfloat16)`` when the decoder's products
+    ran in bfloat16 (``train.precision``), and ``(<E> epochs)`` when it was trained for
+    another number of epochs than most runs of its dataset.
     """
     runs = runs.copy()
     root = runs.get("params.dataset.root", pd.Series("", index=runs.index)).fillna("")
@@ -66,6 +67,10 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     target = runs.get("params.method.target", pd.Series("texel", index=runs.index))
     label = np.where((method == "clustered") & (target == "representative"),
                      label + " (rep. target)", label)
+    # The decoder's products in bfloat16 (train.precision) give other numbers: another
+    # model, not another seed. Runs from before train.precision have no such parameter.
+    precision = runs.get("params.train.precision", pd.Series("", index=runs.index)).fillna("")
+    label = np.where(precision.isin(["", "float32"]), label, label + " (" + precision + ")")
     # A run trained for another number of epochs than most runs of its dataset (say, a 4x
     # longer convergence check) is another model, not another seed.
     epochs = runs.get("params.train.epochs", pd.Series("", index=runs.index)).fillna("")
