@@ -118,7 +118,6 @@ def decoder_training(fused: bool, steps: int, threads: int, precision: str = "fl
     in how the decoder's forward and backward are computed. Returns a callable that runs
     ``steps`` steps and returns their seconds."""
     from pipeline.btf.fused import Batch, DecoderStep
-    from pipeline.btf.train_settings import TrainSettings
 
     torch.manual_seed(0)
     decoder = Decoder()
@@ -127,8 +126,8 @@ def decoder_training(fused: bool, steps: int, threads: int, precision: str = "fl
     features = torch.rand(N_PAPER, 4)
     targets = torch.rand(5, N_PAPER, 3)
     directions = torch.arange(N_PAPER).repeat(5, 1)
-    step = (DecoderStep(decoder, features, workers=threads, chunk=TrainSettings.chunk,
-                        precision=precision) if fused else None)
+    step = (DecoderStep(decoder, features, workers=threads, precision=precision)
+            if fused else None)
 
     def run() -> float:
         start = time.perf_counter()

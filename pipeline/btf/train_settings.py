@@ -28,8 +28,9 @@ class TrainSettings:
     threads : CPU threads that run the decoder's chunks side by side (each op on one
         thread; see ``pipeline/btf/fused.py``); None = all cores. Use 1 when jobs run side
         by side: competing threads spin-wait and run several times slower.
-    chunk : queries per chunk of the fused decoder step (speed only: the chunk's
-        activations should fit in a core's L2 cache).
+    chunk : queries per chunk of the fused decoder step (speed only); None for the
+        precision's default (``pipeline.btf.fused.DEFAULT_CHUNK``: 1024 for float32, whose
+        chunk's activations should fit in a core's L2 cache; 4096 for bfloat16).
     precision : ``float32``, or ``bfloat16`` for the decoder's products (float32 master
         weights and optimizer; see ``pipeline/btf/fused.py``). bfloat16 is several times
         faster on CPUs with AMX or AVX512-BF16 and slower on CPUs without.
@@ -47,7 +48,7 @@ class TrainSettings:
     curve_every: int = 0
     curve_texels: int = 256
     threads: int | None = None
-    chunk: int = 1024
+    chunk: int | None = None
     precision: str = "float32"
 
     def __post_init__(self):
@@ -64,7 +65,8 @@ class TrainSettings:
             raise ConfigError(f"train.lr_half_life={self.lr_half_life} must be >= 0")
         if self.curve_every < 0 or self.curve_texels < 1:
             raise ConfigError("train.curve_every must be >= 0 and train.curve_texels >= 1")
-        if self.chunk < 1 or (self.threads is not None and self.threads < 1):
+        if (self.chunk is not None and self.chunk < 1) or (
+                self.threads is not None and self.threads < 1):
             raise ConfigError("train.chunk and train.threads must be >= 1")
         if self.precision not in ("float32", "bfloat16"):
             raise ConfigError(f"train.precision={self.precision!r} must be float32 or bfloat16")
