@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from pipeline.btf.fused import Batch, DecoderStep
+from pipeline.btf.fused import Batch, DecoderStep, split_rows
 from pipeline.btf.model import Decoder
 
 
@@ -81,25 +81,27 @@ def test_bfloat16_gradient_is_autograds_to_bfloat16_rounding(workers, chunk):
     assert all(p.grad.dtype == torch.float32 for p in decoder.parameters())
 
 
-def test_bfloat16_step_is_deterministic_and_splits_rows_evenly():
+def test_bfloat16_step_is_deterministic_for_a_number_of_workers():
     torch.manual_seed(1)
     decoder = Decoder()
     features = torch.rand(300, 4)
     batch = Batch(torch.randn(5, 8), torch.randint(0, 300, (5, 301)), torch.rand(5, 301, 3))
     step = DecoderStep(decoder, features, workers=2, chunk=64, precision="bfloat16")
-    rows = []
-    original = step._work_bfloat16
-
-    def counting(items, *shared):
-        rows.append(sum(stop - start for _, start, stop in items))
-        return original(items, *shared)
-
-    step._work_bfloat16 = counting
     first, second = step(batch), step(batch)
     step.close()
     for a, b in zip(first.weights + first.biases, second.weights + second.biases, strict=True):
         assert torch.equal(a, b)
-    assert rows[:2] == [5 * 151, 5 * 150]  # every query once, half to each worker
+    assert first.loss == second.loss
+
+
+def test_rows_are_split_evenly_and_each_query_is_in_one_chunk():
+    items = split_rows(b=5, q=301, workers=2, chunk=64)
+    assert [sum(stop - start for _, start, stop in work) for work in items] == [755, 750]
+    for i in range(5):
+        rows = sorted(r for work in items for j, start, stop in work if j == i
+                      for r in range(start, stop))
+        assert rows == list(range(301))
+    assert max(stop - start for work in items for _, start, stop in work) == 64
 
 
 def test_unknown_precision_is_refused():

@@ -128,16 +128,11 @@ class DecoderStep:
         low = [weights[0][:, n_latent:].to(bf16)] + [w.to(bf16) for w in weights[1:]]
         low_biases = [None] + [bias.to(bf16) for bias in biases[1:]]
         b, q = batch.directions.shape
-        # Worker w takes the w-th of ``workers`` equal parts of every ABRDF's queries, in
-        # chunks that never span two ABRDFs (a chunk's first-layer bias is its ABRDF's), so
-        # that all workers get the same number of rows.
-        part = -(-q // self.workers)
-        items = [[(i, s, min(s + self.chunk, p + part, q)) for i in range(b)
-                  for s in range(p, min(p + part, q), self.chunk)]
-                 for p in range(0, part * self.workers, part)]
+        items = split_rows(b, q, self.workers, self.chunk)
         scale = 2.0 / (b * q * batch.targets.shape[-1])
-        shared = (low, low_biases, first_bias, batch, scale)
-        parts = self._run(self._work_bfloat16, items, *shared)
+        shared = (batch.directions, batch.targets, low, low_biases, first_bias,
+                  self._features_bf16, scale, n_latent)
+        parts = self._run(bfloat16_chunks, items, *shared)
         total = _sum(parts, b * q * batch.targets.shape[-1])
         # The workers summed dL/d(W1z z) per ABRDF in ``latents``; W1z's and z's gradients
         # follow from it in float32.
@@ -145,41 +140,6 @@ class DecoderStep:
         total.weights[0][:, :n_latent] = hidden.T @ z.float()
         total.latents = hidden @ weights[0][:, :n_latent]
         return total
-
-    def _work_bfloat16(self, items, weights, biases, first_bias, batch, scale):
-        torch.set_num_threads(1)  # this worker thread's own setting (OpenMP's is per thread)
-        threshold_backward = torch.ops.aten.threshold_backward
-        n_latent = self.decoder.latent
-        master = _layers(self.decoder)
-        g_w = [torch.zeros_like(layer.weight, dtype=torch.float32) for layer in master]
-        g_b = [torch.zeros_like(layer.bias, dtype=torch.float32) for layer in master]
-        device = first_bias.device
-        g_hidden = torch.zeros(first_bias.shape, device=device)  # (B, 106): dL/d(W1z z)
-        loss = torch.zeros((), dtype=torch.float64, device=device)
-        for i, start, stop in items:
-            index = batch.directions[i, start:stop]
-            x = self._features_bf16.index_select(0, index)
-            a1 = _linear(x, weights[0], first_bias[i], relu=True)
-            a2 = _linear(a1, weights[1], biases[1], relu=True)
-            a3 = _linear(a2, weights[2], biases[2], relu=True)
-            residual = _linear(a3, weights[3], biases[3], relu=False).float().sub_(
-                batch.targets[i, start:stop])
-            loss += residual.square().sum(dtype=torch.float64)
-            g = residual.mul_(scale).to(torch.bfloat16)  # d(mean squared error)/d(output)
-            g_w[3] += g.T @ a3
-            g_b[3] += g.sum(0)
-            g = threshold_backward(g @ weights[3], a3, 0)
-            g_w[2] += g.T @ a2
-            g_b[2] += g.sum(0)
-            g = threshold_backward(g @ weights[2], a2, 0)
-            g_w[1] += g.T @ a1
-            g_b[1] += g.sum(0)
-            g = threshold_backward(g @ weights[1], a1, 0)
-            g_sum = g.sum(0).float()  # sums in float32, rounds to bfloat16 (3x faster)
-            g_w[0][:, n_latent:] += g.T @ x
-            g_b[0] += g_sum
-            g_hidden[i] += g_sum
-        return Gradients(g_w, g_b, g_hidden, float(loss))
 
     def _work(self, items, weights, biases, z, direction_part, latent_part, batch, scale):
         threshold_backward = torch.ops.aten.threshold_backward
@@ -246,3 +206,54 @@ def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, relu: boo
                                                   [], "")
     out = torch.addmm(bias, x, weight.T)
     return out.relu_() if relu else out
+
+
+def split_rows(b: int, q: int, workers: int, chunk: int) -> list[list[tuple]]:
+    """Worker w takes the w-th of ``workers`` equal parts of every ABRDF's ``q`` queries, in
+    chunks of at most ``chunk`` rows that never span two ABRDFs (a chunk's first-layer bias
+    is its ABRDF's), so that all workers get the same number of rows. Returns each worker's
+    (ABRDF, first row, end row) items."""
+    part = -(-q // workers)
+    return [[(i, s, min(s + chunk, p + part, q)) for i in range(b)
+             for s in range(p, min(p + part, q), chunk)]
+            for p in range(0, part * workers, part)]
+
+
+def bfloat16_chunks(items, directions, targets, weights, biases, first_bias, features, scale,
+                    n_latent) -> Gradients:
+    """The bfloat16 forward and backward of ``items`` ((ABRDF, first row, end row) chunks of
+    ``directions`` / ``targets``); ``weights`` / ``biases`` in bfloat16, the first layer's
+    restricted to the directions and its bias ``first_bias`` per ABRDF. ``latents`` of the
+    result holds dL/d(W1z z) per ABRDF. Runs in one of the step's worker threads."""
+    torch.set_num_threads(1)  # this thread's own setting (OpenMP's is per thread)
+    threshold_backward = torch.ops.aten.threshold_backward
+    device = first_bias.device
+    g_w = [torch.zeros(weights[0].shape[0], n_latent + weights[0].shape[1], device=device)]
+    g_w += [torch.zeros(w.shape, device=device) for w in weights[1:]]
+    g_b = [torch.zeros(first_bias.shape[1], device=device)]
+    g_b += [torch.zeros(bias.shape, device=device) for bias in biases[1:]]
+    g_hidden = torch.zeros(first_bias.shape, device=device)  # (B, 106): dL/d(W1z z)
+    loss = torch.zeros((), dtype=torch.float64, device=device)
+    for i, start, stop in items:
+        x = features.index_select(0, directions[i, start:stop])
+        a1 = _linear(x, weights[0], first_bias[i], relu=True)
+        a2 = _linear(a1, weights[1], biases[1], relu=True)
+        a3 = _linear(a2, weights[2], biases[2], relu=True)
+        residual = _linear(a3, weights[3], biases[3], relu=False).float().sub_(
+            targets[i, start:stop])
+        loss += residual.square().sum(dtype=torch.float64)
+        g = residual.mul_(scale).to(torch.bfloat16)  # d(mean squared error)/d(output)
+        g_w[3] += g.T @ a3
+        g_b[3] += g.sum(0)
+        g = threshold_backward(g @ weights[3], a3, 0)
+        g_w[2] += g.T @ a2
+        g_b[2] += g.sum(0)
+        g = threshold_backward(g @ weights[2], a2, 0)
+        g_w[1] += g.T @ a1
+        g_b[1] += g.sum(0)
+        g = threshold_backward(g @ weights[1], a1, 0)
+        g_sum = g.sum(0).float()  # sums in float32, rounds to bfloat16 (3x faster)
+        g_w[0][:, n_latent:] += g.T @ x
+        g_b[0] += g_sum
+        g_hidden[i] += g_sum
+    return Gradients(g_w, g_b, g_hidden, float(loss))
