@@ -20,8 +20,8 @@ master weights, what ``torch.autocast(dtype=torch.bfloat16)`` would do to the de
 weights, biases, directions and activations are rounded to bfloat16, each product sums in
 float32 and rounds its output to bfloat16; the residual, the loss and the accumulated
 gradients stay float32. Each layer and its ReLU is one oneDNN call. On a CPU with AMX or
-AVX512-BF16 this is several times faster than float32 (``python -m pipeline.bench``); on
-one without, oneDNN emulates it and it is slower. The gradient differs from float32's by
+AVX512-BF16 this is about twice as fast as float32 (``python -m pipeline.bench``); on one
+without, oneDNN takes slower code paths (not measured: check with the bench). The gradient differs from float32's by
 bfloat16's rounding (``tests/test_fused.py`` bounds it).
 """
 

@@ -32,8 +32,8 @@ class TrainSettings:
         precision's default (``pipeline.btf.fused.DEFAULT_CHUNK``: 1024 for float32, whose
         chunk's activations should fit in a core's L2 cache; 4096 for bfloat16).
     precision : ``float32``, or ``bfloat16`` for the decoder's products (float32 master
-        weights and optimizer; see ``pipeline/btf/fused.py``). bfloat16 is several times
-        faster on CPUs with AMX or AVX512-BF16 and slower on CPUs without.
+        weights and optimizer; see ``pipeline/btf/fused.py``). About twice as fast on a CPU
+        with AMX (``python -m pipeline.bench``); unmeasured on CPUs without bfloat16 units.
     """
 
     epochs: int = 1
