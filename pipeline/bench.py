@@ -68,7 +68,8 @@ def matmul_peak(size: int = 2048, repeats: int = 5, dtype=torch.float32) -> floa
 
 def cpu_bfloat16_support() -> str:
     """The CPU's native bfloat16 instructions from /proc/cpuinfo (``amx_bf16``,
-    ``avx512_bf16``), or ``none``: without them oneDNN emulates bfloat16 products."""
+    ``avx512_bf16``), or ``none``: without them bfloat16 products take oneDNN's slower
+    code paths, and ``train.precision=bfloat16`` may not pay."""
     try:
         flags = set(Path("/proc/cpuinfo").read_text().split())
     except OSError:

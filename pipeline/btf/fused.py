@@ -19,10 +19,10 @@ The result equals autograd's gradient of the mean squared error (``tests/test_fu
 master weights, what ``torch.autocast(dtype=torch.bfloat16)`` would do to the decoder:
 weights, biases, directions and activations are rounded to bfloat16, each product sums in
 float32 and rounds its output to bfloat16; the residual, the loss and the accumulated
-gradients stay float32. Each layer and its ReLU is one oneDNN call. On a CPU with AMX or
-AVX512-BF16 this is about twice as fast as float32 (``python -m pipeline.bench``); on one
-without, oneDNN takes slower code paths (not measured: check with the bench). The gradient differs from float32's by
-bfloat16's rounding (``tests/test_fused.py`` bounds it).
+gradients stay float32. Each layer and its ReLU is one oneDNN call. On a CPU with AMX this
+is about twice as fast as float32 (``python -m pipeline.bench``); on a CPU without bfloat16
+units oneDNN takes slower code paths (not measured: check with the bench). The gradient
+differs from float32's by bfloat16's rounding (``tests/test_fused.py`` bounds it).
 """
 
 from __future__ import annotations
@@ -35,10 +35,11 @@ import torch
 from pipeline.btf.model import Decoder
 
 PRECISIONS = ("float32", "bfloat16")
-# Queries per chunk, measured with ``python -m pipeline.bench`` (2 cores, 5 x 6561 queries):
-# float32 is fastest when a chunk's activations stay in a core's L2 cache; bfloat16 products
-# are so fast that each op's fixed cost dominates small chunks (1024: 0.92, 2048: 1.29,
-# 4096: 1.63 M queries/s).
+# Queries per chunk. float32 is fastest when a chunk's activations stay in a core's L2
+# cache; bfloat16 products are so fast that each op's fixed cost dominates small chunks:
+# the bench's decoder loop (``pipeline.bench.decoder_training``, 5 x 6561 queries, 2
+# workers, one interleaved run on an AMX Xeon) gave 0.92, 1.29 and 1.63 M queries/s at
+# 1024, 2048 and 4096 (4096 means one chunk per worker's half of each ABRDF).
 DEFAULT_CHUNK = {"float32": 1024, "bfloat16": 4096}
 
 
