@@ -94,9 +94,7 @@ class DecoderStep:
     def __call__(self, batch: Batch) -> Gradients:
         if self.precision == "bfloat16":
             return self._bfloat16(batch)
-        layers = _layers(self.decoder)
-        weights = [layer.weight.detach() for layer in layers]
-        biases = [layer.bias.detach() for layer in layers]
+        weights, biases = self._parameters()
         n_latent = self.decoder.latent
         z = batch.latents.detach()
         # First layer: W1 [z; d] + b1 = (W1z z) + (W1d d + b1), each part computed once.
@@ -110,6 +108,10 @@ class DecoderStep:
                           *shared)
         return _sum(parts, b * q * batch.targets.shape[-1])
 
+    def _parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        layers = _layers(self.decoder)
+        return [layer.weight.detach() for layer in layers], [layer.bias.detach() for layer in layers]
+
     def _run(self, work, items_of_worker: list[list], *shared) -> list[Gradients]:
         if self._pool is None:
             return [work(items_of_worker[0], *shared)]
@@ -118,9 +120,7 @@ class DecoderStep:
 
     def _bfloat16(self, batch: Batch) -> Gradients:
         bf16 = torch.bfloat16
-        layers = _layers(self.decoder)
-        weights = [layer.weight.detach() for layer in layers]
-        biases = [layer.bias.detach() for layer in layers]
+        weights, biases = self._parameters()
         n_latent = self.decoder.latent
         z = batch.latents.detach()
         # The first layer as a product over the directions alone, its latent part folded
