@@ -110,7 +110,8 @@ class DecoderStep:
 
     def _parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         layers = _layers(self.decoder)
-        return [layer.weight.detach() for layer in layers], [layer.bias.detach() for layer in layers]
+        return ([layer.weight.detach() for layer in layers],
+                [layer.bias.detach() for layer in layers])
 
     def _run(self, work, items_of_worker: list[list], *shared) -> list[Gradients]:
         if self._pool is None:
