@@ -8,7 +8,9 @@ marks read before each reset.
 
 from __future__ import annotations
 
+import ctypes
 import resource
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -54,3 +56,48 @@ def stage_peak():
     finally:
         result["mb"] = _hwm_mb()
         process_peak_mb()
+
+
+# glibc's mallopt parameters (malloc.h) and its largest mmap threshold (HEAP_MAX_SIZE / 2 on
+# 64-bit), which is also where its dynamic threshold stops growing.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+_MMAP_THRESHOLD_MAX = 32 << 20
+
+
+def _glibc():
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt  # noqa: B018 (musl and others have no mallopt)
+        libc.malloc_trim  # noqa: B018
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
+@contextmanager
+def reuse_freed_memory(trim_threshold: int = 256 << 20):
+    """Within the block, glibc's malloc keeps freed buffers of up to 32 MiB for reuse instead
+    of returning them to the kernel; on exit, what is free goes back (``malloc_trim``).
+
+    Why: a training step allocates and frees its ~1 MB activations dozens of times. By
+    default glibc serves and returns each one with ``mmap``/``munmap`` or trims its heap
+    after it, so every step touches fresh pages: the bfloat16 decoder step took 4,500 page
+    faults and 33 ms, against none and 25 ms with this (one worker, AMX Xeon). PyTorch has no
+    caching allocator on the CPU; Intel's tuning guide preloads jemalloc or tcmalloc
+    instead, which a pip install cannot do. No-op where glibc is not the C library.
+    """
+    libc = _glibc()
+    if libc is None:
+        yield
+        return
+    libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_MAX)
+    libc.mallopt(_M_TRIM_THRESHOLD, trim_threshold)
+    try:
+        yield
+    finally:
+        # Setting either disabled glibc's dynamic thresholds for good; leave them where the
+        # dynamic ones stop growing (trim at twice the mmap threshold).
+        libc.mallopt(_M_TRIM_THRESHOLD, 2 * _MMAP_THRESHOLD_MAX)
+        libc.malloc_trim(0)

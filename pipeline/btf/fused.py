@@ -72,6 +72,16 @@ def _layers(decoder: Decoder) -> list[torch.nn.Linear]:
     return layers
 
 
+def _script(function):
+    """``torch.jit.script(function)``, compiled once per process (about a second)."""
+    if function not in _SCRIPTED:
+        _SCRIPTED[function] = torch.jit.script(function)
+    return _SCRIPTED[function]
+
+
+_SCRIPTED: dict = {}
+
+
 class DecoderStep:
     """Computes :class:`Gradients` of a :class:`Batch`; reuse one instance across steps."""
 
@@ -86,6 +96,7 @@ class DecoderStep:
         self.precision = precision
         self._features_bf16 = features.to(torch.bfloat16) if precision == "bfloat16" else None
         self._pool = ThreadPoolExecutor(self.workers) if self.workers > 1 else None
+        self._chunks = _script(_bfloat16_chunks if precision == "bfloat16" else _float32_chunks)
 
     def close(self) -> None:
         if self._pool is not None:
@@ -103,9 +114,9 @@ class DecoderStep:
         b, q = batch.directions.shape
         items = [(i, s) for i in range(b) for s in range(0, q, self.chunk)]
         scale = 2.0 / (b * q * batch.targets.shape[-1])
-        shared = (weights, biases, z, direction_part, latent_part, batch, scale)
-        parts = self._run(self._work, [items[w :: self.workers] for w in range(self.workers)],
-                          *shared)
+        shared = (weights, biases, z, direction_part, latent_part, batch.directions,
+                  batch.targets, self.features, scale, self.chunk)
+        parts = self._run([items[w :: self.workers] for w in range(self.workers)], *shared)
         return _sum(parts, b * q * batch.targets.shape[-1])
 
     def _parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
@@ -113,11 +124,21 @@ class DecoderStep:
         return ([layer.weight.detach() for layer in layers],
                 [layer.bias.detach() for layer in layers])
 
-    def _run(self, work, items_of_worker: list[list], *shared) -> list[Gradients]:
+    def _run(self, items_of_worker: list[list], *shared) -> list[Gradients]:
+        """Each worker's chunks on its own thread (the caller's if there is one worker)."""
         if self._pool is None:
-            return [work(items_of_worker[0], *shared)]
-        futures = [self._pool.submit(work, items, *shared) for items in items_of_worker]
+            threads = torch.get_num_threads()
+            try:
+                return [self._work(items_of_worker[0], *shared)]
+            finally:
+                torch.set_num_threads(threads)
+        futures = [self._pool.submit(self._work, items, *shared) for items in items_of_worker]
         return [f.result() for f in futures]
+
+    def _work(self, items, *shared) -> Gradients:
+        torch.set_num_threads(1)  # this thread's own setting (OpenMP's is per thread)
+        g_w, g_b, g_z, loss = self._chunks(items, *shared)
+        return Gradients(g_w, g_b, g_z, float(loss))
 
     def _bfloat16(self, batch: Batch) -> Gradients:
         bf16 = torch.bfloat16
@@ -128,13 +149,13 @@ class DecoderStep:
         # into a bias per ABRDF: W1 [z; d] + b1 = W1d d + (W1z z + b1).
         first_bias = torch.addmm(biases[0], z, weights[0][:, :n_latent].T).to(bf16)
         low = [weights[0][:, n_latent:].to(bf16)] + [w.to(bf16) for w in weights[1:]]
-        low_biases = [None] + [bias.to(bf16) for bias in biases[1:]]
+        low_biases = [bias.to(bf16) for bias in biases[1:]]
         b, q = batch.directions.shape
         items = split_rows(b, q, self.workers, self.chunk)
         scale = 2.0 / (b * q * batch.targets.shape[-1])
-        shared = (batch.directions, batch.targets, low, low_biases, first_bias,
-                  self._features_bf16, scale, n_latent)
-        parts = self._run(bfloat16_chunks, items, *shared)
+        onednn = first_bias.is_cpu and torch.backends.mkldnn.is_available()
+        parts = self._run(items, batch.directions, batch.targets, low, low_biases, first_bias,
+                          self._features_bf16, scale, n_latent, onednn)
         total = _sum(parts, b * q * batch.targets.shape[-1])
         # The workers summed dL/d(W1z z) per ABRDF in ``latents``; W1z's and z's gradients
         # follow from it in float32.
@@ -142,38 +163,6 @@ class DecoderStep:
         total.weights[0][:, :n_latent] = hidden.T @ z.float()
         total.latents = hidden @ weights[0][:, :n_latent]
         return total
-
-    def _work(self, items, weights, biases, z, direction_part, latent_part, batch, scale):
-        threshold_backward = torch.ops.aten.threshold_backward
-        n_latent = self.decoder.latent
-        g_w = [torch.zeros_like(w) for w in weights]
-        g_b = [torch.zeros_like(b) for b in biases]
-        g_z = torch.zeros_like(z)
-        loss = torch.zeros((), dtype=torch.float64, device=z.device)
-        for i, start in items:
-            index = batch.directions[i, start : start + self.chunk]
-            a1 = direction_part.index_select(0, index).add_(latent_part[i]).relu_()
-            a2 = torch.addmm(biases[1], a1, weights[1].T).relu_()
-            a3 = torch.addmm(biases[2], a2, weights[2].T).relu_()
-            residual = torch.addmm(biases[3], a3, weights[3].T).sub_(
-                batch.targets[i, start : start + self.chunk])
-            loss += residual.square().sum(dtype=torch.float64)
-            g = residual.mul_(scale)  # d(mean squared error)/d(output)
-            g_w[3].addmm_(g.T, a3)
-            g_b[3] += g.sum(0)
-            g = threshold_backward(g @ weights[3], a3, 0)
-            g_w[2].addmm_(g.T, a2)
-            g_b[2] += g.sum(0)
-            g = threshold_backward(g @ weights[2], a2, 0)
-            g_w[1].addmm_(g.T, a1)
-            g_b[1] += g.sum(0)
-            g = threshold_backward(g @ weights[1], a1, 0)
-            g_sum = g.sum(0)
-            g_w[0][:, n_latent:].addmm_(g.T, self.features.index_select(0, index))
-            g_w[0][:, :n_latent] += torch.outer(g_sum, z[i])
-            g_b[0] += g_sum
-            g_z[i] += g_sum @ weights[0][:, :n_latent]
-        return Gradients(g_w, g_b, g_z, float(loss))
 
     def assign(self, grads: Gradients) -> None:
         """Store ``grads`` as the decoder parameters' ``.grad`` (adding to what is there)."""
@@ -184,6 +173,47 @@ class DecoderStep:
                     param.grad = grad
                 else:
                     param.grad += grad
+
+
+def _float32_chunks(items: list[tuple[int, int]], weights: list[torch.Tensor],
+                    biases: list[torch.Tensor], z: torch.Tensor, direction_part: torch.Tensor,
+                    latent_part: torch.Tensor, directions: torch.Tensor, targets: torch.Tensor,
+                    features: torch.Tensor, scale: float, chunk: int):
+    """The float32 forward and backward of ``items`` ((ABRDF, first row) chunks of
+    ``chunk`` rows). The first layer's ``direction_part`` (W1d d + b1, per direction) and
+    ``latent_part`` (W1z z, per ABRDF) are precomputed. Returns (weight gradients, bias
+    gradients, latent gradients, sum of squared residuals). Scripted like
+    :func:`_bfloat16_chunks`, and for the same reason."""
+    n_latent = z.shape[1]
+    g_w = [torch.zeros_like(w) for w in weights]
+    g_b = [torch.zeros_like(b) for b in biases]
+    g_z = torch.zeros_like(z)
+    loss = torch.zeros((), dtype=torch.float64, device=z.device)
+    for item in items:
+        i, start = item
+        index = directions[i, start : start + chunk]
+        a1 = direction_part.index_select(0, index).add_(latent_part[i]).relu_()
+        a2 = torch.addmm(biases[1], a1, weights[1].t()).relu_()
+        a3 = torch.addmm(biases[2], a2, weights[2].t()).relu_()
+        residual = torch.addmm(biases[3], a3, weights[3].t()).sub_(
+            targets[i, start : start + chunk])
+        loss += residual.square().sum(dtype=torch.float64)
+        g = residual.mul_(scale)  # d(mean squared error)/d(output)
+        g_w[3].addmm_(g.t(), a3)
+        g_b[3] += g.sum(0)
+        g = torch.ops.aten.threshold_backward(g @ weights[3], a3, 0)
+        g_w[2].addmm_(g.t(), a2)
+        g_b[2] += g.sum(0)
+        g = torch.ops.aten.threshold_backward(g @ weights[2], a2, 0)
+        g_w[1].addmm_(g.t(), a1)
+        g_b[1] += g.sum(0)
+        g = torch.ops.aten.threshold_backward(g @ weights[1], a1, 0)
+        g_sum = g.sum(0)
+        g_w[0][:, n_latent:].addmm_(g.t(), features.index_select(0, index))
+        g_w[0][:, :n_latent] += torch.outer(g_sum, z[i])
+        g_b[0] += g_sum
+        g_z[i] += g_sum @ weights[0][:, :n_latent]
+    return g_w, g_b, g_z, loss
 
 
 def _sum(parts: list[Gradients], count: int) -> Gradients:
@@ -200,17 +230,6 @@ def _sum(parts: list[Gradients], count: int) -> Gradients:
     return first
 
 
-def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, relu: bool):
-    """``x @ weight.T + bias``, then ReLU if ``relu``: one oneDNN call on the CPU (a separate
-    bfloat16 ReLU pass measured half to three quarters of the product's time), addmm
-    elsewhere."""
-    if x.is_cpu and torch.backends.mkldnn.is_available():
-        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "relu" if relu else "none",
-                                                  [], "")
-    out = torch.addmm(bias, x, weight.T)
-    return out.relu_() if relu else out
-
-
 def split_rows(b: int, q: int, workers: int, chunk: int) -> list[list[tuple]]:
     """Worker w takes the w-th of ``workers`` equal parts of every ABRDF's ``q`` queries, in
     chunks of at most ``chunk`` rows that never span two ABRDFs (a chunk's first-layer bias
@@ -222,41 +241,55 @@ def split_rows(b: int, q: int, workers: int, chunk: int) -> list[list[tuple]]:
             for p in range(0, part * workers, part)]
 
 
-def bfloat16_chunks(items, directions, targets, weights, biases, first_bias, features, scale,
-                    n_latent) -> Gradients:
+def _bfloat16_chunks(items: list[tuple[int, int, int]], directions: torch.Tensor,
+                     targets: torch.Tensor, weights: list[torch.Tensor],
+                     biases: list[torch.Tensor], first_bias: torch.Tensor,
+                     features: torch.Tensor, scale: float, n_latent: int, onednn: bool):
     """The bfloat16 forward and backward of ``items`` ((ABRDF, first row, end row) chunks of
-    ``directions`` / ``targets``); ``weights`` / ``biases`` in bfloat16, the first layer's
-    restricted to the directions and its bias ``first_bias`` per ABRDF. ``latents`` of the
-    result holds dL/d(W1z z) per ABRDF. Runs in one of the step's worker threads."""
-    torch.set_num_threads(1)  # this thread's own setting (OpenMP's is per thread)
-    threshold_backward = torch.ops.aten.threshold_backward
-    device = first_bias.device
-    g_w = [torch.zeros(weights[0].shape[0], n_latent + weights[0].shape[1], device=device)]
-    g_w += [torch.zeros(w.shape, device=device) for w in weights[1:]]
-    g_b = [torch.zeros(first_bias.shape[1], device=device)]
-    g_b += [torch.zeros(bias.shape, device=device) for bias in biases[1:]]
-    g_hidden = torch.zeros(first_bias.shape, device=device)  # (B, 106): dL/d(W1z z)
-    loss = torch.zeros((), dtype=torch.float64, device=device)
-    for i, start, stop in items:
+    ``directions`` / ``targets``); ``weights`` in bfloat16, the first layer's restricted to
+    the directions, ``biases`` those of layers 2-4 in bfloat16 and ``first_bias`` the first
+    layer's per ABRDF. Returns (weight gradients, bias gradients, dL/d(W1z z) per ABRDF, sum
+    of squared residuals).
+
+    Compiled with TorchScript (:func:`_script`), whose interpreter runs without
+    Python's GIL: in eager mode the workers' ~36 torch calls per chunk each hand the GIL
+    over, and two workers ran 1.3x one; scripted, the chunk loop itself scales.
+    ``onednn``: each layer and its ReLU is one oneDNN call (a separate bfloat16 ReLU pass
+    measured half to three quarters of the product's time), addmm elsewhere.
+    """
+    g_w = [torch.zeros(weights[0].shape[0], n_latent + weights[0].shape[1],
+                       device=first_bias.device)]
+    g_b = [torch.zeros(first_bias.shape[1], device=first_bias.device)]
+    for k in range(1, len(weights)):  # (TorchScript has no zip(strict=))
+        g_w.append(torch.zeros(weights[k].shape, device=first_bias.device))
+        g_b.append(torch.zeros(biases[k - 1].shape, device=first_bias.device))
+    g_hidden = torch.zeros(first_bias.shape, device=first_bias.device)  # (B, 106)
+    loss = torch.zeros((), dtype=torch.float64, device=first_bias.device)
+    for item in items:
+        i, start, stop = item
         x = features.index_select(0, directions[i, start:stop])
-        a1 = _linear(x, weights[0], first_bias[i], relu=True)
-        a2 = _linear(a1, weights[1], biases[1], relu=True)
-        a3 = _linear(a2, weights[2], biases[2], relu=True)
-        residual = _linear(a3, weights[3], biases[3], relu=False).float().sub_(
-            targets[i, start:stop])
+        layer_biases = [first_bias[i]] + biases
+        a = [x]
+        for k in range(4):
+            relu = k < 3
+            if onednn:
+                out = torch.ops.mkldnn._linear_pointwise(a[k], weights[k], layer_biases[k],
+                                                         "relu" if relu else "none", [], "")
+            else:
+                out = torch.addmm(layer_biases[k], a[k], weights[k].t())
+                if relu:
+                    out = out.relu_()
+            a.append(out)
+        residual = a[4].float().sub_(targets[i, start:stop])
         loss += residual.square().sum(dtype=torch.float64)
         g = residual.mul_(scale).to(torch.bfloat16)  # d(mean squared error)/d(output)
-        g_w[3] += g.T @ a3
-        g_b[3] += g.sum(0)
-        g = threshold_backward(g @ weights[3], a3, 0)
-        g_w[2] += g.T @ a2
-        g_b[2] += g.sum(0)
-        g = threshold_backward(g @ weights[2], a2, 0)
-        g_w[1] += g.T @ a1
-        g_b[1] += g.sum(0)
-        g = threshold_backward(g @ weights[1], a1, 0)
+        for k in range(3, 0, -1):
+            g_w[k] += g.t() @ a[k]
+            g_b[k] += g.sum(0)
+            g = torch.ops.aten.threshold_backward(g @ weights[k], a[k], 0)
         g_sum = g.sum(0).float()  # sums in float32, rounds to bfloat16 (3x faster)
-        g_w[0][:, n_latent:] += g.T @ x
+        g_w[0][:, n_latent:] += g.t() @ x
         g_b[0] += g_sum
         g_hidden[i] += g_sum
-    return Gradients(g_w, g_b, g_hidden, float(loss))
+    return g_w, g_b, g_hidden, loss
+

@@ -23,6 +23,7 @@ from pipeline.btf.model import Decoder, Encoder
 from pipeline.btf.preprocess import Normalization
 from pipeline.btf.train_settings import TrainSettings
 from pipeline.errors import ConfigError
+from pipeline.memory import reuse_freed_memory
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +167,8 @@ def train(
             on_curve(point)
 
     try:
-        with tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar:
+        with (reuse_freed_memory(),
+              tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar):
             if curve is not None:
                 measure(0)
             for epoch in range(settings.epochs):
