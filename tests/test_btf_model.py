@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from pipeline.btf.evaluate import reconstruction_error, storage_sizes
-from pipeline.btf.model import Decoder, Encoder, parameter_count, stereographic
+from pipeline.btf.model import Decoder, Encoder, MaxPool3, parameter_count, stereographic
 from pipeline.btf.preprocess import fit_normalization
 from pipeline.btf.train import TrainSettings, encode, train
 from pipeline.errors import ConfigError
@@ -40,6 +40,27 @@ def test_encoder_blocks_follow_the_abrdf_length():
     assert encoder.fc.in_features == 4 * 243  # 6561 / 3^3
     with pytest.raises(ConfigError, match="N=20"):
         Encoder(20, (4, 4, 4))
+
+
+@pytest.mark.parametrize("length", [6561, 730, 731])
+def test_encoder_block_equals_the_papers_order_with_torchs_max_pool(length):
+    """conv -> MaxPool3 -> ReLU gives the values and gradients of conv -> ReLU ->
+    nn.MaxPool1d(3, 3), also where the length leaves a remainder and ReLU ties at zero."""
+    torch.manual_seed(0)
+    conv = torch.nn.Conv1d(3, 16, kernel_size=3, padding=1)
+    x = torch.randn(4, 3, length)
+    weights = torch.randn(4, 16, length // 3)
+    grads = []
+    for block in (torch.nn.Sequential(conv, torch.nn.ReLU(), torch.nn.MaxPool1d(3, 3)),
+                  torch.nn.Sequential(conv, MaxPool3(), torch.nn.ReLU())):
+        conv.zero_grad()
+        inputs = x.clone().requires_grad_()
+        out = block(inputs)
+        (out * weights).sum().backward()
+        grads.append((out.detach(), inputs.grad, conv.weight.grad.clone()))
+    assert (grads[0][0] == 0).float().mean() > 0.1  # many ReLU zeros, so ties are exercised
+    for reference, ours in zip(grads[0], grads[1], strict=True):
+        torch.testing.assert_close(ours, reference, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize(

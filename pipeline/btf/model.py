@@ -4,6 +4,8 @@ Encoder: ``blocks`` x [conv1d (kernel 3, stride 1, padding 1) -> ReLU -> max-poo
 (kernel 3, stride 3) -> batch-norm] over the 3 RGB channels of an ABRDF laid out along its
 N directions, then a fully connected layer to an 8-dimensional latent. The paper gives the
 block order but not the activation; a ReLU after each convolution is the usual choice.
+ReLU and max-pool commute (the maximum of three values is monotone in each), so each block
+pools first and applies the ReLU to a third as many values: the same values and gradients.
 
 Decoder: 12 -> 106 -> 106 -> 106 -> 3 with ReLU, fed the latent plus the light and view
 directions in stereographic coordinates (eq. 7-9). Its 24,383 float32 parameters are the
@@ -22,6 +24,18 @@ from pipeline.btf.stereographic import direction_features, stereographic  # noqa
 from pipeline.errors import ConfigError
 
 LATENT_DIM = 8
+
+
+class MaxPool3(nn.Module):
+    """``nn.MaxPool1d(kernel_size=3, stride=3)`` as a maximum over the last axis of a
+    (..., L // 3, 3) view: the same values and gradients (the first maximum of each triple
+    gets the gradient). ``MaxPool1d``'s CPU kernel with indices took 1 ms per call at the
+    paper's size; with this and the ReLU after it, an encoder step (5 ABRDFs, forward and
+    backward, 2 threads, AMX Xeon) took 7.4-7.7 ms against 9.3-9.7 ms."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n = x.shape[-1] // 3
+        return x[..., : 3 * n].unflatten(-1, (n, 3)).max(-1).values
 
 
 class Encoder(nn.Module):
@@ -46,8 +60,8 @@ class Encoder(nn.Module):
         for width in channels:
             layers += [
                 nn.Conv1d(previous, width, kernel_size=3, stride=1, padding=1),
+                MaxPool3(),
                 nn.ReLU(),
-                nn.MaxPool1d(kernel_size=3, stride=3),
                 nn.BatchNorm1d(width),
             ]
             previous = width
