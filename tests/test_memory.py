@@ -5,7 +5,7 @@ import os
 import numpy as np
 import pytest
 
-from pipeline.memory import process_peak_mb, stage_peak
+from pipeline.memory import _glibc, process_peak_mb, reuse_freed_memory, stage_peak
 
 resettable = pytest.mark.skipif(not os.access("/proc/self/clear_refs", os.W_OK),
                                 reason="/proc/self/clear_refs is not writable here")
@@ -21,3 +21,25 @@ def test_each_stage_reports_its_own_peak():
     assert big["mb"] - small["mb"] > 250
     # The process peak survives the resets.
     assert process_peak_mb() >= big["mb"]
+
+
+@pytest.mark.skipif(_glibc() is None, reason="reuse_freed_memory acts on glibc's malloc only")
+def test_freed_buffers_are_reused_without_page_faults():
+    """Allocating, touching and freeing a 4 MiB buffer (1,024 pages) 50 times takes fewer
+    page faults than one buffer's pages inside the block; with every free trimmed back to
+    the kernel, several buffers' worth (8,226 measured)."""
+    import resource
+
+    import torch
+
+    def faults_of_50_buffers() -> int:
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        for _ in range(50):
+            torch.empty(1 << 20).fill_(1.0)  # 4 MiB, freed at once
+        return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+    with reuse_freed_memory(trim_threshold=0):  # trim at once: every free goes back
+        assert faults_of_50_buffers() > 2 * 1024
+    with reuse_freed_memory():
+        faults_of_50_buffers()  # the first buffer's pages
+        assert faults_of_50_buffers() < 1024

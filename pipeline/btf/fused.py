@@ -80,7 +80,7 @@ def _layers(decoder: Decoder) -> list[torch.nn.Linear]:
 
 
 def _script(function):
-    """``torch.jit.script(function)``, compiled once per process (about a second)."""
+    """``torch.jit.script(function)``, compiled once per process."""
     if function not in _SCRIPTED:
         _SCRIPTED[function] = torch.jit.script(function)
     return _SCRIPTED[function]
