@@ -26,8 +26,8 @@ The result equals autograd's gradient of the mean squared error (``tests/test_fu
 master weights, what ``torch.autocast(dtype=torch.bfloat16)`` would do to the decoder:
 weights, biases, directions and activations are rounded to bfloat16, each product sums in
 float32 and rounds its output to bfloat16; the residual, the loss and the accumulated
-gradients stay float32. Each layer and its ReLU is one oneDNN call. On a CPU with AMX this
-is about twice as fast as float32 (``python -m pipeline.bench``); on a CPU without bfloat16
+gradients stay float32. Each layer and its ReLU is one oneDNN call. On a CPU with AMX the
+step ran 1.8-1.9x as fast as float32's (``python -m pipeline.bench``); on a CPU without bfloat16
 units oneDNN takes slower code paths (not measured: check with the bench). The gradient
 differs from float32's by bfloat16's rounding (``tests/test_fused.py`` bounds it).
 """
@@ -40,13 +40,14 @@ from dataclasses import dataclass
 import torch
 
 from pipeline.btf.model import Decoder
+from pipeline.btf.train_settings import PRECISIONS
 
-PRECISIONS = ("float32", "bfloat16")
 # Queries per chunk. float32 is fastest when a chunk's activations stay in a core's L2
-# cache; bfloat16 products are so fast that each op's fixed cost dominates small chunks:
-# the bench's decoder loop (``pipeline.bench.decoder_training``, 5 x 6561 queries, 2
-# workers, one interleaved run on an AMX Xeon) gave 0.92, 1.29 and 1.63 M queries/s at
-# 1024, 2048 and 4096 (4096 means one chunk per worker's half of each ABRDF).
+# cache; bfloat16 products are so fast that each op's fixed cost dominates small chunks.
+# The step at 5 x 6561 queries, 2 workers, scripted loops, medians of 5 interleaved rounds
+# on an AMX Xeon, M queries/s: float32 0.95 / 0.94 / 0.79 / 0.78 at 512 / 1024 / 2048 /
+# 4096; bfloat16 1.51 / 1.79 / 1.79 at 1024 / 2048 / 4096 (4096 means one chunk per
+# worker's half of each ABRDF).
 DEFAULT_CHUNK = {"float32": 1024, "bfloat16": 4096}
 
 
@@ -79,14 +80,14 @@ def _layers(decoder: Decoder) -> list[torch.nn.Linear]:
     return layers
 
 
+_SCRIPTED: dict = {}
+
+
 def _script(function):
     """``torch.jit.script(function)``, compiled once per process."""
     if function not in _SCRIPTED:
         _SCRIPTED[function] = torch.jit.script(function)
     return _SCRIPTED[function]
-
-
-_SCRIPTED: dict = {}
 
 
 class DecoderStep:
