@@ -116,14 +116,54 @@ def naive_training(steps: int, channels):
     return run
 
 
+class Isolated:
+    """A plain PyTorch loop (``naive`` or ``decoder_naive``) timed in a child process that
+    runs with libgomp's default settings, as a user's own program would: ``import
+    pipeline`` lowers OpenMP's spin-waiting for the pipeline's loops
+    (``pipeline.cpu.SPIN_COUNT``), which made the naive loop slower (64 against 75 ms a
+    step on a 2-core AMX Xeon). Calling it runs ``steps`` steps there and returns their
+    seconds, like the other loops' callables."""
+
+    def __init__(self, kind: str, steps: int, threads: int):
+        from pipeline.cpu import openmp_default_environment
+
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "pipeline.bench", "--serve", kind, "--steps", str(steps),
+             "--threads", str(threads)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+            env=openmp_default_environment())
+
+    def __call__(self) -> float:
+        self.process.stdin.write("run\n")
+        self.process.stdin.flush()
+        while line := self.process.stdout.readline():
+            if line.startswith("seconds "):
+                return float(line.split()[1])
+        raise RuntimeError(f"the bench's child process ended (exit {self.process.wait()})")
+
+    def close(self) -> None:
+        self.process.stdin.close()
+        self.process.wait()
+
+
+def _serve(kind: str, steps: int) -> None:
+    """The child's side of :class:`Isolated`: a timing per line read from stdin."""
+    run = (naive_training(steps, paper_channels()) if kind == "naive"
+           else decoder_training(False, steps, torch.get_num_threads()))
+    for _ in sys.stdin:
+        print(f"seconds {run()!r}", flush=True)
+
+
 def decoder_training(fused: bool, steps: int, threads: int, precision: str = "float32"):
     """The decoder alone at the paper's batch (5 fixed latents x all N directions): autograd
     on the concatenated (latent, direction) rows, or the pipeline's fused step
     (``pipeline.btf.fused.DecoderStep``) with its default chunk, in ``precision``. Both
     compute the latents' gradient and take an SGD step on the decoder, so the two differ only
-    in how the decoder's forward and backward are computed. Returns a callable that runs
-    ``steps`` steps and returns their seconds."""
+    in how the decoder's forward and backward are computed. The fused step runs with the
+    cores kept awake, as in training (``pipeline.cpu.keep_cpus_awake``). Returns a callable
+    that runs ``steps`` steps and returns their seconds."""
     from pipeline.btf.fused import Batch, DecoderStep
+    from pipeline.cpu import keep_cpus_awake
 
     torch.manual_seed(0)
     decoder = Decoder()
@@ -135,20 +175,25 @@ def decoder_training(fused: bool, steps: int, threads: int, precision: str = "fl
     step = (DecoderStep(decoder, features, workers=threads, precision=precision)
             if fused else None)
 
+    def one_step() -> None:
+        optimizer.zero_grad(set_to_none=True)
+        if fused:
+            torch.set_num_threads(1)  # as in training: one op per thread, chunks side by side
+            step.assign(step(Batch(latents.detach(), directions, targets)))
+            torch.set_num_threads(threads)
+        else:
+            pred = decoder(latents.repeat_interleave(N_PAPER, 0),
+                           features[directions.reshape(-1)])
+            torch.nn.functional.mse_loss(pred, targets.reshape(-1, 3)).backward()
+        optimizer.step()
+
     def run() -> float:
-        start = time.perf_counter()
-        for _ in range(steps):
-            optimizer.zero_grad(set_to_none=True)
-            if fused:
-                torch.set_num_threads(1)  # as in training: one op per thread, chunks side by side
-                step.assign(step(Batch(latents.detach(), directions, targets)))
-                torch.set_num_threads(threads)
-            else:
-                pred = decoder(latents.repeat_interleave(N_PAPER, 0),
-                               features[directions.reshape(-1)])
-                torch.nn.functional.mse_loss(pred, targets.reshape(-1, 3)).backward()
-            optimizer.step()
-        return time.perf_counter() - start
+        with keep_cpus_awake(fused and threads > 1):
+            one_step()  # untimed warm-up
+            start = time.perf_counter()
+            for _ in range(steps):
+                one_step()
+            return time.perf_counter() - start
 
     return run
 
@@ -308,9 +353,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--load-size", type=int, default=0,
                         help="also time loading a 6561-file UBO2003 folder of this texture size "
                              "(256 = the real datasets; generated once under --runs)")
+    parser.add_argument("--serve", choices=("naive", "decoder_naive"),
+                        help=argparse.SUPPRESS)  # the child of Isolated
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.serve:
+        _serve(args.serve, args.steps)
+        return {}
     threads = torch.get_num_threads()
     channels = paper_channels()
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -321,14 +371,16 @@ def main(argv=None) -> dict:
                      "decoder_parameters": parameter_count(Decoder()),
                      "encoder_channels": list(channels)}
     recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
+    naive = {"train_naive": Isolated("naive", args.steps, threads),
+             "decoder_naive": Isolated("decoder_naive", args.steps, threads)}
     figures |= interleaved(
-        {"train_naive": naive_training(args.steps, channels),
+        {"train_naive": naive["train_naive"],
          "train_fused": pipeline_training(5, -1, args.steps, channels, threads),
          "train_paper_recipe": pipeline_training(recipe.batch_size, recipe.queries_per_abrdf,
                                                  args.steps, channels, threads),
          "train_fused_bf16": pipeline_training(5, -1, args.steps, channels, threads,
                                                precision="bfloat16"),
-         "decoder_naive": decoder_training(False, args.steps, threads),
+         "decoder_naive": naive["decoder_naive"],
          "decoder_fused": decoder_training(True, args.steps, threads),
          "decoder_fused_bf16": decoder_training(True, args.steps, threads, "bfloat16")},
         {"train_naive": 5 * N_PAPER, "train_fused": 5 * N_PAPER,
@@ -336,6 +388,8 @@ def main(argv=None) -> dict:
          "train_fused_bf16": 5 * N_PAPER, "decoder_naive": 5 * N_PAPER,
          "decoder_fused": 5 * N_PAPER, "decoder_fused_bf16": 5 * N_PAPER},
         args.steps)
+    for child in naive.values():
+        child.close()
     peak = figures["matmul_gflops"]
     print(f"matmul peak: {peak:.1f} GFLOP/s (median of "
           f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_rounds'])}, one per round "

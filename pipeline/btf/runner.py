@@ -46,7 +46,7 @@ def _train_settings(cfg):
 
 # Settings that change how fast training runs but not what it computes (up to the order of
 # floating-point sums): not in the key.
-_SPEED_ONLY = {"threads", "chunk"}
+_SPEED_ONLY = {"threads", "chunk", "keep_awake"}
 
 
 def train_stage(

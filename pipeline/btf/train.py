@@ -22,6 +22,7 @@ from pipeline.btf.fused import Batch, DecoderStep
 from pipeline.btf.model import Decoder, Encoder
 from pipeline.btf.preprocess import Normalization
 from pipeline.btf.train_settings import TrainSettings
+from pipeline.cpu import keep_cpus_awake
 from pipeline.errors import ConfigError
 from pipeline.memory import reuse_freed_memory
 
@@ -124,10 +125,13 @@ def train(
     encoder = Encoder(n, encoder_channels).to(device)
     decoder = Decoder().to(device)
     params = list(encoder.parameters()) + list(decoder.parameters())
+    # fused: one kernel for all parameters. On the CPU, Adam's step took 0.7 ms against
+    # 1.5 ms (paper-size step, AMX Xeon) and differs in the last bit; SGD's is identical.
     if settings.optimizer == "adam":
-        optimizer = torch.optim.Adam(params, lr=settings.lr)
+        optimizer = torch.optim.Adam(params, lr=settings.lr, fused=True)
     else:
-        optimizer = torch.optim.SGD(params, lr=settings.lr, momentum=settings.momentum)
+        optimizer = torch.optim.SGD(params, lr=settings.lr, momentum=settings.momentum,
+                                    fused=True)
     features = torch.from_numpy(dir_features).to(device)
     train_dirs = np.asarray(train_dirs)
     all_queries = settings.queries_per_abrdf < 0 or settings.queries_per_abrdf >= len(train_dirs)
@@ -168,6 +172,7 @@ def train(
 
     try:
         with (reuse_freed_memory(),
+              keep_cpus_awake(settings.keep_awake and device.type == "cpu" and workers > 1),
               tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar):
             if curve is not None:
                 measure(0)

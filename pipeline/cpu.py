@@ -1,0 +1,101 @@
+"""Keeping a CPU's cores at work between the short parallel phases of a training step.
+
+A training step (``pipeline.btf.train``) alternates phases on both cores (the encoder's
+OpenMP threads, the fused decoder's worker threads) with moments where a core waits: for
+the other worker, for the main thread's Python, for the optimizer. A core that has nothing
+to run sleeps, and on the virtual machines this project is measured on (and, less so, on
+bare metal, where idle cores clock down) it runs slower for milliseconds after it wakes.
+Measured on a 2-core AMX Xeon VM, the fused decoder step's two halves (5 x 3281 queries
+each, bfloat16), run in two processes:
+
+- side by side, never waiting: 12.2-12.4 ms a step each;
+- meeting at a blocking barrier every step: 14.4-17.5 ms;
+- meeting at a barrier that spins instead of sleeping: 12.3-12.9 ms.
+
+The whole decoder step on two threads took 17.7 ms, 12.7 ms with :func:`keep_cpus_awake`.
+
+:func:`keep_cpus_awake` runs one spinning process per core at ``SCHED_IDLE``, Linux's
+lowest scheduling class: it only ever gets a core that would otherwise sleep, and gives it
+up the moment a normal thread wants it. The price is power: the cores never sleep while
+it lasts. Spinners are processes, not threads, because a spinning Python thread would hold
+the interpreter's lock that the training threads need.
+
+:data:`SPIN_COUNT` is the other half: OpenMP's idle threads (torch's intra-op pool, GNU
+libgomp) spin for ``GOMP_SPINCOUNT`` iterations before they sleep, 300,000 by default
+(milliseconds), while the decoder's own workers want the same cores. ``import pipeline``
+sets the variable to :data:`SPIN_COUNT` unless ``GOMP_SPINCOUNT`` or ``OMP_WAIT_POLICY``
+is set, or ``PIPELINE_OPENMP_DEFAULTS=1`` asks for libgomp's own defaults; libgomp reads
+it once, when torch loads, so it has no effect where torch was imported first.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from contextlib import contextmanager
+
+SPIN_COUNT = "30000"
+spin_count_set = False  # whether openmp_defaults() set GOMP_SPINCOUNT in this process
+
+# Spins at SCHED_IDLE on one core until told to stop or its parent (argv[1]) is gone.
+_SPINNER = """
+import os, sys
+parent, cpu = int(sys.argv[1]), int(sys.argv[2])
+os.sched_setaffinity(0, {cpu})
+os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+os.write(1, b"spinning")
+os.close(1)
+while os.getppid() == parent:
+    for _ in range(100000):
+        pass
+"""
+
+
+def openmp_defaults() -> None:
+    """Set ``GOMP_SPINCOUNT`` to :data:`SPIN_COUNT` where nobody chose OpenMP's waiting
+    (see the module's docstring); called by ``import pipeline``."""
+    global spin_count_set
+    if os.environ.get("PIPELINE_OPENMP_DEFAULTS") == "1":
+        return
+    if "GOMP_SPINCOUNT" not in os.environ and "OMP_WAIT_POLICY" not in os.environ:
+        os.environ["GOMP_SPINCOUNT"] = SPIN_COUNT
+        spin_count_set = True
+
+
+def openmp_default_environment() -> dict:
+    """This process's environment as a child process with libgomp's own defaults needs it
+    (what a plain torch program gets): for timing other code against the pipeline's."""
+    env = dict(os.environ, PIPELINE_OPENMP_DEFAULTS="1")
+    if spin_count_set:
+        env.pop("GOMP_SPINCOUNT", None)
+    return env
+
+
+def can_keep_awake() -> bool:
+    return hasattr(os, "SCHED_IDLE") and hasattr(os, "sched_getaffinity")
+
+
+@contextmanager
+def keep_cpus_awake(enabled: bool = True):
+    """Inside the block, one ``SCHED_IDLE`` spinning process per core this process may run
+    on (none where the platform has no ``SCHED_IDLE``, or with ``enabled=False``). The
+    block starts once they spin (their start-up would compete with the first steps); they
+    end with the block, or on their own within milliseconds if this process dies."""
+    spinners: list[subprocess.Popen] = []
+    if enabled and can_keep_awake():
+        for cpu in sorted(os.sched_getaffinity(0)):
+            spinners.append(subprocess.Popen(
+                [sys.executable, "-S", "-c", _SPINNER, str(os.getpid()), str(cpu)],
+                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL))
+    try:
+        for spinner in spinners:
+            spinner.stdout.read()  # "spinning", then end of file
+        yield spinners
+    finally:
+        for spinner in spinners:
+            spinner.kill()
+        for spinner in spinners:
+            spinner.wait()
+            spinner.stdout.close()
