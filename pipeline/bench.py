@@ -91,7 +91,8 @@ def naive_training(steps: int, channels):
     torch.manual_seed(0)
     encoder, decoder = Encoder(N_PAPER, channels), Decoder()
     # The blocks as a plain implementation would write them, conv -> ReLU -> torch's
-    # MaxPool1d -> batch-norm, not the pipeline's faster equivalent (model.MaxPool3 first).
+    # MaxPool1d -> batch-norm on (batch, C, L) tensors (Encoder.reference), not the
+    # pipeline's faster equivalents (model.MaxPool3 first, the channels-last forward).
     for block in range(0, len(encoder.features), 4):
         encoder.features[block + 1] = torch.nn.ReLU()
         encoder.features[block + 2] = torch.nn.MaxPool1d(kernel_size=3, stride=3)
@@ -105,7 +106,7 @@ def naive_training(steps: int, channels):
     def run() -> float:
         start = time.perf_counter()
         for _ in range(steps):
-            latents = encoder(abrdfs)
+            latents = encoder.reference(abrdfs)
             pred = decoder(latents.repeat_interleave(N_PAPER, 0), directions[index])
             loss = torch.nn.functional.mse_loss(pred, targets)
             optimizer.zero_grad(set_to_none=True)

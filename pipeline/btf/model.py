@@ -6,6 +6,8 @@ N directions, then a fully connected layer to an 8-dimensional latent. The paper
 block order but not the activation; a ReLU after each convolution is the usual choice.
 ReLU and max-pool commute (the maximum of three values is monotone in each), so each block
 pools first and applies the ReLU to a third as many values: the same values and gradients.
+``Encoder.forward`` runs the blocks on a channels-last 2-D layout (see there);
+``Encoder.reference`` is the plain 1-D form of the same layers.
 
 Decoder: 12 -> 106 -> 106 -> 106 -> 3 with ReLU, fed the latent plus the light and view
 directions in stereographic coordinates (eq. 7-9). Its 24,383 float32 parameters are the
@@ -18,6 +20,7 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from pipeline.btf.stereographic import direction_features, stereographic  # noqa: F401
@@ -69,7 +72,42 @@ class Encoder(nn.Module):
         self.fc = nn.Linear(previous * length, latent)
 
     def forward(self, abrdf: torch.Tensor) -> torch.Tensor:
+        """The blocks on (batch, C, 1, L) tensors in channels-last memory, with the layers'
+        own parameters: the 3 x 1 convolution is oneDNN's 2-D one, and the pool is torch's
+        channels-last ``max_pool2d``, vectorized over the channels, where a maximum over
+        the last axis of 3 strides through memory. Batch-norm runs on the plain layout:
+        torch's channels-last batch-norm made parameter gradients up to 1.8 % off float64
+        in ``tests/test_btf_model.py``, the plain one 3e-6 like :meth:`reference`. The same
+        values as :meth:`reference` up to rounding (float64: 1e-9); an encoder step (5
+        ABRDFs, forward and backward, 2 threads, AMX Xeon) took 5.8 ms against 7.1 ms."""
+        h = abrdf.unsqueeze(2).contiguous(memory_format=torch.channels_last)
+        blocks = list(self.features)
+        for conv, batch_norm in zip(blocks[0::4], blocks[3::4], strict=True):
+            h = F.conv2d(h, conv.weight.unsqueeze(2), conv.bias, padding=(0, 1))
+            h = F.max_pool2d(h, (1, 3), (1, 3)).relu()
+            h = _batch_norm(batch_norm, h.contiguous())
+            h = h.contiguous(memory_format=torch.channels_last)
+        return self.fc(h.squeeze(2).flatten(1))
+
+    def reference(self, abrdf: torch.Tensor) -> torch.Tensor:
+        """The layers applied one after another to (batch, C, L) tensors."""
         return self.fc(self.features(abrdf).flatten(1))
+
+
+def _batch_norm(module: nn.BatchNorm1d, x: torch.Tensor) -> torch.Tensor:
+    """``module`` applied to a tensor of any layout with channels on axis 1, as
+    ``nn.BatchNorm1d.forward`` would (which refuses 4-D input): in training, the batch
+    statistics, the running averages' update and ``num_batches_tracked``."""
+    factor = 0.0 if module.momentum is None else module.momentum
+    if module.training and module.track_running_stats:
+        module.num_batches_tracked.add_(1)
+        if module.momentum is None:  # a cumulative moving average
+            factor = 1.0 / float(module.num_batches_tracked)
+    use_batch = module.training or module.running_mean is None
+    track = not module.training or module.track_running_stats
+    return F.batch_norm(x, module.running_mean if track else None,
+                        module.running_var if track else None, module.weight, module.bias,
+                        use_batch, factor, module.eps)
 
 
 class Decoder(nn.Module):
