@@ -345,7 +345,7 @@ def _print_training(name: str, row: dict, peak: float, peak_bf16: float | None =
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
-    parser.add_argument("--steps", type=int, default=10, help="training steps per timing")
+    parser.add_argument("--steps", type=int, default=30, help="training steps per timing")
     parser.add_argument("--runs", default="runs", help="paths.runs holding mlflow.db")
     parser.add_argument("--no-mlflow", action="store_true")
     parser.add_argument("--paper-run", type=int, default=0, metavar="STEPS",

@@ -103,7 +103,7 @@ class DecoderStep:
         self.chunk = max(1, int(chunk or DEFAULT_CHUNK[precision]))
         self.precision = precision
         self._features_bf16 = features.to(torch.bfloat16) if precision == "bfloat16" else None
-        self._pool = ThreadPoolExecutor(self.workers) if self.workers > 1 else None
+        self._pool = ThreadPoolExecutor(self.workers - 1) if self.workers > 1 else None
         self._chunks = _script(_bfloat16_chunks if precision == "bfloat16" else _float32_chunks)
 
     def close(self) -> None:
@@ -133,15 +133,15 @@ class DecoderStep:
                 [layer.bias.detach() for layer in layers])
 
     def _run(self, items_of_worker: list[list], *shared) -> list[Gradients]:
-        """Each worker's chunks on its own thread (the caller's if there is one worker)."""
-        if self._pool is None:
-            threads = torch.get_num_threads()
-            try:
-                return [self._work(items_of_worker[0], *shared)]
-            finally:
-                torch.set_num_threads(threads)
-        futures = [self._pool.submit(self._work, items, *shared) for items in items_of_worker]
-        return [f.result() for f in futures]
+        """Worker 0's chunks on the calling thread, each other worker's on a pool thread."""
+        futures = [self._pool.submit(self._work, items, *shared)
+                   for items in items_of_worker[1:]]
+        threads = torch.get_num_threads()
+        try:
+            first = self._work(items_of_worker[0], *shared)
+        finally:
+            torch.set_num_threads(threads)
+        return [first] + [f.result() for f in futures]
 
     def _work(self, items, *shared) -> Gradients:
         torch.set_num_threads(1)  # this thread's own setting (OpenMP's is per thread)
