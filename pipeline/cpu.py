@@ -3,16 +3,16 @@
 A training step (``pipeline.btf.train``) alternates phases on both cores (the encoder's
 OpenMP threads, the fused decoder's worker threads) with moments where a core waits: for
 the other worker, for the main thread's Python, for the optimizer. A core that has nothing
-to run sleeps, and on the virtual machines this project is measured on (and, less so, on
-bare metal, where idle cores clock down) it runs slower for milliseconds after it wakes.
-Measured on a 2-core AMX Xeon VM, the fused decoder step's two halves (5 x 3281 queries
+to run sleeps, and on the virtual machine this project is measured on it runs slower for
+milliseconds after it wakes (bare metal: not measured). Measured on a 2-core AMX Xeon VM, the fused decoder step's two halves (5 x 3281 queries
 each, bfloat16), run in two processes:
 
 - side by side, never waiting: 12.2-12.4 ms a step each;
 - meeting at a blocking barrier every step: 14.4-17.5 ms;
 - meeting at a barrier that spins instead of sleeping: 12.3-12.9 ms.
 
-The whole decoder step on two threads took 17.7 ms, 12.7 ms with :func:`keep_cpus_awake`.
+The whole decoder step on two threads (medians of 5 rounds of 20 steps): bfloat16 19.3 ms,
+15.2 ms with :func:`keep_cpus_awake`; float32 35.0 against 27.6 ms.
 
 :func:`keep_cpus_awake` runs one spinning process per core at ``SCHED_IDLE``, Linux's
 lowest scheduling class: it only ever gets a core that would otherwise sleep, and gives it
@@ -21,8 +21,11 @@ it lasts. Spinners are processes, not threads, because a spinning Python thread 
 the interpreter's lock that the training threads need.
 
 :data:`SPIN_COUNT` is the other half: OpenMP's idle threads (torch's intra-op pool, GNU
-libgomp) spin for ``GOMP_SPINCOUNT`` iterations before they sleep, 300,000 by default
-(milliseconds), while the decoder's own workers want the same cores. ``import pipeline``
+libgomp) spin for ``GOMP_SPINCOUNT`` iterations before they sleep, 300,000 by default,
+while the decoder's own workers want the same cores. The bfloat16 training loop at the
+paper's batch (3 rounds of 60 steps, cores kept awake) took 23.9-26.3 / 23.3-24.0 /
+23.4-25.1 / 25.2-26.1 / 28.2-29.9 ms a step at 3,000 / 10,000 / 30,000 / 100,000 /
+300,000. ``import pipeline``
 sets the variable to :data:`SPIN_COUNT` unless ``GOMP_SPINCOUNT`` or ``OMP_WAIT_POLICY``
 is set, or ``PIPELINE_OPENMP_DEFAULTS=1`` asks for libgomp's own defaults; libgomp reads
 it once, when torch loads, so it has no effect where torch was imported first.
