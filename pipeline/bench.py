@@ -121,9 +121,10 @@ class Isolated:
     """A plain PyTorch loop (``naive`` or ``decoder_naive``) timed in a child process that
     runs with libgomp's default settings, as a user's own program would: ``import
     pipeline`` lowers OpenMP's spin-waiting for the pipeline's loops
-    (``pipeline.cpu.SPIN_COUNT``), which made the naive loop slower (64 against 75 ms a
-    step on a 2-core AMX Xeon). Calling it runs ``steps`` steps there and returns their
-    seconds, like the other loops' callables."""
+    (``pipeline.cpu.SPIN_COUNT``). On a 2-core AMX Xeon a spin count of 10,000 made the
+    naive loop slower (75 against 64 ms a step; at 30,000: 59-63 ms, no slower). Calling it
+    runs ``steps`` steps there and returns their seconds, like the other loops'
+    callables."""
 
     def __init__(self, kind: str, steps: int, threads: int):
         from pipeline.cpu import openmp_default_environment
