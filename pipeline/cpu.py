@@ -80,14 +80,17 @@ def can_keep_awake() -> bool:
 
 
 @contextmanager
-def keep_cpus_awake(enabled: bool = True):
+def keep_cpus_awake(threads: int):
     """Inside the block, one ``SCHED_IDLE`` spinning process per core this process may run
-    on (none where the platform has no ``SCHED_IDLE``, or with ``enabled=False``). The
-    block starts once they spin (their start-up would compete with the first steps); they
-    end with the block, or on their own within milliseconds if this process dies."""
+    on, when a job keeps ``threads`` >= 2 threads busy and that is every such core (with
+    fewer, which cores it runs on is the scheduler's choice, and spinning on all of them
+    would burn the others for nothing); none where the platform has no ``SCHED_IDLE``.
+    The block starts once they spin (their start-up would compete with the first steps);
+    they end with the block, or on their own within milliseconds if this process dies."""
     spinners: list[subprocess.Popen] = []
-    if enabled and can_keep_awake():
-        for cpu in sorted(os.sched_getaffinity(0)):
+    cpus = sorted(os.sched_getaffinity(0)) if can_keep_awake() else []
+    if threads >= max(2, len(cpus)):
+        for cpu in cpus:
             spinners.append(subprocess.Popen(
                 [sys.executable, "-S", "-c", _SPINNER, str(os.getpid()), str(cpu)],
                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,

@@ -22,7 +22,7 @@ def _alive(pid: int) -> bool:
 
 @needs_sched_idle
 def test_one_idle_class_spinner_per_core_while_the_block_lasts():
-    with keep_cpus_awake() as spinners:
+    with keep_cpus_awake(threads=max(2, len(os.sched_getaffinity(0)))) as spinners:
         pids = [s.pid for s in spinners]
         assert len(pids) == len(os.sched_getaffinity(0))
         for pid in pids:
@@ -33,15 +33,25 @@ def test_one_idle_class_spinner_per_core_while_the_block_lasts():
     assert not any(_alive(pid) for pid in pids)
 
 
-def test_disabled_starts_nothing():
-    with keep_cpus_awake(enabled=False) as spinners:
+@pytest.mark.parametrize("threads", [0, 1])
+def test_nothing_spins_for_a_job_of_one_thread(threads):
+    with keep_cpus_awake(threads) as spinners:
+        assert spinners == []
+
+
+@needs_sched_idle
+def test_nothing_spins_for_a_job_that_leaves_cores_free():
+    cpus = len(os.sched_getaffinity(0))
+    if cpus < 3:
+        pytest.skip(f"{cpus} CPUs: a job of 2 threads already uses them all")
+    with keep_cpus_awake(cpus - 1) as spinners:
         assert spinners == []
 
 
 _PARENT = """
-import time
+import os, time
 from pipeline.cpu import keep_cpus_awake
-with keep_cpus_awake() as spinners:
+with keep_cpus_awake(threads=max(2, len(os.sched_getaffinity(0)))) as spinners:
     print(*[s.pid for s in spinners], flush=True)
     time.sleep(60)
 """

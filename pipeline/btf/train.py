@@ -173,7 +173,7 @@ def train(
 
     try:
         with (reuse_freed_memory(),
-              keep_cpus_awake(settings.keep_awake and device.type == "cpu" and workers > 1),
+              keep_cpus_awake(workers if settings.keep_awake and device.type == "cpu" else 0),
               tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar):
             if curve is not None:
                 measure(0)
