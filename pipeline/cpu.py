@@ -37,6 +37,7 @@ import os
 import subprocess
 import sys
 from contextlib import contextmanager
+from pathlib import Path
 
 SPIN_COUNT = "30000"
 spin_count_set = False  # whether openmp_defaults() set GOMP_SPINCOUNT in this process
@@ -75,8 +76,26 @@ def openmp_default_environment() -> dict:
     return env
 
 
+# Where a container's CPU quota is set (cgroup v2, then v1).
+QUOTA_FILES = (Path("/sys/fs/cgroup/cpu.max"), Path("/sys/fs/cgroup/cpu/cpu.cfs_quota_us"))
+
+
+def cpu_quota_set() -> bool:
+    """Whether this process's cgroup has a CPU quota (``docker --cpus``, a Kubernetes
+    limit). Spinners would spend the quota that the job's own threads need, whatever their
+    scheduling class."""
+    for path in QUOTA_FILES:
+        try:
+            quota = path.read_text().split()[0]
+        except (OSError, IndexError):
+            continue
+        return quota not in ("max", "-1")
+    return False
+
+
 def can_keep_awake() -> bool:
-    return hasattr(os, "SCHED_IDLE") and hasattr(os, "sched_getaffinity")
+    return (hasattr(os, "SCHED_IDLE") and hasattr(os, "sched_getaffinity")
+            and not cpu_quota_set())
 
 
 @contextmanager
@@ -84,7 +103,8 @@ def keep_cpus_awake(threads: int):
     """Inside the block, one ``SCHED_IDLE`` spinning process per core this process may run
     on, when a job keeps ``threads`` >= 2 threads busy and that is every such core (with
     fewer, which cores it runs on is the scheduler's choice, and spinning on all of them
-    would burn the others for nothing); none where the platform has no ``SCHED_IDLE``.
+    would burn the others for nothing); none where the platform has no ``SCHED_IDLE`` or
+    a CPU quota is set (:func:`cpu_quota_set`).
     The block starts once they spin (their start-up would compete with the first steps);
     they end with the block, or on their own within milliseconds if this process dies."""
     spinners: list[subprocess.Popen] = []

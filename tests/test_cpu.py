@@ -7,9 +7,10 @@ import time
 
 import pytest
 
+import pipeline.cpu
 from pipeline.cpu import SPIN_COUNT, can_keep_awake, keep_cpus_awake, openmp_default_environment
 
-needs_sched_idle = pytest.mark.skipif(not can_keep_awake(), reason="no SCHED_IDLE here")
+needs_sched_idle = pytest.mark.skipif(not can_keep_awake(), reason="no SCHED_IDLE, or a CPU quota: no spinners here")
 
 
 def _alive(pid: int) -> bool:
@@ -46,6 +47,21 @@ def test_nothing_spins_for_a_job_that_leaves_cores_free():
         pytest.skip(f"{cpus} CPUs: a job of 2 threads already uses them all")
     with keep_cpus_awake(cpus - 1) as spinners:
         assert spinners == []
+
+
+@pytest.mark.parametrize(("v2", "v1", "limited"), [
+    ("max 100000\n", None, False), ("200000 100000\n", None, True),
+    (None, "-1\n", False), (None, "150000\n", True), (None, None, False)])
+def test_no_spinners_under_a_cpu_quota(tmp_path, monkeypatch, v2, v1, limited):
+    files = (tmp_path / "cpu.max", tmp_path / "cpu.cfs_quota_us")
+    for path, text in zip(files, (v2, v1), strict=True):
+        if text is not None:
+            path.write_text(text)
+    monkeypatch.setattr(pipeline.cpu, "QUOTA_FILES", files)
+    assert pipeline.cpu.cpu_quota_set() is limited
+    if limited:
+        with keep_cpus_awake(threads=max(2, len(os.sched_getaffinity(0)))) as spinners:
+            assert spinners == []
 
 
 _PARENT = """
