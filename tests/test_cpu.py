@@ -10,7 +10,8 @@ import pytest
 import pipeline.cpu
 from pipeline.cpu import SPIN_COUNT, can_keep_awake, keep_cpus_awake, openmp_default_environment
 
-needs_sched_idle = pytest.mark.skipif(not can_keep_awake(), reason="no SCHED_IDLE, or a CPU quota: no spinners here")
+needs_sched_idle = pytest.mark.skipif(not can_keep_awake(),
+                                      reason="no SCHED_IDLE, or a CPU quota: no spinners here")
 
 
 def _alive(pid: int) -> bool:
