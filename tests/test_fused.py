@@ -95,13 +95,30 @@ def test_bfloat16_step_is_deterministic_for_a_number_of_workers():
 
 
 def test_rows_are_split_evenly_and_each_query_is_in_one_chunk():
-    items = split_rows(b=5, q=301, workers=2, chunk=64)
-    assert [sum(stop - start for _, start, stop in work) for work in items] == [755, 750]
-    for i in range(5):
-        rows = sorted(r for work in items for j, start, stop in work if j == i
-                      for r in range(start, stop))
-        assert rows == list(range(301))
-    assert max(stop - start for work in items for _, start, stop in work) == 64
+    items = split_rows(rows=5 * 301, workers=2, chunk=64)
+    assert [sum(stop - start for start, stop in work) for work in items] == [753, 752]
+    rows = sorted(r for work in items for start, stop in work for r in range(start, stop))
+    assert rows == list(range(5 * 301))
+    assert max(stop - start for work in items for start, stop in work) == 64
+
+
+def test_chunks_may_span_abrdfs():
+    """One chunk holding the rows of several ABRDFs (each with its own latent) gives
+    autograd's gradient, as chunks within one ABRDF do."""
+    torch.manual_seed(2)
+    decoder = Decoder().double()
+    features = torch.rand(40, 4, dtype=torch.float64) * 2 - 1
+    batch = Batch(torch.randn(3, 8, dtype=torch.float64), torch.randint(0, 40, (3, 10)),
+                  torch.rand(3, 10, 3, dtype=torch.float64))
+    loss, expected, expected_latents = _autograd(decoder, batch, features)
+    for chunk in (30, 25, 4):  # one chunk; chunks across ABRDF boundaries
+        step = DecoderStep(decoder, features, chunk=chunk)
+        grads = step(batch)
+        assert grads.loss == pytest.approx(loss, rel=1e-12)
+        for got, want in zip(grads.weights + grads.biases, expected[0::2] + expected[1::2],
+                             strict=True):
+            torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(grads.latents, expected_latents, rtol=1e-10, atol=1e-12)
 
 
 def test_unknown_precision_is_refused():

@@ -8,8 +8,14 @@ thin 106-wide products on one intra-op thread pool that barely scales past one c
 
 - each chunk of queries goes forward and straight back while its activations are in cache;
 - biases are fused into ``addmm`` and the ReLU gradient is one ``threshold_backward``;
-- the first layer is split into its latent part (once per ABRDF) and its direction part
-  (once per direction and step), so no (latent, direction) input row is ever built;
+- no (latent, direction) input row is ever built: the first layer's latent part is
+  computed once per ABRDF and enters as a weight column picked by a one-hot input (see
+  :meth:`DecoderStep.__call__`), so that a chunk may span ABRDFs and its size is free of
+  the batch's shape. Chunks that stopped at each ABRDF's end took 12.5 against 10.8 ms
+  (bfloat16, 5 x 6561 queries, 2 workers, medians of 5 interleaved rounds of 20 steps) and
+  12.9 against 3.4 ms at ``experiment=paper_cpu``'s 32 ABRDFs x 256 queries (whose chunks
+  had been 256 rows); float32 25.8 against 25.2 ms and 7.6 against 7.2 ms. The one-hot
+  input adds B multiply-adds per hidden unit and query, few at the batches used (5, 32);
 - chunks run on ``workers`` threads, each op single-threaded, with private gradient buffers
   summed in a fixed order at the end (deterministic for a given number of workers);
 - each worker's chunk loop is a TorchScript function, whose interpreter does not hold
@@ -36,6 +42,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 
@@ -44,11 +51,10 @@ from pipeline.btf.train_settings import PRECISIONS
 
 # Queries per chunk. float32 is fastest when a chunk's activations stay in a core's L2
 # cache; bfloat16 products are so fast that each op's fixed cost dominates small chunks.
-# The step at 5 x 6561 queries, 2 workers, scripted loops, medians of 5 interleaved rounds
-# on an AMX Xeon, M queries/s: float32 0.95 / 0.94 / 0.79 / 0.78 at 512 / 1024 / 2048 /
-# 4096; bfloat16 1.51 / 1.79 / 1.79 at 1024 / 2048 / 4096 (4096 means one chunk per
-# worker's half of each ABRDF).
-DEFAULT_CHUNK = {"float32": 1024, "bfloat16": 4096}
+# The step at 5 x 6561 queries, 2 workers, medians of 5 interleaved rounds on an AMX Xeon,
+# M queries/s: float32 1.33 / 1.31 / 1.28 / 1.18 at 512 / 1024 / 2048 / 4096; bfloat16
+# 2.58 / 2.79 / 2.97 / 2.72 at 2048 / 4096 / 8192 / 16403 (one chunk per worker).
+DEFAULT_CHUNK = {"float32": 1024, "bfloat16": 8192}
 
 
 @dataclass
@@ -98,41 +104,70 @@ class DecoderStep:
         if precision not in PRECISIONS:
             raise ValueError(f"precision={precision!r} must be one of {PRECISIONS}")
         self.decoder = decoder
-        self.features = features
         self.workers = max(1, int(workers))
         self.chunk = max(1, int(chunk or DEFAULT_CHUNK[precision]))
         self.precision = precision
-        self._features_bf16 = features.to(torch.bfloat16) if precision == "bfloat16" else None
+        # The products' type: bfloat16, or the decoder's own (float64 in the tests).
+        dtype = torch.bfloat16 if precision == "bfloat16" else features.dtype
+        self.features = features.to(dtype)
+        self._inputs = torch.empty(0, dtype=dtype, device=features.device)
         self._pool = ThreadPoolExecutor(self.workers - 1) if self.workers > 1 else None
-        self._chunks = _script(_bfloat16_chunks if precision == "bfloat16" else _float32_chunks)
+        self._chunks = _script(_chunks)
 
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown()
 
     def __call__(self, batch: Batch) -> Gradients:
-        if self.precision == "bfloat16":
-            return self._bfloat16(batch)
         weights, biases = self._parameters()
-        n_latent = self.decoder.latent
+        n_latent, n_direction = self.decoder.latent, self.features.shape[1]
         z = batch.latents.detach()
-        # First layer: W1 [z; d] + b1 = (W1z z) + (W1d d + b1), each part computed once.
-        direction_part = torch.addmm(biases[0], self.features, weights[0][:, n_latent:].T)
-        latent_part = z @ weights[0][:, :n_latent].T
         b, q = batch.directions.shape
-        items = [(i, s) for i in range(b) for s in range(0, q, self.chunk)]
-        scale = 2.0 / (b * q * batch.targets.shape[-1])
-        shared = (weights, biases, z, direction_part, latent_part, batch.directions,
-                  batch.targets, self.features, scale, self.chunk)
-        parts = self._run([items[w :: self.workers] for w in range(self.workers)], *shared)
-        return _sum(parts, b * q * batch.targets.shape[-1])
+        dtype = self.features.dtype
+        # The first layer, W1 [z; d] + b1 = W1d d + (W1z z + b1), as one product over input
+        # rows [d, e_i]: a query's direction features, then the one-hot e_i of its ABRDF i,
+        # against [W1d, (W1z z_j + b1) for each ABRDF j]. Each ABRDF's latent part is one
+        # weight column, so a chunk may span ABRDFs.
+        first = torch.cat([weights[0][:, n_latent:],
+                           torch.addmm(biases[0], z, weights[0][:, :n_latent].T).T], 1)
+        inputs = self._rows(batch.directions)
+        low = [first.to(dtype)] + [w.to(dtype) for w in weights[1:]]
+        low_biases = [bias.to(dtype) for bias in biases[1:]]
+        rows = b * q
+        targets = batch.targets.reshape(rows, -1)
+        onednn = (inputs.is_cpu and dtype == torch.bfloat16
+                  and torch.backends.mkldnn.is_available())
+        parts = self._run(split_rows(rows, self.workers, self.chunk), inputs, targets, low,
+                          low_biases, 2.0 / targets.numel(), onednn)
+        g_w, g_b, loss = _sum(parts)
+        # The one-hot columns' gradient is dL/d(W1z z_i + b1) per ABRDF i; W1z's, b1's and
+        # z's gradients follow from it.
+        hidden = g_w[0][:, n_direction:].T  # (B, 106)
+        g_first = torch.empty_like(weights[0])
+        g_first[:, n_latent:] = g_w[0][:, :n_direction]
+        g_first[:, :n_latent] = hidden.T @ z
+        return Gradients([g_first] + g_w[1:], [hidden.sum(0)] + g_b,
+                         hidden @ weights[0][:, :n_latent], loss / targets.numel())
+
+    def _rows(self, directions: torch.Tensor) -> torch.Tensor:
+        """The first layer's (B q, n_direction + B) input rows [d, e_i] (see __call__); the
+        one-hot part is built once per batch shape and kept."""
+        b, q = directions.shape
+        n = self.features.shape[1]
+        if self._inputs.shape != (b * q, n + b):
+            self._inputs = torch.zeros(b * q, n + b, dtype=self.features.dtype,
+                                       device=self.features.device)
+            self._inputs.view(b, q, n + b)[:, :, n:] = torch.eye(
+                b, dtype=self.features.dtype, device=self.features.device)[:, None, :]
+        self._inputs[:, :n] = self.features.index_select(0, directions.reshape(-1))
+        return self._inputs
 
     def _parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         layers = _layers(self.decoder)
         return ([layer.weight.detach() for layer in layers],
                 [layer.bias.detach() for layer in layers])
 
-    def _run(self, items_of_worker: list[list], *shared) -> list[Gradients]:
+    def _run(self, items_of_worker: list[list], *shared) -> list[tuple]:
         """Worker 0's chunks on the calling thread, each other worker's on a pool thread."""
         futures = [self._pool.submit(self._work, items, *shared)
                    for items in items_of_worker[1:]]
@@ -143,34 +178,10 @@ class DecoderStep:
             torch.set_num_threads(threads)
         return [first] + [f.result() for f in futures]
 
-    def _work(self, items, *shared) -> Gradients:
+    def _work(self, items, *shared) -> tuple[list[torch.Tensor], list[torch.Tensor], float]:
         torch.set_num_threads(1)  # this thread's own setting (OpenMP's is per thread)
-        g_w, g_b, g_z, loss = self._chunks(items, *shared)
-        return Gradients(g_w, g_b, g_z, float(loss))
-
-    def _bfloat16(self, batch: Batch) -> Gradients:
-        bf16 = torch.bfloat16
-        weights, biases = self._parameters()
-        n_latent = self.decoder.latent
-        z = batch.latents.detach()
-        # The first layer as a product over the directions alone, its latent part folded
-        # into a bias per ABRDF: W1 [z; d] + b1 = W1d d + (W1z z + b1).
-        first_bias = torch.addmm(biases[0], z, weights[0][:, :n_latent].T).to(bf16)
-        low = [weights[0][:, n_latent:].to(bf16)] + [w.to(bf16) for w in weights[1:]]
-        low_biases = [bias.to(bf16) for bias in biases[1:]]
-        b, q = batch.directions.shape
-        items = split_rows(b, q, self.workers, self.chunk)
-        scale = 2.0 / (b * q * batch.targets.shape[-1])
-        onednn = first_bias.is_cpu and torch.backends.mkldnn.is_available()
-        parts = self._run(items, batch.directions, batch.targets, low, low_biases, first_bias,
-                          self._features_bf16, scale, n_latent, onednn)
-        total = _sum(parts, b * q * batch.targets.shape[-1])
-        # The workers summed dL/d(W1z z) per ABRDF in ``latents``; W1z's and z's gradients
-        # follow from it in float32.
-        hidden = total.latents
-        total.weights[0][:, :n_latent] = hidden.T @ z.float()
-        total.latents = hidden @ weights[0][:, :n_latent]
-        return total
+        g_w, g_b, loss = self._chunks(items, *shared)
+        return g_w, g_b, float(loss)
 
     def assign(self, grads: Gradients) -> None:
         """Store ``grads`` as the decoder parameters' ``.grad`` (adding to what is there)."""
@@ -183,119 +194,70 @@ class DecoderStep:
                     param.grad += grad
 
 
-def _float32_chunks(items: list[tuple[int, int]], weights: list[torch.Tensor],
-                    biases: list[torch.Tensor], z: torch.Tensor, direction_part: torch.Tensor,
-                    latent_part: torch.Tensor, directions: torch.Tensor, targets: torch.Tensor,
-                    features: torch.Tensor, scale: float, chunk: int):
-    """The float32 forward and backward of ``items`` ((ABRDF, first row) chunks of
-    ``chunk`` rows). The first layer's ``direction_part`` (W1d d + b1, per direction) and
-    ``latent_part`` (W1z z, per ABRDF) are precomputed. Returns (weight gradients, bias
-    gradients, latent gradients, sum of squared residuals). Scripted like
-    :func:`_bfloat16_chunks`, and for the same reason."""
-    n_latent = z.shape[1]
-    g_w = [torch.zeros_like(w) for w in weights]
-    g_b = [torch.zeros_like(b) for b in biases]
-    g_z = torch.zeros_like(z)
-    loss = torch.zeros((), dtype=torch.float64, device=z.device)
-    for item in items:
-        i, start = item
-        index = directions[i, start : start + chunk]
-        a1 = direction_part.index_select(0, index).add_(latent_part[i]).relu_()
-        a2 = torch.addmm(biases[1], a1, weights[1].t()).relu_()
-        a3 = torch.addmm(biases[2], a2, weights[2].t()).relu_()
-        residual = torch.addmm(biases[3], a3, weights[3].t()).sub_(
-            targets[i, start : start + chunk])
-        loss += residual.square().sum(dtype=torch.float64)
-        g = residual.mul_(scale)  # d(mean squared error)/d(output)
-        g_w[3].addmm_(g.t(), a3)
-        g_b[3] += g.sum(0)
-        g = torch.ops.aten.threshold_backward(g @ weights[3], a3, 0)
-        g_w[2].addmm_(g.t(), a2)
-        g_b[2] += g.sum(0)
-        g = torch.ops.aten.threshold_backward(g @ weights[2], a2, 0)
-        g_w[1].addmm_(g.t(), a1)
-        g_b[1] += g.sum(0)
-        g = torch.ops.aten.threshold_backward(g @ weights[1], a1, 0)
-        g_sum = g.sum(0)
-        g_w[0][:, n_latent:].addmm_(g.t(), features.index_select(0, index))
-        g_w[0][:, :n_latent] += torch.outer(g_sum, z[i])
-        g_b[0] += g_sum
-        g_z[i] += g_sum @ weights[0][:, :n_latent]
-    return g_w, g_b, g_z, loss
-
-
-def _sum(parts: list[Gradients], count: int) -> Gradients:
-    """The workers' gradients summed in a fixed order (deterministic for a number of
-    workers); the loss becomes the mean over ``count`` values."""
-    first, *rest = parts
-    for part in rest:
-        for total, add in zip(first.weights + first.biases, part.weights + part.biases,
-                              strict=True):
-            total += add
-        first.latents += part.latents
-        first.loss += part.loss
-    first.loss /= count
-    return first
-
-
-def split_rows(b: int, q: int, workers: int, chunk: int) -> list[list[tuple]]:
-    """Worker w takes the w-th of ``workers`` equal parts of every ABRDF's ``q`` queries, in
-    chunks of at most ``chunk`` rows that never span two ABRDFs (a chunk's first-layer bias
-    is its ABRDF's), so that all workers get the same number of rows. Returns each worker's
-    (ABRDF, first row, end row) items."""
-    part = -(-q // workers)
-    return [[(i, s, min(s + chunk, p + part, q)) for i in range(b)
-             for s in range(p, min(p + part, q), chunk)]
+def split_rows(rows: int, workers: int, chunk: int) -> list[list[tuple[int, int]]]:
+    """Worker w takes the w-th of ``workers`` equal parts of the ``rows`` query rows, in
+    chunks of at most ``chunk`` rows. Returns each worker's (first row, end row) items."""
+    part = -(-rows // workers)
+    return [[(s, min(s + chunk, p + part, rows)) for s in range(p, min(p + part, rows), chunk)]
             for p in range(0, part * workers, part)]
 
 
-def _bfloat16_chunks(items: list[tuple[int, int, int]], directions: torch.Tensor,
-                     targets: torch.Tensor, weights: list[torch.Tensor],
-                     biases: list[torch.Tensor], first_bias: torch.Tensor,
-                     features: torch.Tensor, scale: float, n_latent: int, onednn: bool):
-    """The bfloat16 forward and backward of ``items`` ((ABRDF, first row, end row) chunks of
-    ``directions`` / ``targets``); ``weights`` in bfloat16, the first layer's restricted to
-    the directions, ``biases`` those of layers 2-4 in bfloat16 and ``first_bias`` the first
-    layer's per ABRDF. Returns (weight gradients, bias gradients, dL/d(W1z z) per ABRDF, sum
-    of squared residuals).
+def _chunks(items: list[tuple[int, int]], inputs: torch.Tensor, targets: torch.Tensor,
+            weights: list[torch.Tensor], biases: list[torch.Tensor], scale: float,
+            onednn: bool):
+    """The forward and backward of ``items`` ((first row, end row) chunks of ``inputs`` and
+    ``targets``): the first layer a product over the rows [d, e_i] without a bias
+    (:meth:`DecoderStep.__call__`), ``biases`` those of layers 2-4. Products, activations
+    and the output gradient are in ``weights``' type; the residual, the loss and the
+    accumulated gradients in ``targets``' (float32, or float64 in the tests): in bfloat16
+    each product sums in float32 and rounds its output, as ``torch.autocast`` would.
+    Returns (weight gradients, bias gradients of layers 2-4, sum of squared residuals).
 
     Runs as TorchScript (:func:`_script`; see the module's docstring for why).
     ``onednn``: each layer and its ReLU is one oneDNN call (a separate bfloat16 ReLU pass
     measured half to three quarters of the product's time), addmm elsewhere.
     """
-    g_w = [torch.zeros(weights[0].shape[0], n_latent + weights[0].shape[1],
-                       device=first_bias.device)]
-    g_b = [torch.zeros(first_bias.shape[1], device=first_bias.device)]
-    for k in range(1, len(weights)):  # (TorchScript has no zip(strict=))
-        g_w.append(torch.zeros(weights[k].shape, device=first_bias.device))
-        g_b.append(torch.zeros(biases[k - 1].shape, device=first_bias.device))
-    g_hidden = torch.zeros(first_bias.shape, device=first_bias.device)  # (B, 106)
-    loss = torch.zeros((), dtype=torch.float64, device=first_bias.device)
+    g_w = [torch.zeros(w.shape, dtype=targets.dtype, device=targets.device) for w in weights]
+    g_b = [torch.zeros(b.shape, dtype=targets.dtype, device=targets.device) for b in biases]
+    loss = torch.zeros((), dtype=torch.float64, device=targets.device)
     for item in items:
-        i, start, stop = item
-        x = features.index_select(0, directions[i, start:stop])
-        layer_biases = [first_bias[i]] + biases
-        a = [x]
+        start, stop = item
+        a = [inputs[start:stop]]
         for k in range(4):
-            relu = k < 3
+            bias: Optional[torch.Tensor] = None
+            if k > 0:
+                bias = biases[k - 1]
             if onednn:
-                out = torch.ops.mkldnn._linear_pointwise(a[k], weights[k], layer_biases[k],
-                                                         "relu" if relu else "none", [], "")
+                out = torch.ops.mkldnn._linear_pointwise(a[k], weights[k], bias,
+                                                         "relu" if k < 3 else "none", [], "")
             else:
-                out = torch.addmm(layer_biases[k], a[k], weights[k].t())
-                if relu:
+                out = a[k] @ weights[k].t() if bias is None else torch.addmm(
+                    bias, a[k], weights[k].t())
+                if k < 3:
                     out = out.relu_()
             a.append(out)
-        residual = a[4].float().sub_(targets[i, start:stop])
+        residual = a[4].to(targets.dtype).sub_(targets[start:stop])
         loss += residual.square().sum(dtype=torch.float64)
-        g = residual.mul_(scale).to(torch.bfloat16)  # d(mean squared error)/d(output)
-        for k in range(3, 0, -1):
-            g_w[k] += g.t() @ a[k]
-            g_b[k] += g.sum(0)
-            g = torch.ops.aten.threshold_backward(g @ weights[k], a[k], 0)
-        g_sum = g.sum(0).float()  # sums in float32, rounds to bfloat16 (3x faster)
-        g_w[0][:, n_latent:] += g.t() @ x
-        g_b[0] += g_sum
-        g_hidden[i] += g_sum
-    return g_w, g_b, g_hidden, loss
+        g = residual.mul_(scale).to(weights[0].dtype)  # d(mean squared error)/d(output)
+        for k in range(3, -1, -1):
+            if g.dtype == g_w[k].dtype:
+                g_w[k].addmm_(g.t(), a[k])
+            else:  # bfloat16 products into float32 sums
+                g_w[k] += g.t() @ a[k]
+            if k > 0:
+                g_b[k - 1] += g.sum(0)
+                g = torch.ops.aten.threshold_backward(g @ weights[k], a[k], 0)
+    return g_w, g_b, loss
+
+
+def _sum(parts: list[tuple]) -> tuple[list[torch.Tensor], list[torch.Tensor], float]:
+    """The workers' (weight gradients, bias gradients, loss) summed in a fixed order
+    (deterministic for a number of workers)."""
+    (g_w, g_b, loss), *rest = parts
+    for weights, biases, part_loss in rest:
+        for total, add in zip(g_w + g_b, weights + biases, strict=True):
+            total += add
+        loss += part_loss
+    return g_w, g_b, loss
+
 

@@ -32,7 +32,7 @@ class TrainSettings:
         by side: competing threads spin-wait and run several times slower.
     chunk : queries per chunk of the fused decoder step (speed only); None for the
         precision's default (``pipeline.btf.fused.DEFAULT_CHUNK``: 1024 for float32, whose
-        chunk's activations should fit in a core's L2 cache; 4096 for bfloat16).
+        chunk's activations should fit in a core's L2 cache; 8192 for bfloat16).
     keep_awake : on a CPU, when the job's threads are all its cores (at least 2), keep the
         cores from sleeping between the step's parallel phases (:func:`pipeline.cpu.keep_cpus_awake`: spinning processes at
         the lowest scheduling class, at the cost of power; speed only).
