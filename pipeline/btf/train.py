@@ -68,7 +68,7 @@ class _Curve:
         encoder.eval()
         decoder.eval()
         device = self.features.device
-        x = torch.from_numpy(np.ascontiguousarray(self.inputs.transpose(0, 2, 1))).to(device)
+        x = torch.from_numpy(self.inputs).permute(0, 2, 1).to(device)
         latents = encoder(x)
         # 16 texels at a time: the whole subsample's hidden layer would not fit in cache.
         pred = torch.cat([decoder.decode_grid(latents[i : i + 16], self.features).cpu()
@@ -186,7 +186,7 @@ def train(
                         break
                     texels = np.sort(order[first : first + b])
                     inputs = norm.encoder_input(sources[source_of_texel[texels]])
-                    x = torch.from_numpy(np.ascontiguousarray(inputs.transpose(0, 2, 1)))
+                    x = torch.from_numpy(inputs).permute(0, 2, 1)
                     rows = source_of_texel[texels] if target_from_source else texels
                     values = (sources if target_from_source else abrdf)[rows]
                     if all_queries:
@@ -247,6 +247,6 @@ def encode(
     out = np.empty((sources.shape[0], encoder.fc.out_features), dtype=np.float32)
     for start in range(0, sources.shape[0], chunk):
         inputs = norm.encoder_input(sources[start : start + chunk])
-        x = torch.from_numpy(np.ascontiguousarray(inputs.transpose(0, 2, 1)))
+        x = torch.from_numpy(inputs).permute(0, 2, 1)
         out[start : start + len(inputs)] = encoder(x).numpy()
     return out
