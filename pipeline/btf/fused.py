@@ -42,7 +42,6 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Optional
 
 import torch
 
@@ -224,7 +223,7 @@ def _chunks(items: list[tuple[int, int]], inputs: torch.Tensor, targets: torch.T
         start, stop = item
         a = [inputs[start:stop]]
         for k in range(4):
-            bias: Optional[torch.Tensor] = None
+            bias: torch.Tensor | None = None
             if k > 0:
                 bias = biases[k - 1]
             if onednn:
