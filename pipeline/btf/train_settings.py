@@ -38,7 +38,7 @@ class TrainSettings:
         the lowest scheduling class, at the cost of power; speed only).
     precision : ``float32``, or ``bfloat16`` for the decoder's products (float32 master
         weights and optimizer; see ``pipeline/btf/fused.py``). On a CPU with AMX the
-        decoder's step ran 1.9-2.1x and the whole loop 1.4-1.5x as fast as float32
+        decoder's step ran 2.0-2.1x and the whole loop 1.6x as fast as float32
         (``python -m pipeline.bench``); unmeasured on CPUs without bfloat16 units.
     """
 
