@@ -4,8 +4,9 @@ A training step (``pipeline.btf.train``) alternates phases on both cores (the en
 OpenMP threads, the fused decoder's worker threads) with moments where a core waits: for
 the other worker, for the main thread's Python, for the optimizer. A core that has nothing
 to run sleeps, and on the virtual machine this project is measured on it runs slower for
-milliseconds after it wakes (bare metal: not measured). Measured on a 2-core AMX Xeon VM, the fused decoder step's two halves (5 x 3281 queries
-each, bfloat16), run in two processes:
+milliseconds after it wakes (bare metal: not measured). Measured on a 2-core AMX Xeon VM,
+the fused decoder step's two halves (5 x 3281 queries each, bfloat16), run in two
+processes:
 
 - side by side, never waiting: 12.2-12.4 ms a step each;
 - meeting at a blocking barrier every step: 14.4-17.5 ms;
@@ -25,10 +26,10 @@ libgomp) spin for ``GOMP_SPINCOUNT`` iterations before they sleep, 300,000 by de
 while the decoder's own workers want the same cores. The bfloat16 training loop at the
 paper's batch (3 rounds of 60 steps, cores kept awake) took 23.9-26.3 / 23.3-24.0 /
 23.4-25.1 / 25.2-26.1 / 28.2-29.9 ms a step at 3,000 / 10,000 / 30,000 / 100,000 /
-300,000. ``import pipeline``
-sets the variable to :data:`SPIN_COUNT` unless ``GOMP_SPINCOUNT`` or ``OMP_WAIT_POLICY``
-is set, or ``PIPELINE_OPENMP_DEFAULTS=1`` asks for libgomp's own defaults; libgomp reads
-it once, when torch loads, so it has no effect where torch was imported first.
+300,000 (an earlier version of the decoder step). ``import pipeline`` sets the variable
+to :data:`SPIN_COUNT` unless ``GOMP_SPINCOUNT`` or ``OMP_WAIT_POLICY`` is set, or
+``PIPELINE_OPENMP_DEFAULTS=1`` asks for libgomp's own defaults; libgomp reads it once, when
+torch loads, so it has no effect where torch was imported first.
 """
 
 from __future__ import annotations

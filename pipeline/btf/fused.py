@@ -20,11 +20,11 @@ thin 106-wide products on one intra-op thread pool that barely scales past one c
   summed in a fixed order at the end (deterministic for a given number of workers);
 - each worker's chunk loop is a TorchScript function, whose interpreter does not hold
   Python's GIL; in eager mode every one of a chunk's ~36 torch calls hands the GIL between
-  the workers. A paper-size step (5 x 6561 queries, AMX Xeon, medians of 5 interleaved
-  rounds) took 48.9 ms eager against 34.7 ms scripted in float32 with 2 workers (61.3
-  against 51.7 ms with one), and 25.5 against 18.5 ms in bfloat16 (25.6 against 22.6 ms):
-  two eager workers were no faster than one in bfloat16. The gradients are bit for bit
-  those of the eager loops.
+  the workers. A paper-size step of an earlier version of these loops (5 x 6561 queries,
+  AMX Xeon, medians of 5 interleaved rounds) took 48.9 ms eager against 34.7 ms scripted
+  in float32 with 2 workers (61.3 against 51.7 ms with one), and 25.5 against 18.5 ms in
+  bfloat16 (25.6 against 22.6 ms): two eager workers were no faster than one in bfloat16.
+  The gradients are bit for bit those of the eager loops.
 
 The result equals autograd's gradient of the mean squared error (``tests/test_fused.py``).
 
@@ -33,8 +33,8 @@ master weights, what ``torch.autocast(dtype=torch.bfloat16)`` would do to the de
 weights, biases, directions and activations are rounded to bfloat16, each product sums in
 float32 and rounds its output to bfloat16; the residual, the loss and the accumulated
 gradients stay float32. Each layer and its ReLU is one oneDNN call. On a CPU with AMX the
-step ran 2.0-2.1x as fast as float32's (``python -m pipeline.bench``); on a CPU without bfloat16
-units oneDNN takes slower code paths (not measured: check with the bench). The gradient
+step ran 2.0-2.1x as fast as float32's (``python -m pipeline.bench``); on a CPU without
+bfloat16 units oneDNN takes slower code paths (not measured: check with the bench). The gradient
 differs from float32's by bfloat16's rounding (``tests/test_fused.py`` bounds it).
 """
 

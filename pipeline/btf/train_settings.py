@@ -34,8 +34,9 @@ class TrainSettings:
         precision's default (``pipeline.btf.fused.DEFAULT_CHUNK``: 1024 for float32, whose
         chunk's activations should fit in a core's L2 cache; 8192 for bfloat16).
     keep_awake : on a CPU, when the job's threads are all its cores (at least 2), keep the
-        cores from sleeping between the step's parallel phases (:func:`pipeline.cpu.keep_cpus_awake`: spinning processes at
-        the lowest scheduling class, at the cost of power; speed only).
+        cores from sleeping between the step's parallel phases
+        (:func:`pipeline.cpu.keep_cpus_awake`: spinning processes at the lowest scheduling
+        class, at the cost of power; speed only).
     precision : ``float32``, or ``bfloat16`` for the decoder's products (float32 master
         weights and optimizer; see ``pipeline/btf/fused.py``). On a CPU with AMX the
         decoder's step ran 2.0-2.1x and the whole loop 1.6x as fast as float32
