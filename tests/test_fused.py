@@ -1,10 +1,35 @@
-"""The hand-written decoder gradient (pipeline/btf/fused.py) against autograd."""
+"""The hand-written decoder gradient (pipeline/btf/fused.py) against autograd, with torch
+ops only and with the fused C++ kernels (pipeline/btf/kernels.py)."""
+
+import os
+import shutil
 
 import pytest
 import torch
 
+from pipeline.btf import kernels
 from pipeline.btf.fused import Batch, DecoderStep, split_rows
 from pipeline.btf.model import Decoder
+
+# Both ways of computing the step: torch ops only, and the fused kernels.
+KERNELS = pytest.mark.parametrize("fused_kernels", [False, True], ids=["torch", "kernels"])
+
+
+@pytest.fixture(autouse=True)
+def _skip_without_kernels(request):
+    callspec = getattr(request.node, "callspec", None)
+    if callspec and callspec.params.get("fused_kernels") and not kernels.available():
+        pytest.skip("the fused kernels did not build here (see test_kernels_build)")
+
+
+def test_kernels_build():
+    """Where a C++ compiler is on the machine, the fused kernels must build: a silent
+    fallback to torch ops would hide a slower step."""
+    if shutil.which("g++") is None and shutil.which("c++") is None:
+        pytest.skip("no C++ compiler on this machine; the step falls back to torch ops")
+    if os.environ.get("PIPELINE_KERNELS") == "0":
+        pytest.skip("PIPELINE_KERNELS=0 turns the kernels off")
+    assert kernels.available()
 
 
 def _autograd(decoder, batch, features):
@@ -18,8 +43,9 @@ def _autograd(decoder, batch, features):
     return loss.item(), grads, latents.grad
 
 
+@KERNELS
 @pytest.mark.parametrize("workers,chunk", [(1, 1000), (1, 7), (2, 5), (3, 64)])
-def test_fused_gradient_equals_autograd(workers, chunk):
+def test_fused_gradient_equals_autograd(workers, chunk, fused_kernels):
     torch.manual_seed(0)
     decoder = Decoder().double()
     features = torch.rand(50, 4, dtype=torch.float64) * 2 - 1
@@ -29,7 +55,8 @@ def test_fused_gradient_equals_autograd(workers, chunk):
         targets=torch.rand(4, 33, 3, dtype=torch.float64),
     )
     loss, expected, expected_latents = _autograd(decoder, batch, features)
-    step = DecoderStep(decoder, features, workers=workers, chunk=chunk)
+    step = DecoderStep(decoder, features, workers=workers, chunk=chunk,
+                       fused_kernels=fused_kernels)
     grads = step(batch)
     step.close()
     assert grads.loss == pytest.approx(loss, rel=1e-12)
@@ -40,12 +67,13 @@ def test_fused_gradient_equals_autograd(workers, chunk):
     torch.testing.assert_close(grads.latents, expected_latents, rtol=1e-10, atol=1e-12)
 
 
-def test_fused_step_is_deterministic_for_a_number_of_workers():
+@KERNELS
+def test_fused_step_is_deterministic_for_a_number_of_workers(fused_kernels):
     torch.manual_seed(1)
     decoder = Decoder()
     features = torch.rand(300, 4)
     batch = Batch(torch.randn(5, 8), torch.randint(0, 300, (5, 300)), torch.rand(5, 300, 3))
-    step = DecoderStep(decoder, features, workers=2, chunk=64)
+    step = DecoderStep(decoder, features, workers=2, chunk=64, fused_kernels=fused_kernels)
     first, second = step(batch), step(batch)
     step.close()
     for a, b in zip(first.weights + first.biases, second.weights + second.biases, strict=True):
@@ -56,8 +84,9 @@ def _relative_error(got, want):
     return float((got.double() - want.double()).norm() / want.double().norm())
 
 
+@KERNELS
 @pytest.mark.parametrize("workers,chunk", [(1, 1000), (2, 64), (3, 50)])
-def test_bfloat16_gradient_is_autograds_to_bfloat16_rounding(workers, chunk):
+def test_bfloat16_gradient_is_autograds_to_bfloat16_rounding(workers, chunk, fused_kernels):
     """bfloat16 keeps 8 significant bits (relative rounding 0.4 %): each gradient must be
     autograd's (float64) to within a few of those, and the loss to float32's accuracy of
     the residual; a wrong transpose, bias or layer would be off by order one."""
@@ -68,7 +97,8 @@ def test_bfloat16_gradient_is_autograds_to_bfloat16_rounding(workers, chunk):
     loss, expected, expected_latents = _autograd(decoder.double(), Batch(
         batch.latents.double(), batch.directions, batch.targets.double()), features.double())
     decoder.float()
-    step = DecoderStep(decoder, features, workers=workers, chunk=chunk, precision="bfloat16")
+    step = DecoderStep(decoder, features, workers=workers, chunk=chunk, precision="bfloat16",
+                       fused_kernels=fused_kernels)
     grads = step(batch)
     step.close()
     assert grads.loss == pytest.approx(loss, rel=1e-3)
@@ -81,12 +111,14 @@ def test_bfloat16_gradient_is_autograds_to_bfloat16_rounding(workers, chunk):
     assert all(p.grad.dtype == torch.float32 for p in decoder.parameters())
 
 
-def test_bfloat16_step_is_deterministic_for_a_number_of_workers():
+@KERNELS
+def test_bfloat16_step_is_deterministic_for_a_number_of_workers(fused_kernels):
     torch.manual_seed(1)
     decoder = Decoder()
     features = torch.rand(300, 4)
     batch = Batch(torch.randn(5, 8), torch.randint(0, 300, (5, 301)), torch.rand(5, 301, 3))
-    step = DecoderStep(decoder, features, workers=2, chunk=64, precision="bfloat16")
+    step = DecoderStep(decoder, features, workers=2, chunk=64, precision="bfloat16",
+                       fused_kernels=fused_kernels)
     first, second = step(batch), step(batch)
     step.close()
     for a, b in zip(first.weights + first.biases, second.weights + second.biases, strict=True):
@@ -102,7 +134,8 @@ def test_rows_are_split_evenly_and_each_query_is_in_one_chunk():
     assert max(stop - start for work in items for start, stop in work) == 64
 
 
-def test_chunks_may_span_abrdfs():
+@KERNELS
+def test_chunks_may_span_abrdfs(fused_kernels):
     """One chunk holding the rows of several ABRDFs (each with its own latent) gives
     autograd's gradient, as chunks within one ABRDF do."""
     torch.manual_seed(2)
@@ -112,13 +145,39 @@ def test_chunks_may_span_abrdfs():
                   torch.rand(3, 10, 3, dtype=torch.float64))
     loss, expected, expected_latents = _autograd(decoder, batch, features)
     for chunk in (30, 25, 4):  # one chunk; chunks across ABRDF boundaries
-        step = DecoderStep(decoder, features, chunk=chunk)
+        step = DecoderStep(decoder, features, chunk=chunk, fused_kernels=fused_kernels)
         grads = step(batch)
         assert grads.loss == pytest.approx(loss, rel=1e-12)
         for got, want in zip(grads.weights + grads.biases, expected[0::2] + expected[1::2],
                              strict=True):
             torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
         torch.testing.assert_close(grads.latents, expected_latents, rtol=1e-10, atol=1e-12)
+
+
+@KERNELS
+@pytest.mark.parametrize("hidden", [106, 16, 33])
+@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+def test_float32_storage_against_float64_autograd(hidden, precision, fused_kernels):
+    """float32 and bfloat16 storage (the kernels' vector code: a row of ``hidden`` is
+    whole 16-lane vectors and a masked rest) against autograd in float64, for hidden
+    widths that are, are not, and are just over a multiple of 16."""
+    torch.manual_seed(3)
+    decoder = Decoder(hidden=hidden)
+    features = torch.rand(200, 4) * 2 - 1
+    batch = Batch(torch.randn(3, 8), torch.randint(0, 200, (3, 150)), torch.rand(3, 150, 3))
+    loss, expected, expected_latents = _autograd(decoder.double(), Batch(
+        batch.latents.double(), batch.directions, batch.targets.double()), features.double())
+    decoder.float()
+    step = DecoderStep(decoder, features, workers=2, chunk=100, precision=precision,
+                       fused_kernels=fused_kernels)
+    grads = step(batch)
+    step.close()
+    tolerance = 1e-5 if precision == "float32" else 0.03
+    assert grads.loss == pytest.approx(loss, rel=tolerance)
+    errors = [_relative_error(got, want) for got, want in zip(
+        grads.weights + grads.biases + [grads.latents],
+        expected[0::2] + expected[1::2] + [expected_latents], strict=True)]
+    assert max(errors) < tolerance, errors
 
 
 def test_unknown_precision_is_refused():

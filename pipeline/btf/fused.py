@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import torch
 
+from pipeline.btf import kernels
 from pipeline.btf.model import Decoder
 from pipeline.btf.train_settings import PRECISIONS
 
@@ -99,7 +100,10 @@ class DecoderStep:
     """Computes :class:`Gradients` of a :class:`Batch`; reuse one instance across steps."""
 
     def __init__(self, decoder: Decoder, features: torch.Tensor, workers: int = 1,
-                 chunk: int | None = None, precision: str = "float32"):
+                 chunk: int | None = None, precision: str = "float32",
+                 fused_kernels: bool | None = None):
+        """``fused_kernels``: use :mod:`pipeline.btf.kernels` (None: where they build, on
+        the CPU; False: torch ops only)."""
         if precision not in PRECISIONS:
             raise ValueError(f"precision={precision!r} must be one of {PRECISIONS}")
         self.decoder = decoder
@@ -111,7 +115,10 @@ class DecoderStep:
         self.features = features.to(dtype)
         self._inputs = torch.empty(0, dtype=dtype, device=features.device)
         self._pool = ThreadPoolExecutor(self.workers - 1) if self.workers > 1 else None
-        self._chunks = _script(_chunks)
+        if fused_kernels is None:
+            fused_kernels = features.device.type == "cpu" and kernels.available()
+        self.fused_kernels = bool(fused_kernels)
+        self._chunks = _script(_chunks_fused if self.fused_kernels else _chunks)
 
     def close(self) -> None:
         if self._pool is not None:
@@ -212,41 +219,85 @@ def _chunks(items: list[tuple[int, int]], inputs: torch.Tensor, targets: torch.T
     each product sums in float32 and rounds its output, as ``torch.autocast`` would.
     Returns (weight gradients, bias gradients of layers 2-4, sum of squared residuals).
 
-    Runs as TorchScript (:func:`_script`; see the module's docstring for why).
-    ``onednn``: each layer and its ReLU is one oneDNN call (a separate bfloat16 ReLU pass
-    measured half to three quarters of the product's time), addmm elsewhere.
+    Runs as TorchScript (:func:`_script`; see the module's docstring for why), with torch
+    ops only; :func:`_chunks_fused` is the same with the fused kernels.
     """
     g_w = [torch.zeros(w.shape, dtype=targets.dtype, device=targets.device) for w in weights]
     g_b = [torch.zeros(b.shape, dtype=targets.dtype, device=targets.device) for b in biases]
     loss = torch.zeros((), dtype=torch.float64, device=targets.device)
     for item in items:
         start, stop = item
-        a = [inputs[start:stop]]
-        for k in range(4):
-            bias: torch.Tensor | None = None
-            if k > 0:
-                bias = biases[k - 1]
-            if onednn:
-                out = torch.ops.mkldnn._linear_pointwise(a[k], weights[k], bias,
-                                                         "relu" if k < 3 else "none", [], "")
-            else:
-                out = a[k] @ weights[k].t() if bias is None else torch.addmm(
-                    bias, a[k], weights[k].t())
-                if k < 3:
-                    out = out.relu_()
-            a.append(out)
+        a = _forward(inputs[start:stop], weights, biases, 4, onednn)
         residual = a[4].to(targets.dtype).sub_(targets[start:stop])
         loss += residual.square().sum(dtype=torch.float64)
         g = residual.mul_(scale).to(weights[0].dtype)  # d(mean squared error)/d(output)
         for k in range(3, -1, -1):
-            if g.dtype == g_w[k].dtype:
-                g_w[k].addmm_(g.t(), a[k])
-            else:  # bfloat16 products into float32 sums
-                g_w[k] += g.t() @ a[k]
+            _accumulate(g_w[k], g, a[k])
             if k > 0:
                 g_b[k - 1] += g.sum(0)
                 g = torch.ops.aten.threshold_backward(g @ weights[k], a[k], 0)
     return g_w, g_b, loss
+
+
+def _chunks_fused(items: list[tuple[int, int]], inputs: torch.Tensor, targets: torch.Tensor,
+                  weights: list[torch.Tensor], biases: list[torch.Tensor], scale: float,
+                  onednn: bool):
+    """:func:`_chunks` with the fused kernels of :mod:`pipeline.btf.kernels`: the last
+    layer's forward and backward with the residual and loss in one pass, and each ReLU's
+    gradient with its bias gradient (layer 2) or the first layer's weight gradient (layer
+    1). The weight gradients of layers 1-3 sum in ``targets``' type without a rounding to
+    ``weights``' type in between. Runs as TorchScript."""
+    g_w = [torch.zeros(w.shape, dtype=targets.dtype, device=targets.device) for w in weights]
+    g_b = [torch.zeros(b.shape, dtype=targets.dtype, device=targets.device) for b in biases]
+    g_first = torch.zeros((weights[0].shape[1], weights[0].shape[0]), dtype=targets.dtype,
+                          device=targets.device)  # the first layer's, transposed
+    loss = torch.zeros((), dtype=torch.float64, device=targets.device)
+    for item in items:
+        start, stop = item
+        a = _forward(inputs[start:stop], weights, biases, 3, onednn)
+        g = torch.ops.neural_btf.output_layer(a[3], weights[3], biases[2], targets[start:stop],
+                                              scale, g_w[3], g_b[2], g_b[1], loss)
+        for k in range(2, 0, -1):
+            _accumulate(g_w[k], g, a[k])
+            g_next = g @ weights[k]
+            if k == 2:
+                torch.ops.neural_btf.relu_backward_(g_next, a[k], g_b[k - 2], None, None)
+            else:
+                torch.ops.neural_btf.relu_backward_(g_next, a[k], None, a[0], g_first)
+            g = g_next
+    g_w[0] = g_first.t()
+    return g_w, g_b, loss
+
+
+def _forward(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor],
+             layers: int, onednn: bool) -> list[torch.Tensor]:
+    """[rows, then the outputs of the first ``layers`` layers] (see :func:`_chunks`).
+    ``onednn``: each layer and its ReLU is one oneDNN call (a separate bfloat16 ReLU pass
+    measured half to three quarters of the product's time), addmm elsewhere."""
+    a = [rows]
+    for k in range(layers):
+        bias: torch.Tensor | None = None
+        if k > 0:
+            bias = biases[k - 1]
+        if onednn:
+            out = torch.ops.mkldnn._linear_pointwise(a[k], weights[k], bias,
+                                                     "relu" if k < 3 else "none", [], "")
+        else:
+            out = a[k] @ weights[k].t() if bias is None else torch.addmm(
+                bias, a[k], weights[k].t())
+            if k < 3:
+                out = out.relu_()
+        a.append(out)
+    return a
+
+
+def _accumulate(total: torch.Tensor, g: torch.Tensor, a: torch.Tensor) -> None:
+    """total += g.t() @ a, the product in ``g``'s type (bfloat16 products into float32
+    sums round the product first)."""
+    if g.dtype == total.dtype:
+        total.addmm_(g.t(), a)
+    else:
+        total += g.t() @ a
 
 
 def _sum(parts: list[tuple]) -> tuple[list[torch.Tensor], list[torch.Tensor], float]:

@@ -1,0 +1,74 @@
+"""The decoder step's fused C++ kernels (``kernels.cpp``), built on first use.
+
+Each kernel does in one pass over a chunk's (rows x 106) activations what torch does in
+several (``pipeline.btf.fused`` uses them when :func:`available`):
+
+- ``torch.ops.neural_btf.output_layer``: the last layer's forward, the residual and loss,
+  and the backward into the last hidden layer (its weight and bias gradients, the gradient
+  through its ReLU and that gradient's column sums), which took seven torch calls;
+- ``torch.ops.neural_btf.relu_backward_``: a ReLU's gradient in place, with its column
+  sums (a bias gradient) or the first layer's weight gradient from its input rows.
+
+They are compiled with ``torch.utils.cpp_extension`` (g++ and ninja, which the project
+installs) for this machine's CPU, once per machine: the build lands under
+``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) and takes about 10-40 s.
+Where the build fails (no compiler), the step falls back to plain torch ops and says so
+once. On a CPU with AVX-512 and its bfloat16 instructions the kernels run on 16-lane
+vectors; elsewhere on what the compiler makes of plain loops.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import platform
+import sys
+from pathlib import Path
+
+import torch
+
+log = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).with_name("kernels.cpp")
+FLAGS = ["-O3", "-march=native", "-fopenmp-simd"]
+_state: dict = {}
+
+
+def _cpu_key() -> str:
+    """A short hash of the CPU's model and instruction-set flags: ``-march=native`` code
+    built on one CPU may not run on another that shares the build folder."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        text = "\n".join(sorted({line for line in lines
+                                 if line.startswith(("model name", "flags"))}))
+    except OSError:
+        text = platform.processor() or platform.machine()
+    return hashlib.sha256(text.encode()).hexdigest()[:10]
+
+
+def available() -> bool:
+    """Whether the kernels are loaded, building them on the first call in a process."""
+    if "ok" not in _state:
+        _state["ok"] = _load()
+    return _state["ok"]
+
+
+def _load() -> bool:
+    if os.environ.get("PIPELINE_KERNELS") == "0":
+        log.info("PIPELINE_KERNELS=0: the decoder step uses plain torch ops")
+        return False
+    from torch.utils import cpp_extension
+
+    # ninja comes with the project's environment, whose bin folder may not be on PATH.
+    bin_dir = str(Path(sys.executable).parent)
+    if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
+        os.environ["PATH"] = bin_dir + os.pathsep + os.environ.get("PATH", "")
+    try:
+        cpp_extension.load(name=f"pipeline_btf_kernels_{_cpu_key()}", sources=[str(SOURCE)],
+                           extra_cflags=FLAGS, is_python_module=False, verbose=False)
+    except Exception as error:  # no compiler, no ninja, or a build error: fall back
+        log.warning("the decoder's C++ kernels did not build (%s); the step uses plain "
+                    "torch ops, which are slower", str(error).strip().splitlines()[-1:])
+        return False
+    return hasattr(torch.ops.neural_btf, "output_layer")
