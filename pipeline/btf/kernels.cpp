@@ -210,34 +210,58 @@ void output_layer_avx512(int64_t rows, int64_t hidden, const at::Tensor& a, cons
     bias[j] = _mm512_cvtss_f32(v);
   }
   double sum_squares = 0;
-  std::vector<__m512> av(blocks);
-  for (int64_t r = 0; r < rows; ++r) {
-    const auto* ar = pa + r * hidden;
-    __m512 s[O] = {_mm512_setzero_ps(), _mm512_setzero_ps(), _mm512_setzero_ps()};
+  // Two rows at a time, whose dot products are independent chains the core overlaps, and
+  // the gradient sums loaded once for both: 8192 rows of 106 took about 0.4 ms against
+  // 0.48 ms a row at a time (bfloat16; 4 or 8 rows were no faster).
+  std::vector<__m512> av(2 * blocks);
+  auto rows_at = [&]<int N>(int64_t r) {
+    __m512 s[N][O];
+    for (int n = 0; n < N; ++n)
+      for (int j = 0; j < O; ++j) s[n][j] = _mm512_setzero_ps();
     for (int64_t k = 0; k < blocks; ++k) {
-      av[k] = V::load(ar + 16 * k, lanes(16 * k, hidden));
-      for (int j = 0; j < O; ++j) s[j] = _mm512_fmadd_ps(av[k], wv[j * blocks + k], s[j]);
+      __mmask16 m = lanes(16 * k, hidden);
+      for (int n = 0; n < N; ++n) {
+        __m512 x = V::load(pa + (r + n) * hidden + 16 * k, m);
+        av[n * blocks + k] = x;
+        for (int j = 0; j < O; ++j) s[n][j] = _mm512_fmadd_ps(x, wv[j * blocks + k], s[n][j]);
+      }
     }
-    __m512 gj[O];
-    for (int j = 0; j < O; ++j) {
-      __m512 out = V::round(_mm512_set1_ps(_mm512_reduce_add_ps(s[j]) + bias[j]));
-      float residual = _mm512_cvtss_f32(out) - pt[r * O + j];
-      sum_squares += double(residual) * double(residual);
-      gj[j] = V::round(_mm512_set1_ps(residual * float(scale)));
-      gbs[j] += _mm512_cvtss_f32(gj[j]);
+    __m512 gj[N][O];
+    for (int n = 0; n < N; ++n) {
+      for (int j = 0; j < O; ++j) {
+        __m512 out = V::round(_mm512_set1_ps(_mm512_reduce_add_ps(s[n][j]) + bias[j]));
+        float residual = _mm512_cvtss_f32(out) - pt[(r + n) * O + j];
+        sum_squares += double(residual) * double(residual);
+        gj[n][j] = V::round(_mm512_set1_ps(residual * float(scale)));
+        gbs[j] += _mm512_cvtss_f32(gj[n][j]);
+      }
     }
-    auto* gr = pg + r * hidden;
+    // Each vector of weights and of gradient sums is loaded once for the N rows.
     for (int64_t k = 0; k < blocks; ++k) {
-      __m512 h = _mm512_mul_ps(gj[0], wv[k]);
-      for (int j = 1; j < O; ++j) h = _mm512_fmadd_ps(gj[j], wv[j * blocks + k], h);
-      for (int j = 0; j < O; ++j)
-        gwv[j * blocks + k] = _mm512_fmadd_ps(gj[j], av[k], gwv[j * blocks + k]);
-      __mmask16 positive = _mm512_cmp_ps_mask(av[k], _mm512_setzero_ps(), _CMP_GT_OQ);
-      h = _mm512_maskz_mov_ps(positive, V::round(h));
-      V::store(gr + 16 * k, lanes(16 * k, hidden), h);
-      ghv[k] = _mm512_add_ps(ghv[k], h);
+      const __mmask16 m = lanes(16 * k, hidden);
+      __m512 wk[O], gw[O];
+      for (int j = 0; j < O; ++j) {
+        wk[j] = wv[j * blocks + k];
+        gw[j] = gwv[j * blocks + k];
+      }
+      __m512 gh = ghv[k];
+      for (int n = 0; n < N; ++n) {
+        const __m512 x = av[n * blocks + k];
+        __m512 h = _mm512_mul_ps(gj[n][0], wk[0]);
+        for (int j = 1; j < O; ++j) h = _mm512_fmadd_ps(gj[n][j], wk[j], h);
+        for (int j = 0; j < O; ++j) gw[j] = _mm512_fmadd_ps(gj[n][j], x, gw[j]);
+        __mmask16 positive = _mm512_cmp_ps_mask(x, _mm512_setzero_ps(), _CMP_GT_OQ);
+        h = _mm512_maskz_mov_ps(positive, V::round(h));
+        V::store(pg + (r + n) * hidden + 16 * k, m, h);
+        gh = _mm512_add_ps(gh, h);
+      }
+      for (int j = 0; j < O; ++j) gwv[j * blocks + k] = gw[j];
+      ghv[k] = gh;
     }
-  }
+  };
+  int64_t r = 0;
+  for (; r + 2 <= rows; r += 2) rows_at.template operator()<2>(r);
+  for (; r < rows; ++r) rows_at.template operator()<1>(r);
   for (int j = 0; j < O; ++j) {
     pgb[j] += gbs[j];
     for (int64_t k = 0; k < blocks; ++k) {
@@ -266,7 +290,7 @@ void relu_backward_avx512(int64_t rows, int64_t hidden, const at::Tensor& h, con
   std::vector<__m512> gbv(blocks, _mm512_setzero_ps());
   std::vector<__m512> gxv(inputs * blocks, _mm512_setzero_ps());
   std::vector<__m512> v(blocks);
-  std::vector<float> xr(inputs);
+  std::vector<float> xr(inputs + 16);  // a row of x, padded to whole vectors
   for (int64_t r = 0; r < rows; ++r) {
     auto* hr = ph + r * hidden;
     const auto* ar = pa + r * hidden;
@@ -279,8 +303,8 @@ void relu_backward_avx512(int64_t rows, int64_t hidden, const at::Tensor& h, con
       gbv[k] = _mm512_add_ps(gbv[k], v[k]);
     }
     if (inputs) {
-      for (int64_t c = 0; c < inputs; ++c)
-        xr[c] = _mm512_cvtss_f32(V::load(px + r * inputs + c, 1));
+      for (int64_t c = 0; c < inputs; c += 16)
+        _mm512_storeu_ps(xr.data() + c, V::load(px + r * inputs + c, lanes(c, inputs)));
       for (int64_t c = 0; c < inputs; ++c) {
         if (xr[c] == 0) continue;  // a one-hot block's zeros
         __m512 xc = _mm512_set1_ps(xr[c]);
