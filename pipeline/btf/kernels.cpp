@@ -346,8 +346,13 @@ at::Tensor output_layer(const at::Tensor& a, const at::Tensor& w, const at::Tens
     using S = decltype(storage);
     using Acc = typename S::Acc;
     check(targets.scalar_type() == c10::CppTypeToScalarType<Acc>::value &&
-              g_w.scalar_type() == targets.scalar_type(),
-          "output_layer: targets and gradients are not in the accumulator type");
+              g_w.scalar_type() == targets.scalar_type() &&
+              g_b.scalar_type() == targets.scalar_type() &&
+              g_b_hidden.scalar_type() == targets.scalar_type() && g_w.is_contiguous() &&
+              g_w.size(0) == outputs && g_w.size(1) == hidden && g_b.numel() == outputs &&
+              g_b_hidden.numel() == hidden,
+          "output_layer: targets and gradient sums must be in the accumulator type and "
+          "shaped like the weights, biases and hidden layer");
     check(outputs == 3, "output_layer: 3 outputs (RGB) only");
 #ifdef NEURAL_BTF_AVX512
     if constexpr (std::is_same_v<S, BFloat16>) {
@@ -379,6 +384,11 @@ void relu_backward_(const at::Tensor& h, const at::Tensor& a, const c10::optiona
             h.scalar_type() == a.scalar_type(),
         "relu_backward_ wants contiguous gradients and activations of one shape and type");
   check(x.has_value() == g_x.has_value(), "relu_backward_: x and g_x go together");
+  const auto sums = h.scalar_type() == at::kDouble ? at::kDouble : at::kFloat;
+  check((!g_b || (g_b->scalar_type() == sums && g_b->numel() == h.size(1) &&
+                  g_b->is_contiguous())) &&
+            (!g_x || g_x->scalar_type() == sums),
+        "relu_backward_: g_b (hidden) and g_x must be in the accumulator type");
   if (x) {
     check(x->is_contiguous() && x->size(0) == h.size(0) && x->scalar_type() == h.scalar_type() &&
               g_x->size(0) == x->size(1) && g_x->size(1) == h.size(1) && g_x->is_contiguous(),

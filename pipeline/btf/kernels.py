@@ -68,7 +68,8 @@ def _load() -> bool:
         cpp_extension.load(name=f"pipeline_btf_kernels_{_cpu_key()}", sources=[str(SOURCE)],
                            extra_cflags=FLAGS, is_python_module=False, verbose=False)
     except Exception as error:  # no compiler, no ninja, or a build error: fall back
+        lines = str(error).strip().splitlines() or [type(error).__name__]
         log.warning("the decoder's C++ kernels did not build (%s); the step uses plain "
-                    "torch ops, which are slower", str(error).strip().splitlines()[-1:])
+                    "torch ops, which are slower", lines[-1])
         return False
     return hasattr(torch.ops.neural_btf, "output_layer")
