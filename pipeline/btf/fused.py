@@ -122,8 +122,13 @@ class DecoderStep:
         self.features = features.to(dtype)
         self._inputs = torch.empty(0, dtype=dtype, device=features.device)
         self._pool = ThreadPoolExecutor(self.workers - 1) if self.workers > 1 else None
+        on_cpu = features.device.type == "cpu"
         if fused_kernels is None:
-            fused_kernels = features.device.type == "cpu" and kernels.available()
+            fused_kernels = on_cpu and kernels.available()
+        elif fused_kernels and not (on_cpu and kernels.available()):
+            raise ValueError("fused_kernels=True needs the C++ kernels (pipeline.btf.kernels) "
+                             f"and a CPU device; features are on {features.device}, kernels "
+                             f"{'built' if kernels.available() else 'not built'}")
         self.fused_kernels = bool(fused_kernels)
         self._chunks = _script(_chunks_fused if self.fused_kernels else _chunks)
 
@@ -147,7 +152,7 @@ class DecoderStep:
         low = [first.to(dtype)] + [w.to(dtype) for w in weights[1:]]
         low_biases = [bias.to(dtype) for bias in biases[1:]]
         rows = b * q
-        targets = batch.targets.reshape(rows, -1)
+        targets = batch.targets.reshape(rows, -1).contiguous()
         onednn = (inputs.is_cpu and dtype == torch.bfloat16
                   and torch.backends.mkldnn.is_available())
         parts = self._run(split_rows(rows, self.workers, self.chunk), inputs, targets, low,
@@ -252,26 +257,30 @@ def _chunks_fused(items: list[tuple[int, int]], inputs: torch.Tensor, targets: t
     """:func:`_chunks` with the fused kernels of :mod:`pipeline.btf.kernels`: the last
     layer's forward and backward with the residual and loss in one pass, and each ReLU's
     gradient with its bias gradient (layer 2) or the first layer's weight gradient (layer
-    1). The weight gradients of layers 1-3 sum in ``targets``' type without a rounding to
-    ``weights``' type in between. Runs as TorchScript."""
+    1). In bfloat16 the first and last layers' weight gradients and all bias gradients sum
+    in ``targets``' type with no rounding to bfloat16 in between (``_chunks`` rounds each
+    chunk's product and column sum); layers 2-3's weight gradients are ``_accumulate``'s,
+    as there. The first layer's weight gradient is returned as a transposed view. Runs as
+    TorchScript."""
     g_w = [torch.zeros(w.shape, dtype=targets.dtype, device=targets.device) for w in weights]
     g_b = [torch.zeros(b.shape, dtype=targets.dtype, device=targets.device) for b in biases]
+    # The first layer's weight gradient, transposed: (inputs, hidden), so that the kernel
+    # adds each input column's contribution to one contiguous row of vectors.
     g_first = torch.zeros((weights[0].shape[1], weights[0].shape[0]), dtype=targets.dtype,
-                          device=targets.device)  # the first layer's, transposed
+                          device=targets.device)
     loss = torch.zeros((), dtype=torch.float64, device=targets.device)
     for item in items:
         start, stop = item
         a = _forward(inputs[start:stop], weights, biases, 3, onednn)
         g = torch.ops.neural_btf.output_layer(a[3], weights[3], biases[2], targets[start:stop],
                                               scale, g_w[3], g_b[2], g_b[1], loss)
-        for k in range(2, 0, -1):
-            _accumulate(g_w[k], g, a[k])
-            g_next = g @ weights[k]
-            if k == 2:
-                torch.ops.neural_btf.relu_backward_(g_next, a[k], g_b[k - 2], None, None)
-            else:
-                torch.ops.neural_btf.relu_backward_(g_next, a[k], None, a[0], g_first)
-            g = g_next
+        # g: the gradient at layer 3's output (before its ReLU); on through layers 3 and 2.
+        _accumulate(g_w[2], g, a[2])
+        g_2 = g @ weights[2]
+        torch.ops.neural_btf.relu_backward_(g_2, a[2], g_b[0], None, None)  # + layer 2's bias
+        _accumulate(g_w[1], g_2, a[1])
+        g_1 = g_2 @ weights[1]
+        torch.ops.neural_btf.relu_backward_(g_1, a[1], None, a[0], g_first)  # + layer 1's W
     g_w[0] = g_first.t()
     return g_w, g_b, loss
 

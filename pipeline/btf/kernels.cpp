@@ -12,6 +12,10 @@
 //   bias gradient).
 // neural_btf::relu_backward_: the gradient through a ReLU, in place, with its column sums
 //   and/or the gradient of the product that made the layer from its input rows.
+//
+// As torch's threshold_backward, a ReLU passes the gradient where its output is not <= 0
+// (a NaN output passes it). The input rows' zeros (the one-hot block) are skipped, so a
+// zero times an infinite gradient adds nothing there instead of a NaN.
 
 #include <ATen/ATen.h>
 #include <torch/library.h>
@@ -21,10 +25,18 @@
 #include <type_traits>
 #include <vector>
 
-#if defined(__AVX512F__) && defined(__AVX512BW__) && defined(__AVX512VL__) && \
-    defined(__AVX512BF16__)
-#define NEURAL_BTF_AVX512 1
+// -DNEURAL_BTF_GENERIC builds the plain loops only (the tests compare the two), and
+// -DNEURAL_BTF_NAMESPACE=name registers the ops under another name.
+#ifndef NEURAL_BTF_NAMESPACE
+#define NEURAL_BTF_NAMESPACE neural_btf
+#endif
+#if !defined(NEURAL_BTF_GENERIC) && defined(__AVX512F__) && defined(__AVX512BW__) && \
+    defined(__AVX512VL__)
+#define NEURAL_BTF_AVX512 1  // float32 storage on 16 lanes
 #include <immintrin.h>
+#if defined(__AVX512BF16__)
+#define NEURAL_BTF_AVX512_BF16 1  // and bfloat16 storage (its conversion instructions)
+#endif
 #endif
 
 namespace {
@@ -107,7 +119,7 @@ void output_layer_kernel(int64_t rows, int64_t hidden, const at::Tensor& a, cons
         h += gj[j] * pw[j * hidden + i];
         pgw[j * hidden + i] += gj[j] * x;
       }
-      h = x > 0 ? S::round(h) : Acc(0);
+      h = !(x <= 0) ? S::round(h) : Acc(0);
       gr[i] = S::store(h);
       pgh[i] += h;
     }
@@ -133,7 +145,7 @@ void relu_backward_kernel(int64_t rows, int64_t hidden, const at::Tensor& h, con
     Acc* v = row.data();
 #pragma omp simd
     for (int64_t i = 0; i < hidden; ++i) {
-      Acc value = S::load(ar[i]) > 0 ? S::load(hr[i]) : Acc(0);
+      Acc value = !(S::load(ar[i]) <= 0) ? S::load(hr[i]) : Acc(0);
       hr[i] = S::store(value);
       v[i] = value;
     }
@@ -155,9 +167,11 @@ void relu_backward_kernel(int64_t rows, int64_t hidden, const at::Tensor& h, con
 
 
 #ifdef NEURAL_BTF_AVX512
-// The same kernels on 16 lanes of AVX-512, for bfloat16 and float32 storage (float32 sums):
+// The same kernels on 16 lanes of AVX-512, for float32 and (where the CPU has AVX512_BF16)
+// bfloat16 storage, float32 sums:
 // a row of 106 is 6 full vectors and a masked one. GCC's own vectorization of the loops
 // above ran bfloat16 rows at about 2 cycles an element (its rounding and 8-lane vectors).
+#ifdef NEURAL_BTF_AVX512_BF16
 struct VecBFloat16 {
   using Raw = uint16_t;
   static __m512 load(const uint16_t* p, __mmask16 m) {
@@ -170,6 +184,7 @@ struct VecBFloat16 {
     return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(pack(v)), 16));
   }
 };
+#endif
 
 struct VecFloat {
   using Raw = float;
@@ -250,7 +265,7 @@ void output_layer_avx512(int64_t rows, int64_t hidden, const at::Tensor& a, cons
         __m512 h = _mm512_mul_ps(gj[n][0], wk[0]);
         for (int j = 1; j < O; ++j) h = _mm512_fmadd_ps(gj[n][j], wk[j], h);
         for (int j = 0; j < O; ++j) gw[j] = _mm512_fmadd_ps(gj[n][j], x, gw[j]);
-        __mmask16 positive = _mm512_cmp_ps_mask(x, _mm512_setzero_ps(), _CMP_GT_OQ);
+        __mmask16 positive = _mm512_cmp_ps_mask(x, _mm512_setzero_ps(), _CMP_NLE_UQ);
         h = _mm512_maskz_mov_ps(positive, V::round(h));
         V::store(pg + (r + n) * hidden + 16 * k, m, h);
         gh = _mm512_add_ps(gh, h);
@@ -297,7 +312,7 @@ void relu_backward_avx512(int64_t rows, int64_t hidden, const at::Tensor& h, con
     for (int64_t k = 0; k < blocks; ++k) {
       __mmask16 m = lanes(16 * k, hidden);
       __mmask16 positive =
-          _mm512_cmp_ps_mask(V::load(ar + 16 * k, m), _mm512_setzero_ps(), _CMP_GT_OQ);
+          _mm512_cmp_ps_mask(V::load(ar + 16 * k, m), _mm512_setzero_ps(), _CMP_NLE_UQ);
       v[k] = _mm512_maskz_mov_ps(positive, V::load(hr + 16 * k, m));
       V::store(hr + 16 * k, m, v[k]);
       gbv[k] = _mm512_add_ps(gbv[k], v[k]);
@@ -332,7 +347,9 @@ at::Tensor output_layer(const at::Tensor& a, const at::Tensor& w, const at::Tens
                         const at::Tensor& targets, double scale, const at::Tensor& g_w,
                         const at::Tensor& g_b, const at::Tensor& g_b_hidden,
                         const at::Tensor& loss) {
-  check(a.dim() == 2 && a.is_contiguous() && w.is_contiguous() && targets.is_contiguous(),
+  check(a.is_cpu() && w.is_cpu() && targets.is_cpu(), "output_layer runs on the CPU only");
+  check(a.dim() == 2 && a.is_contiguous() && w.is_contiguous() && targets.is_contiguous() &&
+            b.is_contiguous() && g_b.is_contiguous() && g_b_hidden.is_contiguous(),
         "output_layer wants contiguous 2-D activations, weights and targets");
   const int64_t rows = a.size(0), hidden = a.size(1), outputs = w.size(0);
   check(w.size(1) == hidden && b.numel() == outputs && targets.size(0) == rows &&
@@ -354,11 +371,14 @@ at::Tensor output_layer(const at::Tensor& a, const at::Tensor& w, const at::Tens
           "output_layer: targets and gradient sums must be in the accumulator type and "
           "shaped like the weights, biases and hidden layer");
     check(outputs == 3, "output_layer: 3 outputs (RGB) only");
-#ifdef NEURAL_BTF_AVX512
+#ifdef NEURAL_BTF_AVX512_BF16
     if constexpr (std::is_same_v<S, BFloat16>) {
       return output_layer_avx512<VecBFloat16>(rows, hidden, a, w, b, targets, scale, g, g_w,
                                               g_b, g_b_hidden, loss);
-    } else if constexpr (std::is_same_v<S, Plain<float>>) {
+    }
+#endif
+#ifdef NEURAL_BTF_AVX512
+    if constexpr (std::is_same_v<S, Plain<float>>) {
       return output_layer_avx512<VecFloat>(rows, hidden, a, w, b, targets, scale, g, g_w, g_b,
                                            g_b_hidden, loss);
     }
@@ -380,6 +400,7 @@ at::Tensor output_layer(const at::Tensor& a, const at::Tensor& w, const at::Tens
 
 void relu_backward_(const at::Tensor& h, const at::Tensor& a, const c10::optional<at::Tensor>& g_b,
                     const c10::optional<at::Tensor>& x, const c10::optional<at::Tensor>& g_x) {
+  check(h.is_cpu() && a.is_cpu(), "relu_backward_ runs on the CPU only");
   check(h.dim() == 2 && h.is_contiguous() && a.is_contiguous() && h.sizes() == a.sizes() &&
             h.scalar_type() == a.scalar_type(),
         "relu_backward_ wants contiguous gradients and activations of one shape and type");
@@ -396,10 +417,13 @@ void relu_backward_(const at::Tensor& h, const at::Tensor& a, const c10::optiona
   }
   auto run = [&](auto storage) {
     using S = decltype(storage);
-#ifdef NEURAL_BTF_AVX512
+#ifdef NEURAL_BTF_AVX512_BF16
     if constexpr (std::is_same_v<S, BFloat16>) {
       return relu_backward_avx512<VecBFloat16>(h.size(0), h.size(1), h, a, g_b, x, g_x);
-    } else if constexpr (std::is_same_v<S, Plain<float>>) {
+    }
+#endif
+#ifdef NEURAL_BTF_AVX512
+    if constexpr (std::is_same_v<S, Plain<float>>) {
       return relu_backward_avx512<VecFloat>(h.size(0), h.size(1), h, a, g_b, x, g_x);
     }
 #endif
@@ -418,7 +442,7 @@ void relu_backward_(const at::Tensor& h, const at::Tensor& a, const c10::optiona
 
 }  // namespace
 
-TORCH_LIBRARY(neural_btf, m) {
+TORCH_LIBRARY(NEURAL_BTF_NAMESPACE, m) {
   m.def(
       "output_layer(Tensor a, Tensor w, Tensor b, Tensor targets, float scale, Tensor(a!) g_w, "
       "Tensor(b!) g_b, Tensor(c!) g_b_hidden, Tensor(d!) loss) -> Tensor",

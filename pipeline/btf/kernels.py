@@ -24,6 +24,7 @@ import logging
 import os
 import platform
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -35,15 +36,22 @@ FLAGS = ["-O3", "-march=native", "-fopenmp-simd"]
 _state: dict = {}
 
 
+# The /proc/cpuinfo lines that tell CPUs apart (x86: model name, flags; ARM: CPU part,
+# Features).
+_CPU_LINES = ("model name", "flags", "CPU implementer", "CPU part", "Features")
+# A build lock older than this was left by a build that was killed (a build takes 10-40 s).
+STALE_LOCK_SECONDS = 600
+
+
 def _cpu_key() -> str:
     """A short hash of the CPU's model and instruction-set flags: ``-march=native`` code
     built on one CPU may not run on another that shares the build folder."""
     try:
         lines = Path("/proc/cpuinfo").read_text().splitlines()
-        text = "\n".join(sorted({line for line in lines
-                                 if line.startswith(("model name", "flags"))}))
+        text = "\n".join(sorted({line for line in lines if line.startswith(_CPU_LINES)}))
     except OSError:
-        text = platform.processor() or platform.machine()
+        text = ""
+    text += platform.machine() + platform.processor()
     return hashlib.sha256(text.encode()).hexdigest()[:10]
 
 
@@ -60,16 +68,34 @@ def _load() -> bool:
         return False
     from torch.utils import cpp_extension
 
+    name = f"pipeline_btf_kernels_{_cpu_key()}"
+    build_dir = Path(cpp_extension._get_build_directory(name, False))
+    _remove_stale_lock(build_dir / "lock")
     # ninja comes with the project's environment, whose bin folder may not be on PATH.
-    bin_dir = str(Path(sys.executable).parent)
-    if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
-        os.environ["PATH"] = bin_dir + os.pathsep + os.environ.get("PATH", "")
+    path = os.environ.get("PATH", "")
+    os.environ["PATH"] = str(Path(sys.executable).parent) + os.pathsep + path
     try:
-        cpp_extension.load(name=f"pipeline_btf_kernels_{_cpu_key()}", sources=[str(SOURCE)],
-                           extra_cflags=FLAGS, is_python_module=False, verbose=False)
+        cpp_extension.load(name=name, sources=[str(SOURCE)], extra_cflags=FLAGS,
+                           is_python_module=False, verbose=False)
     except Exception as error:  # no compiler, no ninja, or a build error: fall back
         lines = str(error).strip().splitlines() or [type(error).__name__]
-        log.warning("the decoder's C++ kernels did not build (%s); the step uses plain "
-                    "torch ops, which are slower", lines[-1])
+        # The compiler's first error, else the last line (ninja's own lines come last).
+        reason = next((line for line in lines if "error:" in line), lines[-1])
+        log.warning("the decoder's C++ kernels did not build in %s (%s); the step uses plain "
+                    "torch ops, which are slower", build_dir, reason.strip())
         return False
+    finally:
+        os.environ["PATH"] = path
     return hasattr(torch.ops.neural_btf, "output_layer")
+
+
+def _remove_stale_lock(lock: Path) -> None:
+    """torch's build lock stays behind when a build is killed, and every later build
+    would wait on it forever; one older than :data:`STALE_LOCK_SECONDS` is removed."""
+    try:
+        age = time.time() - lock.stat().st_mtime
+    except OSError:
+        return
+    if age > STALE_LOCK_SECONDS:
+        log.warning("removing %s, left %.0f s ago by a build that did not finish", lock, age)
+        lock.unlink(missing_ok=True)

@@ -1,0 +1,106 @@
+"""The fused C++ kernels (pipeline/btf/kernels.py, kernels.cpp) on their own: the build,
+its fallback, the ops' checks, and the vector code against the plain loops. The gradients
+they make are checked against autograd in tests/test_fused.py."""
+
+import os
+import shutil
+
+import pytest
+import torch
+from torch.utils import cpp_extension
+
+from pipeline.btf import kernels
+from pipeline.btf.fused import DecoderStep
+from pipeline.btf.model import Decoder
+
+
+def test_kernels_build():
+    """Where a C++ compiler is on the machine, the fused kernels must build: a silent
+    fallback to torch ops would hide a slower step."""
+    if shutil.which("g++") is None and shutil.which("c++") is None:
+        pytest.skip("no C++ compiler on this machine; the step falls back to torch ops")
+    if os.environ.get("PIPELINE_KERNELS") == "0":
+        pytest.skip("PIPELINE_KERNELS=0 turns the kernels off")
+    assert kernels.available()
+
+
+def test_a_failed_build_falls_back_to_torch_ops(monkeypatch, caplog):
+    """Without a compiler the kernels' build fails: the step says so once and runs on torch
+    ops (the same gradient: tests/test_fused.py with fused_kernels=False), and refuses to
+    be asked for the kernels."""
+    def no_compiler(**kwargs):
+        raise RuntimeError("Error building extension 'pipeline_btf_kernels': [1/2] c++ ...\n"
+                           "kernels.cpp:16:10: fatal error: ATen/ATen.h: No such file\n"
+                           "ninja: build stopped: subcommand failed.")
+
+    monkeypatch.setattr(kernels, "_state", {})
+    monkeypatch.setattr(cpp_extension, "load", no_compiler)
+    with caplog.at_level("WARNING", logger="pipeline.btf.kernels"):
+        assert not kernels.available()
+        assert not kernels.available()  # decided once per process
+    assert caplog.text.count("did not build") == 1
+    assert "fatal error: ATen/ATen.h: No such file" in caplog.text
+    step = DecoderStep(Decoder(), torch.rand(10, 4))
+    assert not step.fused_kernels
+    step.close()
+    with pytest.raises(ValueError, match="fused_kernels=True needs the C\+\+ kernels"):
+        DecoderStep(Decoder(), torch.rand(10, 4), fused_kernels=True)
+
+
+def test_kernels_refuse_mismatched_inputs():
+    if not kernels.available():
+        pytest.skip("the fused kernels did not build here (see test_kernels_build)")
+    a, w, b, targets = torch.rand(4, 6), torch.rand(3, 6), torch.rand(3), torch.rand(4, 3)
+    sums = [torch.zeros(3, 6), torch.zeros(3), torch.zeros(6), torch.zeros((), dtype=torch.float64)]
+    output_layer, relu_backward_ = (torch.ops.neural_btf.output_layer,
+                                    torch.ops.neural_btf.relu_backward_)
+    assert output_layer(a, w, b, targets, 1.0, *sums).shape == (4, 6)
+    with pytest.raises(RuntimeError, match="shapes do not match"):
+        output_layer(a, torch.rand(3, 5), b, targets, 1.0, *sums)
+    with pytest.raises(RuntimeError, match="accumulator type"):
+        output_layer(a, w, b, targets.double(), 1.0, *sums)
+    with pytest.raises(RuntimeError, match="accumulator type"):
+        relu_backward_(torch.rand(4, 6), a, torch.zeros(6, dtype=torch.float64), None, None)
+    with pytest.raises(RuntimeError, match="one shape and type"):
+        relu_backward_(torch.rand(4, 5), a, None, None, None)
+
+
+@pytest.fixture(scope="module")
+def plain_loops():
+    """kernels.cpp built with the plain loops only, as ``torch.ops.neural_btf_plain``."""
+    if not kernels.available():
+        pytest.skip("the fused kernels did not build here (see test_kernels_build)")
+    cpp_extension.load(name=f"pipeline_btf_kernels_plain_{kernels._cpu_key()}",
+                       sources=[str(kernels.SOURCE)], is_python_module=False,
+                       extra_cflags=kernels.FLAGS + ["-DNEURAL_BTF_GENERIC",
+                                                     "-DNEURAL_BTF_NAMESPACE=neural_btf_plain"])
+    return torch.ops.neural_btf_plain
+
+
+@pytest.mark.parametrize("rows,hidden", [(37, 106), (8, 33), (1, 16)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16], ids=["float32", "bfloat16"])
+def test_vector_code_matches_plain_loops(plain_loops, rows, hidden, dtype):
+    """The ops' 16-lane code (this machine's build) against the plain loops that CPUs
+    without AVX-512 run: the same values up to the order of float32 sums, for widths of
+    whole and partial vectors and an odd number of rows (the output layer takes two rows
+    at a time)."""
+    torch.manual_seed(4)
+    a = torch.relu(torch.randn(rows, hidden)).to(dtype)
+    w, b = torch.randn(3, hidden).to(dtype), torch.randn(3).to(dtype)
+    targets = torch.rand(rows, 3)
+    x = torch.zeros(rows, 9).to(dtype)
+    x[:, :4] = torch.rand(rows, 4).to(dtype)
+    x[torch.arange(rows), 4 + torch.arange(rows) % 5] = 1
+    results = []
+    for ops in (torch.ops.neural_btf, plain_loops):
+        sums = [torch.zeros(3, hidden), torch.zeros(3), torch.zeros(hidden),
+                torch.zeros((), dtype=torch.float64)]
+        g = ops.output_layer(a, w, b, targets, 0.01, *sums)
+        g_b, g_x, h = torch.zeros(hidden), torch.zeros(9, hidden), g.clone()
+        ops.relu_backward_(h, a, g_b, x, g_x)
+        results.append([g.float(), h.float(), g_b, g_x] + sums)
+    # bfloat16: a sum in another order may round a product's output to the neighbouring
+    # bfloat16 (0.4 %), and that moves what follows from it.
+    tolerance = 1e-5 if dtype == torch.float32 else 0.02
+    for got, want in zip(*results, strict=True):
+        assert float((got - want).norm()) <= tolerance * float(want.norm()) + 1e-12
