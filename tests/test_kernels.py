@@ -43,7 +43,7 @@ def test_a_failed_build_falls_back_to_torch_ops(monkeypatch, caplog):
     step = DecoderStep(Decoder(), torch.rand(10, 4))
     assert not step.fused_kernels
     step.close()
-    with pytest.raises(ValueError, match="fused_kernels=True needs the C\+\+ kernels"):
+    with pytest.raises(ValueError, match=r"fused_kernels=True needs the C\+\+ kernels"):
         DecoderStep(Decoder(), torch.rand(10, 4), fused_kernels=True)
 
 
