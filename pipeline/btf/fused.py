@@ -39,10 +39,11 @@ The result equals autograd's gradient of the mean squared error (``tests/test_fu
 master weights, what ``torch.autocast(dtype=torch.bfloat16)`` would do to the decoder:
 weights, biases, directions and activations are rounded to bfloat16, each product sums in
 float32 and rounds its output to bfloat16; the residual, the loss and the accumulated
-gradients stay float32. Each layer and its ReLU is one oneDNN call. On a CPU with AMX the
-step ran 2.0-2.1x as fast as float32's (``python -m pipeline.bench``); on a CPU without
-bfloat16 units oneDNN takes slower code paths (not measured: check with the bench). The gradient
-differs from float32's by bfloat16's rounding (``tests/test_fused.py`` bounds it).
+gradients stay float32. Each hidden layer and its ReLU is one oneDNN call. On a CPU with
+AMX the step ran 2.4-2.6x as fast as float32's (``python -m pipeline.bench``, 3 runs);
+on a CPU without bfloat16 units oneDNN takes slower code paths (not measured: check with
+the bench). The gradient differs from float32's by bfloat16's rounding
+(``tests/test_fused.py`` bounds it).
 """
 
 from __future__ import annotations
@@ -58,9 +59,9 @@ from pipeline.btf.train_settings import PRECISIONS
 
 # Queries per chunk. float32 is fastest when a chunk's activations stay in a core's L2
 # cache; bfloat16 products are so fast that each op's fixed cost dominates small chunks.
-# The step at 5 x 6561 queries, 2 workers, medians of 5 interleaved rounds on an AMX Xeon,
-# M queries/s: float32 1.33 / 1.31 / 1.28 / 1.18 at 512 / 1024 / 2048 / 4096; bfloat16
-# 2.58 / 2.79 / 2.97 / 2.72 at 2048 / 4096 / 8192 / 16403 (one chunk per worker).
+# The step at 5 x 6561 queries, 2 workers, with the C++ kernels, medians of 5 interleaved
+# rounds of 20 steps on an AMX Xeon, M queries/s: float32 1.46 / 1.42 / 1.37 / 1.26 at
+# 512 / 1024 / 2048 / 4096; bfloat16 2.89 / 3.24 / 3.56 / 3.76 at 1024 / 2048 / 4096 / 8192.
 DEFAULT_CHUNK = {"float32": 1024, "bfloat16": 8192}
 
 
