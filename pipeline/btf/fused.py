@@ -61,7 +61,8 @@ from pipeline.btf.train_settings import PRECISIONS
 # cache; bfloat16 products are so fast that each op's fixed cost dominates small chunks.
 # The step at 5 x 6561 queries, 2 workers, with the C++ kernels, medians of 5 interleaved
 # rounds of 20 steps on an AMX Xeon, M queries/s: float32 1.46 / 1.42 / 1.37 / 1.26 at
-# 512 / 1024 / 2048 / 4096; bfloat16 2.89 / 3.24 / 3.56 / 3.76 at 1024 / 2048 / 4096 / 8192.
+# 512 / 1024 / 2048 / 4096 (512 against 1024 is within the noise of other rounds; 1024
+# kept); bfloat16 2.89 / 3.24 / 3.56 / 3.76 at 1024 / 2048 / 4096 / 8192.
 DEFAULT_CHUNK = {"float32": 1024, "bfloat16": 8192}
 
 
