@@ -40,7 +40,7 @@ master weights, what ``torch.autocast(dtype=torch.bfloat16)`` would do to the de
 weights, biases, directions and activations are rounded to bfloat16, each product sums in
 float32 and rounds its output to bfloat16; the residual, the loss and the accumulated
 gradients stay float32. Each hidden layer and its ReLU is one oneDNN call. On a CPU with
-AMX the step ran 2.4-2.6x as fast as float32's (``python -m pipeline.bench``, 3 runs);
+AMX the step ran 2.4-2.6x as fast as float32's (``python -m pipeline.bench``, 5 runs);
 on a CPU without bfloat16 units oneDNN takes slower code paths (not measured: check with
 the bench). The gradient differs from float32's by bfloat16's rounding
 (``tests/test_fused.py`` bounds it).
