@@ -1,4 +1,5 @@
-// Fused CPU kernels of the decoder's training step (pipeline/btf/fused.py, pipeline/btf/kernels.py).
+// Fused CPU kernels of the decoder's training step (pipeline/btf/fused.py; built by
+// pipeline/btf/kernels.py).
 //
 // torch has no single op for these: each replaces several memory passes over a chunk's
 // (rows x 106) activations by one. The products are the storage type's (float32, float64, or
@@ -282,7 +283,8 @@ void output_layer_avx512(int64_t rows, int64_t hidden, const at::Tensor& a, cons
     for (int64_t k = 0; k < blocks; ++k) {
       __mmask16 m = lanes(16 * k, hidden);
       float* dst = pgw + j * hidden + 16 * k;
-      _mm512_mask_storeu_ps(dst, m, _mm512_add_ps(_mm512_maskz_loadu_ps(m, dst), gwv[j * blocks + k]));
+      _mm512_mask_storeu_ps(dst, m,
+                            _mm512_add_ps(_mm512_maskz_loadu_ps(m, dst), gwv[j * blocks + k]));
     }
   }
   for (int64_t k = 0; k < blocks; ++k) {

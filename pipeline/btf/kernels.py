@@ -11,10 +11,11 @@ several (``pipeline.btf.fused`` uses them when :func:`available`):
 
 They are compiled with ``torch.utils.cpp_extension`` (g++ and ninja, which the project
 installs) for this machine's CPU, once per machine: the build lands under
-``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) and took about 10 s on a 2-core Xeon.
-Where the build fails (no compiler), the step falls back to plain torch ops and says so
-once. On a CPU with AVX-512 and its bfloat16 instructions the kernels run on 16-lane
-vectors; elsewhere on what the compiler makes of plain loops.
+``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) and took about 10 s on a
+2-core Xeon. Where the build fails (no compiler), the step falls back to plain torch ops
+and says so once. On a CPU with AVX-512 the kernels run on 16-lane vectors (bfloat16 ones
+also need its bfloat16 instructions); elsewhere on what the compiler makes of plain loops
+(``tests/test_kernels.py`` compares the two).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ _state: dict = {}
 # The /proc/cpuinfo lines that tell CPUs apart (x86: model name, flags; ARM: CPU part,
 # Features).
 _CPU_LINES = ("model name", "flags", "CPU implementer", "CPU part", "Features")
-# A build lock older than this was left by a build that was killed (a build took about 10 s here).
+# A build lock older than this was left by a build that was killed (a build took 10 s).
 STALE_LOCK_SECONDS = 600
 
 
