@@ -63,6 +63,8 @@ def test_kernels_refuse_mismatched_inputs():
         relu_backward_(torch.rand(4, 6), a, torch.zeros(6, dtype=torch.float64), None, None)
     with pytest.raises(RuntimeError, match="one shape and type"):
         relu_backward_(torch.rand(4, 5), a, None, None, None)
+    with pytest.raises(RuntimeError, match="bfloat16, float32 or float64 only"):
+        relu_backward_(a.half(), a.half(), None, None, None)
 
 
 @pytest.fixture(scope="module")

@@ -345,6 +345,20 @@ void relu_backward_avx512(int64_t rows, int64_t hidden, const at::Tensor& h, con
 
 void check(bool ok, const char* what) { TORCH_CHECK(ok, "neural_btf kernels: ", what); }
 
+// run(storage) with the storage policy of a tensor type.
+template <typename F>
+void dispatch(at::ScalarType type, const char* op, F&& run) {
+  if (type == at::kBFloat16) {
+    run(BFloat16{});
+  } else if (type == at::kFloat) {
+    run(Plain<float>{});
+  } else if (type == at::kDouble) {
+    run(Plain<double>{});
+  } else {
+    TORCH_CHECK(false, "neural_btf kernels: ", op, ": bfloat16, float32 or float64 only");
+  }
+}
+
 at::Tensor output_layer(const at::Tensor& a, const at::Tensor& w, const at::Tensor& b,
                         const at::Tensor& targets, double scale, const at::Tensor& g_w,
                         const at::Tensor& g_b, const at::Tensor& g_b_hidden,
@@ -388,15 +402,7 @@ at::Tensor output_layer(const at::Tensor& a, const at::Tensor& w, const at::Tens
     output_layer_kernel<S, 3>(rows, hidden, a, w, b, targets, scale, g, g_w, g_b, g_b_hidden,
                               loss);
   };
-  if (a.scalar_type() == at::kBFloat16) {
-    run(BFloat16{});
-  } else if (a.scalar_type() == at::kFloat) {
-    run(Plain<float>{});
-  } else if (a.scalar_type() == at::kDouble) {
-    run(Plain<double>{});
-  } else {
-    check(false, "output_layer: bfloat16, float32 or float64 only");
-  }
+  dispatch(a.scalar_type(), "output_layer", run);
   return g;
 }
 
@@ -431,15 +437,7 @@ void relu_backward_(const at::Tensor& h, const at::Tensor& a, const c10::optiona
 #endif
     relu_backward_kernel<S>(h.size(0), h.size(1), h, a, g_b, x, g_x);
   };
-  if (h.scalar_type() == at::kBFloat16) {
-    run(BFloat16{});
-  } else if (h.scalar_type() == at::kFloat) {
-    run(Plain<float>{});
-  } else if (h.scalar_type() == at::kDouble) {
-    run(Plain<double>{});
-  } else {
-    check(false, "relu_backward_: bfloat16, float32 or float64 only");
-  }
+  dispatch(h.scalar_type(), "relu_backward_", run);
 }
 
 }  // namespace
