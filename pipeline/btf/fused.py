@@ -11,10 +11,11 @@ thin 106-wide products on one intra-op thread pool that barely scales past one c
   build (:func:`_chunks_fused`), the last layer's forward, residual, loss and backward into
   the last hidden layer are one pass over that layer's activations (seven torch calls
   otherwise), and each ReLU's gradient is one pass with its bias gradient or the first
-  layer's weight gradient (two calls otherwise). One worker's 16,384 rows in chunks of
-  8192 (bfloat16, AMX Xeon, medians of 5 interleaved rounds) took 7.8 against 9.9 ms; the
-  training loop's step at the paper's batch 17.7 against 20.5 ms (bfloat16) and 32.1
-  against 34.2 ms (float32; 3 interleaved rounds of 40 steps);
+  layer's weight gradient (two calls otherwise). With the kernels' first version, one
+  worker's 16,384 rows in chunks of 8192 (bfloat16, AMX Xeon, medians of 5 interleaved
+  rounds) took 7.8 against 9.9 ms, and the training loop's step at the paper's batch 17.7
+  against 20.5 ms (bfloat16) and 32.1 against 34.2 ms (float32; 3 interleaved rounds of
+  40 steps);
 - no (latent, direction) input row is ever built: the first layer's latent part is
   computed once per ABRDF and enters as a weight column picked by a one-hot input (see
   :meth:`DecoderStep.__call__`), so that a chunk may span ABRDFs and its size is free of
