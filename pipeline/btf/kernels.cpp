@@ -169,9 +169,9 @@ void relu_backward_kernel(int64_t rows, int64_t hidden, const at::Tensor& h, con
 
 #ifdef NEURAL_BTF_AVX512
 // The same kernels on 16 lanes of AVX-512, for float32 and (where the CPU has AVX512_BF16)
-// bfloat16 storage, float32 sums:
-// a row of 106 is 6 full vectors and a masked one. GCC's own vectorization of the loops
-// above ran bfloat16 rows at about 2 cycles an element (its rounding and 8-lane vectors).
+// bfloat16 storage, float32 sums: a row of 106 is 6 full vectors and a masked one. GCC's
+// own vectorization of the loops above ran bfloat16 rows at about 2 cycles an element (its
+// rounding and 8-lane vectors).
 #ifdef NEURAL_BTF_AVX512_BF16
 struct VecBFloat16 {
   using Raw = uint16_t;
@@ -197,6 +197,15 @@ struct VecFloat {
 inline __mmask16 lanes(int64_t i, int64_t n) {
   int64_t left = n - i;
   return left >= 16 ? __mmask16(0xFFFF) : __mmask16((1u << left) - 1u);
+}
+
+// dst[0, n) += the n lanes of the vectors src[0, ceil(n / 16)).
+inline void add_into(float* dst, const __m512* src, int64_t n) {
+  for (int64_t k = 0; 16 * k < n; ++k) {
+    __mmask16 m = lanes(16 * k, n);
+    _mm512_mask_storeu_ps(dst + 16 * k, m,
+                          _mm512_add_ps(_mm512_maskz_loadu_ps(m, dst + 16 * k), src[k]));
+  }
 }
 
 template <typename V>
@@ -280,18 +289,9 @@ void output_layer_avx512(int64_t rows, int64_t hidden, const at::Tensor& a, cons
   for (; r < rows; ++r) rows_at.template operator()<1>(r);
   for (int j = 0; j < O; ++j) {
     pgb[j] += gbs[j];
-    for (int64_t k = 0; k < blocks; ++k) {
-      __mmask16 m = lanes(16 * k, hidden);
-      float* dst = pgw + j * hidden + 16 * k;
-      _mm512_mask_storeu_ps(dst, m,
-                            _mm512_add_ps(_mm512_maskz_loadu_ps(m, dst), gwv[j * blocks + k]));
-    }
+    add_into(pgw + j * hidden, gwv.data() + j * blocks, hidden);
   }
-  for (int64_t k = 0; k < blocks; ++k) {
-    __mmask16 m = lanes(16 * k, hidden);
-    float* dst = pgh + 16 * k;
-    _mm512_mask_storeu_ps(dst, m, _mm512_add_ps(_mm512_maskz_loadu_ps(m, dst), ghv[k]));
-  }
+  add_into(pgh, ghv.data(), hidden);
   *loss.mutable_data_ptr<double>() += sum_squares;
 }
 
@@ -330,16 +330,9 @@ void relu_backward_avx512(int64_t rows, int64_t hidden, const at::Tensor& h, con
       }
     }
   }
-  auto add = [&](float* dst, const __m512* src) {
-    for (int64_t k = 0; k < blocks; ++k) {
-      __mmask16 m = lanes(16 * k, hidden);
-      _mm512_mask_storeu_ps(dst + 16 * k, m,
-                            _mm512_add_ps(_mm512_maskz_loadu_ps(m, dst + 16 * k), src[k]));
-    }
-  };
-  if (g_b) add(g_b->mutable_data_ptr<float>(), gbv.data());
+  if (g_b) add_into(g_b->mutable_data_ptr<float>(), gbv.data(), hidden);
   for (int64_t c = 0; c < inputs; ++c)
-    add(g_x->mutable_data_ptr<float>() + c * hidden, gxv.data() + c * blocks);
+    add_into(g_x->mutable_data_ptr<float>() + c * hidden, gxv.data() + c * blocks, hidden);
 }
 #endif
 
