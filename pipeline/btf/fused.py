@@ -156,8 +156,11 @@ class DecoderStep:
         low_biases = [bias.to(dtype) for bias in biases[1:]]
         rows = b * q
         targets = batch.targets.reshape(rows, -1).contiguous()
+        # oneDNN's fused bfloat16 layer has no primitive on CPUs without bfloat16 support
+        # (AVX-512 BF16 or AMX; an AVX2-only CPU refuses it): plain products there.
         onednn = (inputs.is_cpu and dtype == torch.bfloat16
-                  and torch.backends.mkldnn.is_available())
+                  and torch.backends.mkldnn.is_available()
+                  and torch.ops.mkldnn._is_mkldnn_bf16_supported())
         parts = self._run(split_rows(rows, self.workers, self.chunk), inputs, targets, low,
                           low_biases, 2.0 / targets.numel(), onednn)
         g_w, g_b, loss = _sum(parts)
