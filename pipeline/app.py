@@ -8,11 +8,13 @@ from collections.abc import Callable
 import mlflow
 from omegaconf import DictConfig
 
+from pipeline.brdf_map import runner as brdf_runner
 from pipeline.btf import runner as btf_runner
-from pipeline.memory import process_peak_mb
-from pipeline.methods import brdf_runner, fourier_runner, pattern_runner
-from pipeline.stages import Context
-from pipeline.tracking import job_run
+from pipeline.btf.stages import Context
+from pipeline.core.memory import process_peak_mb
+from pipeline.core.tracking import SweepParentRun, job_run
+from pipeline.fourier import pattern_runner
+from pipeline.fourier import runner as fourier_runner
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +36,11 @@ def run_job(cfg: DictConfig) -> float | None:
         raise KeyError(f"method.name={name!r} is not one of {sorted(METHODS)}")
     k = f" k={cfg.method.k}" if name == "clustered" else ""
     run_name = f"{name}{k} s{cfg.seed}"
+    if "train" in cfg:
+        # libgomp reads its spin count once, when torch loads: before any stage runs.
+        from pipeline.btf.fast.tuning import set_omp_spin_count
+
+        set_omp_spin_count(cfg.train.get("omp_spin_count"))
     with job_run(cfg, run_name=run_name):
         ctx = Context.from_config(cfg)
         try:
@@ -45,3 +52,19 @@ def run_job(cfg: DictConfig) -> float | None:
             mlflow.log_metric("peak_rss_mb", process_peak_mb())
         mlflow.log_metrics(metrics)
     return metrics.get("rmse")
+
+
+class SweepRun(SweepParentRun):
+    """The sweep's MLflow parent run (``conf/config.yaml``, ``hydra.callbacks``) and, with
+    ``run_tables``, ``python -m pipeline.tables`` after the last job."""
+
+    def __init__(self, run_tables: bool = False) -> None:
+        super().__init__()
+        self.run_tables = run_tables
+
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        super().on_multirun_end(config, **kwargs)
+        if self.run_tables:
+            from pipeline.tables import build_tables
+
+            build_tables(config.paths.runs)

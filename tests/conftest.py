@@ -31,7 +31,7 @@ def compose_config(*overrides: str) -> DictConfig:
 @pytest.fixture(scope="session")
 def _empty_mlflow_db(tmp_path_factory) -> Path:
     """An MLflow SQLite store with its schema, created once (creating one takes seconds)."""
-    from pipeline.tracking import init_store
+    from pipeline.core.tracking import init_store
 
     folder = tmp_path_factory.mktemp("mlflow_template")
     init_store(folder, "Default")

@@ -9,8 +9,8 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job
-from pipeline.errors import ConfigError, DataError
-from pipeline.tracking import tracking_uri
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.tracking import tracking_uri
 
 
 def _runs(cfg):
@@ -28,13 +28,13 @@ def _cache_entries(cfg) -> list[Path]:
 
 def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, caplog):
     cfg = smoke_cfg()
-    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+    with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         rmse = run_job(cfg)
     first = [r.getMessage() for r in caplog.records if "stage" in r.getMessage()]
     assert any("computed" in m for m in first)
     assert 0 < rmse < 1
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+    with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         assert run_job(cfg) == pytest.approx(rmse)
     second = [r.getMessage() for r in caplog.records if "stage" in r.getMessage()]
     assert second and all(" hit " in m for m in second), second
@@ -56,7 +56,7 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
 def test_changing_train_settings_reuses_the_data_stages(smoke_cfg, caplog):
     run_job(smoke_cfg())
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+    with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         run_job(smoke_cfg("train.max_steps=10", "method.k=4"))
     by_stage = {r.getMessage().split()[1]: r.getMessage() for r in caplog.records}
     for stage in ("load", "crop", "preprocess", "pca"):
@@ -81,8 +81,8 @@ def test_missing_dataset_root_fails_cleanly(smoke_cfg, tmp_path):
 
 
 def test_crop_larger_than_texture_fails_cleanly(smoke_cfg):
-    cfg = smoke_cfg("crop.size=17")
-    _assert_failed_cleanly(cfg, ConfigError, "crop.size=17")
+    cfg = smoke_cfg("btf.crop.size=17")
+    _assert_failed_cleanly(cfg, ConfigError, "btf.crop.size=17")
     assert {p.parent.name for p in _cache_entries(cfg)} == {"load"}
 
 
@@ -93,13 +93,13 @@ def test_k_larger_than_texel_count_fails_cleanly(smoke_cfg):
 
 
 def test_corrupt_image_fails_cleanly_with_its_path(smoke_cfg, tmp_path):
-    from pipeline.data.synthetic_btf import write_synthetic_btf
+    from pipeline.btf.synthetic import write_synthetic_btf
 
     root = write_synthetic_btf(tmp_path / "ds", size=8, seed=0, views=[[0, 0], [15, 0]])
     victim = sorted(root.glob("*/*.jpg"))[5]
     victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])
     cfg = smoke_cfg(
-        "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null", "crop.size=8"
+        "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null", "btf.crop.size=8"
     )
     _assert_failed_cleanly(cfg, DataError, victim.name)
     assert _cache_entries(cfg) == []

@@ -13,16 +13,16 @@ from conftest import compose_config
 from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job
+from pipeline.brdf_map.microfacet_em import MicrofacetEMSettings
+from pipeline.brdf_map.runner import em_settings, load_reconstruction, merl_lookup
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.tracking import tracking_uri
 from pipeline.data.brdf import (
     MeasuredBRDF,
     half_diff_to_directions,
     read_utia_brdf,
     utia_directions,
 )
-from pipeline.errors import ConfigError, DataError
-from pipeline.methods.brdf_runner import em_settings, load_reconstruction, merl_lookup
-from pipeline.methods.microfacet_em import MicrofacetEMSettings
-from pipeline.tracking import tracking_uri
 
 FIGURES = {
     "distribution.png",
@@ -57,12 +57,12 @@ def test_smoke_run_logs_metrics_figures_and_second_run_hits_the_cache(brdf_cfg, 
     cfg = brdf_cfg()
     run_job(cfg)
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+    with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         run_job(cfg)
     second = [r.getMessage() for r in caplog.records if "stage" in r.getMessage()]
     assert len(second) == 4 and all(" hit " in m for m in second), second
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+    with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         run_job(brdf_cfg("method.prior_strength=0.5"))  # w_u: only the fit and evaluation
     third = {r.getMessage().split()[1]: r.getMessage() for r in caplog.records}
     assert [s for s, m in third.items() if " hit " in m] == ["brdf_data", "brdf_baselines"]

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.brdf_map.synthetic import SyntheticAnisotropicBRDF, write_synthetic_utia_brdf
+from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.brdf import (
     MERL_SCALES,
     UTIA_N_BYTES,
@@ -19,8 +21,6 @@ from pipeline.data.brdf import (
     write_merl_brdf,
     write_utia_brdf,
 )
-from pipeline.data.synthetic_brdf import SyntheticAnisotropicBRDF, write_synthetic_utia_brdf
-from pipeline.errors import ConfigError, DataError
 
 N_UTIA = 6 * 48 * 6 * 48
 N_MERL = 90 * 90 * 180

@@ -8,7 +8,7 @@ from pipeline.btf.evaluate import reconstruction_error, storage_sizes
 from pipeline.btf.model import Decoder, Encoder, MaxPool3, parameter_count, stereographic
 from pipeline.btf.preprocess import fit_normalization
 from pipeline.btf.train import TrainSettings, encode, train
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 
 M_PAPER, N_PAPER = 10_000, 6561
 

@@ -7,6 +7,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
+from pipeline.btf.synthetic import SyntheticBTF, write_synthetic_btf
+from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.btf import count_btf_images, decode_btf_image, list_btf_files, load_btf
 from pipeline.data.directions import btf_directions, parse_ubo2003_file_name, ubo2003_file_name
 from pipeline.data.images import (
@@ -20,8 +22,6 @@ from pipeline.data.images import (
     write_image_8bit,
     xyz_to_linear_srgb,
 )
-from pipeline.data.synthetic_btf import SyntheticBTF, write_synthetic_btf
-from pipeline.errors import ConfigError, DataError
 
 SIZE, SEED = 8, 3
 VIEWS = [(0, 0), (30, 30)]  # two views = 162 images of 8 × 8: fast to write and read

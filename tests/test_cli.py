@@ -6,7 +6,7 @@ from pathlib import Path
 
 from mlflow.tracking import MlflowClient
 
-from pipeline.tracking import tracking_uri
+from pipeline.core.tracking import tracking_uri
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.directions import (
     btf_directions,
     canonical_views,
@@ -16,7 +17,6 @@ from pipeline.data.directions import (
     utia_file_name,
     view_folder_name,
 )
-from pipeline.errors import ConfigError, DataError
 
 
 def test_grid_has_81_unique_directions_with_the_ring_counts():

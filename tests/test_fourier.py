@@ -6,28 +6,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline.data.synthetic_stack import (
-    SyntheticStackConfig,
-    grid_light_dirs,
-    heldout_light_dirs,
-    make_synthetic_scene,
-)
-from pipeline.errors import ConfigError, DataError
-from pipeline.methods.fourier import (
-    fit_fourier,
-    fourier_features,
-    fourier_penalty,
-    render_fourier,
-    rms_error,
-)
-from pipeline.methods.optical_pattern import (
-    blend_renders,
-    blob_weights,
-    load_weight_map,
-    render_optical_pattern,
-    stripe_weights,
-)
-from pipeline.methods.relighting_baselines import (
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.fourier.baselines import (
     fit_hsh,
     fit_ptm,
     hsh_basis,
@@ -35,6 +15,26 @@ from pipeline.methods.relighting_baselines import (
     ptm_basis,
     render_hsh,
     render_ptm,
+)
+from pipeline.fourier.optical_pattern import (
+    blend_renders,
+    blob_weights,
+    load_weight_map,
+    render_optical_pattern,
+    stripe_weights,
+)
+from pipeline.fourier.series import (
+    fit_fourier,
+    fourier_features,
+    fourier_penalty,
+    render_fourier,
+    rms_error,
+)
+from pipeline.fourier.synthetic import (
+    SyntheticStackConfig,
+    grid_light_dirs,
+    heldout_light_dirs,
+    make_synthetic_scene,
 )
 
 

@@ -18,13 +18,12 @@ from hydra.types import RunMode
 from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job
+from pipeline.core.errors import ConfigError
+from pipeline.core.tracking import tracking_uri
 from pipeline.data.images import read_exr_channels
-from pipeline.data.synthetic_stack import write_synthetic_stack
-from pipeline.errors import ConfigError
-from pipeline.methods.fourier_runner import shrink
-from pipeline.report import fourier_tables
-from pipeline.tables import _write
-from pipeline.tracking import tracking_uri
+from pipeline.fourier import report as fourier_tables
+from pipeline.fourier.runner import shrink
+from pipeline.fourier.synthetic import write_synthetic_stack
 
 REAL = SHARED / "data/rti/neuralrti-example"
 
@@ -62,12 +61,12 @@ def test_smoke_run_logs_metrics_and_figures_and_reuses_the_cache(fourier_cfg, ca
     cfg = fourier_cfg()
     run_job(cfg)
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+    with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         run_job(cfg)
     second = _stage_messages(caplog)
     assert len(second) == 6 and all(" hit " in m for m in second.values()), second
     caplog.clear()
-    with caplog.at_level(logging.INFO, logger="pipeline.cache"):
+    with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         run_job(fourier_cfg("method.M=2", "method.lam=0.5"))  # one more point of a Fig. 6 sweep
     third = _stage_messages(caplog)
     assert sorted(s for s, m in third.items() if " hit " in m) == [
@@ -252,12 +251,12 @@ def test_fourier_tables_on_hand_made_runs(tmp_path):
     )
     assert summary.loc["coin, normals=photometric", "HSH"] == pytest.approx(0.065)
 
-    sections = fourier_tables.fourier_report(_hand_made_runs(), tmp_path, _write)
+    sections = fourier_tables.sections(_hand_made_runs(), tmp_path)
     assert len(sections) == 1 + 2 * 2
     assert "M = 5, λ = 3.14" in sections[1]
     for stem in ("fourier_summary", "fig6_synthetic_stack_normals_given"):
         for suffix in (".md", ".csv", ".tex"):
             assert (tmp_path / f"{stem}{suffix}").is_file()
     assert (tmp_path / "fig6_coin_normals_photometric.png").stat().st_size > 1000
-    empty = fourier_tables.fourier_report(pd.DataFrame(), tmp_path, _write)
+    empty = fourier_tables.sections(pd.DataFrame(), tmp_path)
     assert "No finished `method=fourier` run" in empty[0]

@@ -1,11 +1,11 @@
-"""The hand-written decoder gradient (pipeline/btf/fused.py) against autograd, with torch
-ops only and with the fused C++ kernels (pipeline/btf/kernels.py)."""
+"""The hand-written decoder gradient (pipeline/btf/fast/fused.py) against autograd, with torch
+ops only and with the fused C++ kernels (pipeline/btf/fast/kernels.py)."""
 
 import pytest
 import torch
 
-from pipeline.btf import kernels
-from pipeline.btf.fused import Batch, DecoderStep, split_rows
+from pipeline.btf.fast import kernels
+from pipeline.btf.fast.fused import Batch, DecoderStep, split_rows
 from pipeline.btf.model import Decoder
 
 # Both ways of computing the step: torch ops only, and the fused kernels.

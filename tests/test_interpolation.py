@@ -43,7 +43,7 @@ def test_interpolants_return_the_measured_values_at_measured_directions():
 
 
 def test_heldout_lights_are_removed_from_training_for_every_view():
-    cfg = OmegaConf.create({"interpolation": {"holdout_lights": 5, "seed": 0}})
+    cfg = OmegaConf.create({"btf": {"interpolation": {"holdout_lights": 5, "seed": 0}}})
     heldout = heldout_light_indices(cfg)
     assert len(heldout) == 5 and 0 not in heldout
     directions = btf_directions(views=[(0, 0), (30, 90)])

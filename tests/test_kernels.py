@@ -1,4 +1,4 @@
-"""The fused C++ kernels (pipeline/btf/kernels.py, kernels.cpp) on their own: the build,
+"""The fused C++ kernels (pipeline/btf/fast/kernels.py, kernels.cpp) on their own: the build,
 its fallback, the ops' checks, and the vector code against the plain loops. The gradients
 they make are checked against autograd in tests/test_fused.py."""
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 from torch.utils import cpp_extension
 
-from pipeline.btf import kernels
-from pipeline.btf.fused import DecoderStep
+from pipeline.btf.fast import kernels
+from pipeline.btf.fast.fused import DecoderStep
 from pipeline.btf.model import Decoder
 
 
@@ -35,7 +35,7 @@ def test_a_failed_build_falls_back_to_torch_ops(monkeypatch, caplog):
 
     monkeypatch.setattr(kernels, "_state", {})
     monkeypatch.setattr(cpp_extension, "load", no_compiler)
-    with caplog.at_level("WARNING", logger="pipeline.btf.kernels"):
+    with caplog.at_level("WARNING", logger="pipeline.btf.fast.kernels"):
         assert not kernels.available()
         assert not kernels.available()  # decided once per process
     assert caplog.text.count("did not build") == 1

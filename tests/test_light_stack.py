@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.light_stack import (
     load_light_stack,
     load_normal_map,
@@ -15,14 +16,13 @@ from pipeline.data.light_stack import (
     srgb_to_linear,
     write_lp,
 )
-from pipeline.data.synthetic_stack import (
+from pipeline.fourier.synthetic import (
     REGION_NAMES,
     SyntheticStackConfig,
     grid_light_dirs,
     load_synthetic_scene,
     write_synthetic_stack,
 )
-from pipeline.errors import ConfigError, DataError
 
 REAL_CAPTURE = Path(__file__).resolve().parents[2] / "shared/data/rti/neuralrti-example"
 

@@ -8,16 +8,13 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
-from pipeline.data.brdf import read_utia_brdf, utia_interpolator
-from pipeline.data.synthetic_brdf import SyntheticAnisotropicBRDF, write_synthetic_utia_brdf
-from pipeline.errors import ConfigError, DataError
-from pipeline.methods.brdf_figures import (
+from pipeline.brdf_map.figures import (
     plot_distribution_heatmaps,
     plot_distribution_slices,
     plot_sphere_pair,
     render_sphere,
 )
-from pipeline.methods.microfacet_em import (
+from pipeline.brdf_map.microfacet_em import (
     MicrofacetEMSettings,
     em_step,
     fit_ashikhmin_shirley,
@@ -27,13 +24,16 @@ from pipeline.methods.microfacet_em import (
     map_objective,
     rmse,
 )
-from pipeline.methods.microfacet_model import (
+from pipeline.brdf_map.microfacet_model import (
     HemisphereGrid,
     MixtureParams,
     g_integral,
     g_values,
     mean_cos_normal,
 )
+from pipeline.brdf_map.synthetic import SyntheticAnisotropicBRDF, write_synthetic_utia_brdf
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.data.brdf import read_utia_brdf, utia_interpolator
 
 
 def _random_problem(rng, n_theta=8, n_phi=10, m=3, n=4):

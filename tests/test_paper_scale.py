@@ -15,7 +15,7 @@ def test_paper_experiment_produces_table1_with_the_papers_bytes(tmp_path):
     runs = tmp_path / "runs"
     done = subprocess.run(
         [sys.executable, "-m", "pipeline", "-m", "experiment=paper", "train.max_steps=10",
-         "interpolation.offgrid=4", f"paths.runs={runs}"],
+         "btf.interpolation.offgrid=4", f"paths.runs={runs}"],
         cwd=ROOT, capture_output=True, text=True, timeout=3600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
@@ -31,7 +31,7 @@ def test_paper_experiment_produces_table1_with_the_papers_bytes(tmp_path):
 def test_bench_prints_its_figures_as_json(capsys):
     import json
 
-    from pipeline.bench import main
+    from pipeline.btf.fast.bench import main
 
     figures = main(["--steps", "2", "--no-mlflow"])
     last = capsys.readouterr().out.strip().splitlines()[-1]

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from pipeline.errors import ConfigError
-from pipeline.methods.quilting import (
+from pipeline.core.errors import ConfigError
+from pipeline.fourier.quilting import (
     _OverlapSearch,
     candidate_positions,
     min_error_boundary_cut,
@@ -136,13 +136,13 @@ def test_paper_sized_quilt_runs():
 
 def test_optical_pattern_end_to_end():
     """Fit, quilt each region's coefficients, render on a new shape, blend (paper §4.2)."""
-    from pipeline.data.synthetic_stack import (
+    from pipeline.fourier.optical_pattern import render_optical_pattern, stripe_weights
+    from pipeline.fourier.series import fit_fourier
+    from pipeline.fourier.synthetic import (
         SyntheticStackConfig,
         grid_light_dirs,
         make_synthetic_scene,
     )
-    from pipeline.methods.fourier import fit_fourier
-    from pipeline.methods.optical_pattern import render_optical_pattern, stripe_weights
 
     config = SyntheticStackConfig(
         size=(48, 48), n_elevations=2, n_azimuths=9, azimuth_step_deg=15.0

@@ -6,18 +6,18 @@ import numpy as np
 import pytest
 from scipy.ndimage import distance_transform_edt
 
-from pipeline.data.synthetic_stack import (
-    SyntheticStackConfig,
-    grid_light_dirs,
-    make_synthetic_scene,
-)
-from pipeline.errors import ConfigError
-from pipeline.methods.fourier import fit_fourier
-from pipeline.methods.segmentation import (
+from pipeline.core.errors import ConfigError
+from pipeline.fourier.segmentation import (
     mean_image,
     segment_by_representatives,
     segment_kmeans,
     segmentation_accuracy,
+)
+from pipeline.fourier.series import fit_fourier
+from pipeline.fourier.synthetic import (
+    SyntheticStackConfig,
+    grid_light_dirs,
+    make_synthetic_scene,
 )
 
 

@@ -5,7 +5,9 @@ import json
 import numpy as np
 import pytest
 
-import pipeline.data.synthetic_btf as synthetic_btf
+import pipeline.btf.synthetic as synthetic_btf
+from pipeline.btf.synthetic import GAP, WARP, WEFT, SyntheticBTF, write_synthetic_btf
+from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.directions import btf_directions, grid_81_degrees, parse_ubo2003_file_name
 from pipeline.data.images import (
     gamma_encode,
@@ -15,8 +17,6 @@ from pipeline.data.images import (
     read_image_8bit,
     srgb_oetf,
 )
-from pipeline.data.synthetic_btf import GAP, WARP, WEFT, SyntheticBTF, write_synthetic_btf
-from pipeline.errors import ConfigError, DataError
 
 SIZE = 8
 VIEWS = [(0, 0), (45, 40)]

@@ -10,7 +10,7 @@ import numpy as np
 from sklearn.cluster import KMeans
 from sklearn.decomposition import PCA
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 
 
 def pca_reduce(
@@ -36,7 +36,7 @@ def pca_reduce(
     m, d = features.shape
     if not 1 <= n_components <= min(m, d):
         raise ConfigError(
-            f"pca.n_components={n_components} must be between 1 and min(M={m}, D={d})"
+            f"btf.pca.n_components={n_components} must be between 1 and min(M={m}, D={d})"
         )
     # Randomized SVD keeps float32 input as float32 and is far cheaper than a full SVD
     # when n_components << D (paper size: D = 19683).
@@ -51,7 +51,7 @@ def check_k(k: int, n_texels: int) -> None:
     if k > n_texels:
         raise ConfigError(
             f"method.k={k} is larger than the number of texels M={n_texels}: "
-            "lower k or enlarge crop.size"
+            "lower k or enlarge btf.crop.size"
         )
 
 

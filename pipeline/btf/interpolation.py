@@ -2,9 +2,9 @@
 
 Two kinds of unseen directions:
 
-* held-out measured directions: ``interpolation.holdout_lights`` of the 81 light
+* held-out measured directions: ``btf.interpolation.holdout_lights`` of the 81 light
   directions are removed from training for every view; the reference is the measured data;
-* off-grid directions: ``interpolation.offgrid`` random (light, view) pairs away from the
+* off-grid directions: ``btf.interpolation.offgrid`` random (light, view) pairs away from the
   81-direction grid; the reference is the synthetic generator's analytic ground truth.
 
 The Neural BTF is compared with two interpolants of the measured training data: the
@@ -25,12 +25,12 @@ OFFGRID_MAX_THETA = np.radians(70.0)  # inside the 75-degree ring, so inside the
 
 def heldout_light_indices(cfg) -> np.ndarray:
     """Indices into :func:`grid_81` of the light directions held out of training."""
-    count = int(cfg.interpolation.holdout_lights)
+    count = int(cfg.btf.interpolation.holdout_lights)
     if count <= 0:
         return np.zeros(0, dtype=int)
     if count >= 80:
-        raise ValueError(f"interpolation.holdout_lights={count} leaves too few lights to train")
-    rng = np.random.default_rng(cfg.interpolation.seed)
+        raise ValueError(f"btf.interpolation.holdout_lights={count} leaves too few lights to train")
+    rng = np.random.default_rng(cfg.btf.interpolation.seed)
     # Never the zenith (index 0): keep the triangulation's centre so interpolation is fair.
     return np.sort(rng.choice(np.arange(1, 81), size=count, replace=False))
 
@@ -145,14 +145,14 @@ def measure(
         target = np.asarray(abrdf[:, test_cols], dtype=np.float32)
         metrics["rmse_heldout_nearest"] = _rmse(nearest / alpha, target / alpha)
         metrics["rmse_heldout_linear"] = _rmse(linear / alpha, target / alpha)
-    if cfg.dataset.name == "synthetic" and int(cfg.interpolation.offgrid) > 0:
-        from pipeline.data.synthetic_btf import SyntheticBTF
+    if cfg.dataset.name == "synthetic" and int(cfg.btf.interpolation.offgrid) > 0:
+        from pipeline.btf.synthetic import SyntheticBTF
 
-        queries = offgrid_directions(int(cfg.interpolation.offgrid), cfg.interpolation.seed)
+        queries = offgrid_directions(int(cfg.btf.interpolation.offgrid), cfg.btf.interpolation.seed)
         gen = cfg.dataset.synthetic
         truth = SyntheticBTF(size=gen.size, seed=gen.seed).evaluate(queries)
-        size = int(cfg.crop.size)
-        y0, x0 = (int(v) for v in cfg.crop.offset)
+        size = int(cfg.btf.crop.size)
+        y0, x0 = (int(v) for v in cfg.btf.crop.offset)
         truth = truth[:, y0 : y0 + size, x0 : x0 + size].reshape(len(queries), -1, 3)
         truth = truth.transpose(1, 0, 2) / alpha
         model = _model_predict(decoder, latents, latent_of_texel, queries)

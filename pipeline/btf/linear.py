@@ -13,7 +13,7 @@ import numpy as np
 from sklearn.utils.extmath import randomized_svd
 
 from pipeline.btf.evaluate import DTYPE_BYTES
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 
 
 @dataclass

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pipeline.btf.stereographic import direction_features, stereographic  # noqa: F401
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 
 LATENT_DIM = 8
 
@@ -54,7 +54,7 @@ class Encoder(nn.Module):
             length //= 3
         if length < 1:
             raise ConfigError(
-                f"model.encoder_channels has {len(channels)} blocks, each pooling by 3, but "
+                f"btf.model.encoder_channels has {len(channels)} blocks, each pooling by 3, but "
                 f"an ABRDF has only N={n_directions} directions: use at most "
                 f"{max(int(np.log(max(n_directions, 1)) / np.log(3)), 0)} blocks"
             )
@@ -145,3 +145,10 @@ class Decoder(nn.Module):
 
 def parameter_count(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
+
+
+def load_decoder(path) -> Decoder:
+    """A trained decoder from the ``decoder.pt`` state dict a train stage wrote."""
+    decoder = Decoder()
+    decoder.load_state_dict(torch.load(path, weights_only=True))
+    return decoder.eval()

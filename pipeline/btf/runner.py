@@ -19,16 +19,14 @@ from pathlib import Path
 import mlflow
 import numpy as np
 
-from pipeline import stages
-from pipeline.btf import interpolation
+from pipeline.btf import interpolation, stages
 from pipeline.btf.stereographic import direction_features
-from pipeline.cache import Entry, save_arrays, save_json
-from pipeline.errors import ConfigError
-from pipeline.stages import Context, plain_settings
+from pipeline.core.cache import Entry, save_arrays, save_json
+from pipeline.core.errors import ConfigError
+from pipeline.core.stage import Context, plain_settings
 
 log = logging.getLogger(__name__)
 
-stages.VERSIONS.update({"train": "2", "evaluate": "2", "linear": "1"})
 
 
 def _train_settings(cfg):
@@ -46,7 +44,7 @@ def _train_settings(cfg):
 
 # Settings that change how fast training runs but not what it computes (up to the order of
 # floating-point sums): not in the key.
-_SPEED_ONLY = {"threads", "chunk", "keep_awake"}
+_SPEED_ONLY = {"threads", "chunk", "keep_awake", "omp_spin_count", "reuse_freed_memory"}
 
 
 def train_stage(
@@ -64,7 +62,7 @@ def train_stage(
                   # float32 was the only precision before train.precision: runs that use
                   # it keep their keys and cached results.
                   and not (k == "precision" and v == "float32")},
-        "model": plain_settings(cfg.model),
+        "model": plain_settings(cfg.btf.model),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),
     }
@@ -104,7 +102,7 @@ def train_stage(
             train_dirs,
             settings,
             seed=cfg.seed,
-            encoder_channels=tuple(cfg.model.encoder_channels),
+            encoder_channels=tuple(cfg.btf.model.encoder_channels),
             target_from_source=stage_settings["target"] == "representative",
             on_epoch=on_epoch,
             on_curve=on_curve,
@@ -122,33 +120,13 @@ def train_stage(
             "final_loss": result.epoch_losses[-1],
         }
 
-    return ctx.run("train", stage_settings, inputs, compute)
+    return ctx.run("train", stage_settings, inputs, compute, version="2")
 
 
 def log_curve_point(point: dict) -> None:
     """One point of the RMSE-versus-time curve, as MLflow metrics keyed by step."""
     mlflow.log_metrics({"curve_rmse": point["rmse"], "curve_seconds": point["seconds"],
                         "curve_queries": point["queries"]}, step=point["step"])
-
-
-def load_decoder(trained: Entry):
-    import torch
-
-    from pipeline.btf.model import Decoder
-
-    decoder = Decoder()
-    decoder.load_state_dict(torch.load(trained.file("decoder.pt"), weights_only=True))
-    return decoder.eval()
-
-
-def load_encoder(trained: Entry, n_directions: int, channels):
-    import torch
-
-    from pipeline.btf.model import Encoder
-
-    encoder = Encoder(n_directions, tuple(channels))
-    encoder.load_state_dict(torch.load(trained.file("encoder.pt"), weights_only=True))
-    return encoder.eval()
 
 
 def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) -> Entry:
@@ -159,18 +137,19 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
     texel_scale = method.get("texel_scale", "none") if clustered else "none"
     settings = {
         "texel_scale": texel_scale,
-        "sizes": plain_settings(cfg.sizes),
-        "interpolation": plain_settings(cfg.interpolation),
+        "sizes": plain_settings(cfg.btf.sizes),
+        "interpolation": plain_settings(cfg.btf.interpolation),
         "dataset": plain_settings(cfg.dataset) if cfg.dataset.name == "synthetic" else None,
     }
 
     def compute(folder: Path) -> dict:
         from pipeline.btf.evaluate import mean_abrdf_rmse, reconstruction_error, storage_sizes
+        from pipeline.btf.model import load_decoder
 
         abrdf = cropped.array("abrdf")
         directions = cropped.array("directions", mmap=False)
         norm = stages.normalization(prep)
-        decoder = load_decoder(trained)
+        decoder = load_decoder(trained.file("decoder.pt"))
         latents = trained.array("latents", mmap=False)
         latent_of_texel = trained.array("latent_of_texel", mmap=False)
         recon = reconstruction_error(
@@ -184,9 +163,9 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
             n_texels=m,
             n_directions=n,
             clustered=clustered,
-            weight_dtype=cfg.sizes.weight_dtype,
-            list_dtype=cfg.sizes.list_dtype,
-            extra_dtype=cfg.sizes.extra_dtype if texel_scale != "none" else None,
+            weight_dtype=cfg.btf.sizes.weight_dtype,
+            list_dtype=cfg.btf.sizes.list_dtype,
+            extra_dtype=cfg.btf.sizes.extra_dtype if texel_scale != "none" else None,
         )
         metrics = {"rmse": recon.rmse, **sizes, "rmse_mean_abrdf": mean_abrdf_rmse(abrdf, norm.alpha)}
         if recon.rmse_unscaled is not None:
@@ -204,7 +183,7 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         return {"rmse": recon.rmse}
 
     inputs = {"crop": cropped, "preprocess": prep, "train": trained}
-    return ctx.run("evaluate", settings, inputs, compute)
+    return ctx.run("evaluate", settings, inputs, compute, version="2")
 
 
 def run(ctx: Context) -> dict[str, float]:
@@ -256,7 +235,7 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     n_components = method.n_components
     if method.get("match_clustered_k"):
         budget = storage_sizes(Decoder(), int(method.match_clustered_k), m, n, True,
-                               list_dtype=ctx.cfg.sizes.list_dtype)["bytes_total"]
+                               list_dtype=ctx.cfg.btf.sizes.list_dtype)["bytes_total"]
         n_components = components_for_budget(budget, m, n, method.dtype)
     settings = {"n_components": n_components, "dtype": method.dtype, "seed": ctx.cfg.seed}
 
@@ -280,7 +259,7 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
         save_json(folder, "metrics", metrics)
         return {"rmse": rmse}
 
-    return ctx.run("linear", settings, {"crop": cropped, "preprocess": prep}, compute)
+    return ctx.run("linear", settings, {"crop": cropped, "preprocess": prep}, compute, version="1")
 
 
 def run_linear(ctx: Context) -> dict[str, float]:

@@ -18,13 +18,12 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from pipeline.btf.fused import Batch, DecoderStep
+from pipeline.btf.fast.fused import Batch, DecoderStep
+from pipeline.btf.fast.tuning import training_tuning
 from pipeline.btf.model import Decoder, Encoder
 from pipeline.btf.preprocess import Normalization
 from pipeline.btf.train_settings import TrainSettings
-from pipeline.cpu import keep_cpus_awake
-from pipeline.errors import ConfigError
-from pipeline.memory import reuse_freed_memory
+from pipeline.core.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +98,7 @@ def train(
     """Train encoder and decoder jointly.
 
     The encoder runs under autograd; the decoder's forward and backward are computed by
-    :class:`pipeline.btf.fused.DecoderStep` (chunked, on ``settings.threads`` threads).
+    :class:`pipeline.btf.fast.fused.DecoderStep` (chunked, on ``settings.threads`` threads).
 
     Parameters
     ----------
@@ -172,8 +171,7 @@ def train(
             on_curve(point)
 
     try:
-        with (reuse_freed_memory(),
-              keep_cpus_awake(workers if settings.keep_awake and device.type == "cpu" else 0),
+        with (training_tuning(settings, workers, on_cpu=device.type == "cpu"),
               tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar):
             if curve is not None:
                 measure(0)

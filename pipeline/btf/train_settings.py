@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pipeline.errors import ConfigError
+from pipeline.core.errors import ConfigError
 
 PRECISIONS = ("float32", "bfloat16")  # train.precision
 
@@ -28,19 +28,18 @@ class TrainSettings:
         ``curve_texels`` fixed random texels at every training direction); 0 for none.
     curve_texels : texels of that subsample.
     threads : CPU threads that run the decoder's chunks side by side (each op on one
-        thread; see ``pipeline/btf/fused.py``); None = all cores. Use 1 when jobs run side
+        thread; see ``pipeline/btf/fast/fused.py``); None = all cores. Use 1 when jobs run side
         by side: competing threads spin-wait and run several times slower.
     chunk : queries per chunk of the fused decoder step (speed only); None for the
-        precision's default (``pipeline.btf.fused.DEFAULT_CHUNK``: 1024 for float32, whose
+        precision's default (``pipeline.btf.fast.fused.DEFAULT_CHUNK``: 1024 for float32, whose
         chunk's activations should fit in a core's L2 cache; 8192 for bfloat16).
-    keep_awake : on a CPU, when the job's threads are all its cores (at least 2), keep the
-        cores from sleeping between the step's parallel phases
-        (:func:`pipeline.cpu.keep_cpus_awake`: spinning processes at the lowest scheduling
-        class, at the cost of power; speed only).
+    keep_awake, omp_spin_count, reuse_freed_memory : opt-in machine tuning, speed only
+        (:mod:`pipeline.btf.fast.tuning`): spinning idle-class processes keep the cores
+        awake when the job's threads are all its cores; ``GOMP_SPINCOUNT`` for OpenMP's
+        idle threads (set when the job starts); glibc keeps freed buffers while training.
     precision : ``float32``, or ``bfloat16`` for the decoder's products (float32 master
-        weights and optimizer; see ``pipeline/btf/fused.py``). On a CPU with AMX the
-        decoder's step ran 2.0-2.1x and the whole loop 1.6x as fast as float32
-        (``python -m pipeline.bench``); unmeasured on CPUs without bfloat16 units.
+        weights and optimizer; see ``pipeline/btf/fast/fused.py``); it pays on CPUs with
+        AMX or AVX512-BF16 (``python -m pipeline.bench`` prints which the CPU has).
     """
 
     epochs: int = 1
@@ -57,7 +56,9 @@ class TrainSettings:
     threads: int | None = None
     chunk: int | None = None
     precision: str = "float32"
-    keep_awake: bool = True
+    keep_awake: bool = False
+    omp_spin_count: int | None = None
+    reuse_freed_memory: bool = False
 
     def __post_init__(self):
         if self.epochs < 1:

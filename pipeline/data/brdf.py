@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 
-from pipeline.errors import ConfigError, DataError
+from pipeline.core.errors import ConfigError, DataError
 
 UTIA_THETA_DEG = np.arange(6) * 15.0
 UTIA_PHI_DEG = np.arange(48) * 7.5

@@ -35,6 +35,7 @@ from typing import NamedTuple
 import numpy as np
 from tqdm import tqdm
 
+from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.directions import (
     N_DIRECTIONS,
     canonical_views,
@@ -62,7 +63,6 @@ from pipeline.data.images import (
     write_image_8bit,
     xyz_to_linear_srgb,
 )
-from pipeline.errors import ConfigError, DataError
 
 # Image extensions (lower case, no dot) each format may use.
 FORMAT_EXTENSIONS: dict[str, tuple[str, ...]] = {

@@ -40,7 +40,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pipeline.errors import ConfigError, DataError
+from pipeline.core.errors import ConfigError, DataError
 
 # (θ in degrees, number of azimuths on that ring); the azimuth step is 360 / count.
 RINGS_DEGREES: tuple[tuple[int, int], ...] = (

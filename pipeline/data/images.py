@@ -1,6 +1,6 @@
 """Small image I/O: 8-bit JPEG/PNG via Pillow, half-float EXR via OpenEXR, colour transforms.
 
-Every reader raises :class:`~pipeline.errors.DataError` naming the file when it is missing,
+Every reader raises :class:`~pipeline.core.errors.DataError` naming the file when it is missing,
 truncated, corrupt or holds non-finite values, so a bad file in a 6561-image dataset is
 reported by path rather than as a library traceback.
 
@@ -23,7 +23,7 @@ import numpy as np
 import OpenEXR
 from PIL import Image
 
-from pipeline.errors import DataError
+from pipeline.core.errors import DataError
 
 # --- transfer functions ---------------------------------------------------------------
 

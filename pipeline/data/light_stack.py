@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.errors import DataError
 from pipeline.data.images import read_exr, srgb_eotf
-from pipeline.errors import DataError
 
 __all__ = [
     "LightStack",

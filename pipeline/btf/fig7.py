@@ -1,0 +1,115 @@
+"""Fig. 7 of the clustered Neural BTF paper: reference and reconstructed crops.
+
+For each (light, view) pair from the settings, the reference image of the crop (the
+measured image at the nearest measured direction) next to the reconstruction of every
+model (Neural BTF and each k) at exactly that direction. Models are read back from the
+stage cache through the cache keys that each MLflow run recorded as tags.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from matplotlib.figure import Figure
+
+from pipeline.btf.evaluate import decode_all  # noqa: E402
+from pipeline.btf.model import load_decoder  # noqa: E402
+from pipeline.btf.stereographic import direction_features  # noqa: E402
+from pipeline.core.cache import StageCache  # noqa: E402
+from pipeline.data.directions import unit_vectors  # noqa: E402
+from pipeline.data.images import gamma_encode, write_exr  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+
+def nearest_direction(directions: np.ndarray, query: np.ndarray) -> int:
+    """Index of the measured (light, view) pair closest to ``query`` (sum of both angles)."""
+    light = unit_vectors(directions[:, 0], directions[:, 1]) @ unit_vectors(query[0], query[1])
+    view = unit_vectors(directions[:, 2], directions[:, 3]) @ unit_vectors(query[2], query[3])
+    return int(np.argmax(light + view))
+
+
+def _reconstruct(cache: StageCache, run: pd.Series, query: np.ndarray) -> np.ndarray | None:
+    """(size, size, 3) reconstruction of one run at one direction, in normalized units."""
+    trained = cache.lookup("train", str(run.get("tags.cache.train")))
+    if trained is None:
+        return None
+    decoded = decode_all(load_decoder(trained.file("decoder.pt")), trained.array("latents", mmap=False),
+                         direction_features(query))
+    values = decoded[trained.array("latent_of_texel", mmap=False), 0]
+    evaluated = cache.lookup("evaluate", str(run.get("tags.cache.evaluate")))
+    if evaluated is not None and (evaluated.path / "texel_scale.npy").is_file():
+        values = values * evaluated.array("texel_scale", mmap=False)[:, None]
+    size = int(round(np.sqrt(len(values))))
+    return values.reshape(size, size, 3)
+
+
+def draw_fig7(runs: pd.DataFrame, pairs_degrees: list, out_dir: Path) -> list[Path]:
+    """Draw one figure per dataset; returns the written files (PNG and EXR).
+
+    runs : labelled runs (see ``btf_tables.label_runs``), one model per column is drawn
+        (the run with the lowest seed).
+    pairs_degrees : list of [theta_l, phi_l, theta_v, phi_v] in degrees.
+    """
+    written: list[Path] = []
+    for stale in out_dir.glob("fig7_*"):  # figures of runs that are gone must not linger
+        stale.unlink()
+    queries = np.radians(np.asarray(pairs_degrees, dtype=np.float64).reshape(-1, 4))
+    for dataset, group in runs.groupby("dataset"):
+        group = group.sort_values(["order", "model", "seed"]).drop_duplicates("model")
+        first = group.iloc[0]
+        cache = StageCache(first["params.paths.cache"])
+        crop = cache.lookup("crop", str(first.get("tags.cache.crop")))
+        prep = cache.lookup("preprocess", str(first.get("tags.cache.preprocess")))
+        if crop is None or prep is None:
+            log.warning("fig7: cache entries of %s are gone; skipping its figure", dataset)
+            continue
+        abrdf, directions = crop.array("abrdf"), crop.array("directions", mmap=False)
+        alpha = float(prep.json("alpha"))
+        size = int(round(np.sqrt(abrdf.shape[0])))
+        panels: list[list[tuple[str, np.ndarray]]] = []
+        for query in queries:
+            nearest = nearest_direction(directions, query)
+            reference = np.asarray(abrdf[:, nearest]).reshape(size, size, 3) / alpha
+            measured = np.degrees(directions[nearest]).round().astype(int)
+            row = [(f"reference\nl=({measured[0]},{measured[1]}) v=({measured[2]},"
+                    f"{measured[3]})", reference)]
+            for _, run in group.iterrows():
+                image = _reconstruct(cache, run, query[None])
+                if image is not None:
+                    row.append((run["model"], image))
+            panels.append(row)
+        safe = _file_name(dataset)
+        written.append(_plot(panels, out_dir / f"fig7_{safe}.png", dataset))
+        for i, row in enumerate(panels):
+            for label, image in row:
+                name = _file_name(label.split("\n")[0])
+                path = out_dir / f"fig7_{safe}_pair{i}_{name}.exr"
+                write_exr(path, (image * alpha).astype(np.float32))
+                written.append(path)
+    return written
+
+
+def _file_name(text: str) -> str:
+    """ASCII letters and digits only (a label like "synthetic 48²×6561" is not a file name)."""
+    return "".join(c if c.isascii() and c.isalnum() else "_" for c in text)
+
+
+def _plot(panels, path: Path, title: str) -> Path:
+    rows, cols = len(panels), max(len(r) for r in panels)
+    fig = Figure(figsize=(2.2 * cols, 2.4 * rows))
+    axes = fig.subplots(rows, cols, squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for i, row in enumerate(panels):
+        for j, (label, image) in enumerate(row):
+            # Display: normalized linear values, gamma 2.2 like the UBO2003 JPEGs.
+            axes[i, j].imshow(gamma_encode(np.clip(image, 0.0, 1.0)), interpolation="nearest")
+            axes[i, j].set_title(label, fontsize=8)
+    fig.suptitle(f"Fig. 7: reference vs reconstruction ({title})", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path

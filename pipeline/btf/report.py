@@ -1,0 +1,115 @@
+"""Method A's report: Tables 1 and 2, the graininess fix, interpolation, the k verdict,
+convergence, the RMSE-versus-k plot, training curves and Fig. 7, from a DataFrame of runs.
+
+The tables themselves are pure functions in :mod:`pipeline.btf.tables`; this module picks
+A's runs, writes each table (Markdown, CSV, LaTeX) and figure into ``out`` and returns the
+Markdown sections for ``python -m pipeline.tables``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+from matplotlib.figure import Figure
+from omegaconf import OmegaConf
+
+from pipeline.btf import tables
+from pipeline.btf.curves import curves_section
+from pipeline.core.report import runs_of, write_table
+
+METHODS = ("neural_btf", "clustered", "pca")
+
+
+def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
+    """Method A's sections; ``settings`` is the ``tables`` node of ``conf/tables.yaml``."""
+    runs = runs_of(runs, METHODS)
+    if runs.empty or "metrics.rmse" not in runs:
+        return ["No finished Neural BTF run found (method A): `python -m pipeline`.\n"]
+    runs = tables.drop_repeats(runs[runs["metrics.rmse"].notna()])
+    runs = tables.label_runs(runs)
+    found = []
+    sizes = tables.table_sizes(runs)
+    if not sizes.empty:
+        found.append(write_table(sizes, out, "table1_sizes", "Table 1: stored sizes in bytes",
+                                 "Ratio (exact) = original bytes / total bytes. Ratio (paper) = "
+                                 "original in MB / total in whole KB, the paper's "
+                                 "convention. Original = M x N x 3 float32."))
+    rmse = tables.table_rmse(runs)
+    found.append(write_table(rmse, out, "table2_rmse",
+                             "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
+                             "n = number of seeds. Clustered runs use each texel's own values "
+                             "as the training target unless marked (rep. target)."))
+    if "metrics.rmse_with_texel_scale" in runs:
+        scaled = runs[runs["params.method.name"] == "clustered"]
+        if not scaled.empty:
+            both = pd.concat(
+                {
+                    "without scale": tables.table_rmse(
+                        scaled, "rmse_without_texel_scale").stack(),
+                    "with per-texel scale": tables.table_rmse(
+                        scaled, "rmse_with_texel_scale").stack(),
+                },
+                axis=1,
+            )
+            both.index.names = ["dataset", "model"]
+            found.append(write_table(
+                both.reset_index(), out, "graininess",
+                "Graininess fix: clustered RMSE without / with a per-texel scale",
+                "The scale costs one float per texel (bytes_extra)."))
+    interpolation = tables.table_interpolation(runs)
+    if not interpolation.empty:
+        found.append(write_table(interpolation, out, "interpolation",
+                                 "Interpolation at directions never trained on (RMSE)",
+                                 "held-out: light directions removed from training, reference "
+                                 "= measured data. off-grid: random directions off the 81-grid, "
+                                 "reference = the synthetic generator's ground truth."))
+    verdict = tables.k_verdict(runs, alpha=float(settings.alpha))
+    if not verdict.empty:
+        found.append(write_table(verdict, out, "k_verdict", "Does k change the error?",
+                                 "One-way ANOVA over k (seed-to-seed spread as the noise), "
+                                 "Kruskal-Wallis as a check without normality."))
+    tolerance = float(settings.convergence_tolerance)
+    convergence = tables.table_convergence(runs, tolerance)
+    if not convergence.empty:
+        found.append(write_table(
+            convergence, out, "convergence",
+            "Converged? RMSE against the same model trained longer",
+            f"excess = RMSE / reference RMSE - 1, the reference being the longest run of the "
+            f"same model and seed; the goal is within {100 * tolerance:g} % of a run 4x as "
+            f"long (`tables.convergence_tolerance`)."))
+    missing = tables.missing_runs(runs, list(settings.paper_ks))
+    found.append("## Missing from the paper grid\n\n" + (
+        "\n".join(f"- {m}" for m in missing) if missing else "Nothing.") + "\n")
+    found.append(plot_rmse_vs_k(runs, out))
+    found.append(curves_section(runs, out, tolerance))
+    if settings.fig7.enabled:
+        from pipeline.btf.fig7 import draw_fig7
+
+        files = draw_fig7(runs, OmegaConf.to_container(settings.fig7.pairs), out)
+        found.append("## Fig. 7\n\n" + "\n".join(f"- {p.name}" for p in files
+                                                 if p.suffix == ".png") + "\n")
+    return found
+
+
+def plot_rmse_vs_k(runs: pd.DataFrame, out: Path) -> str:
+    """``rmse_vs_k.png``: clustered RMSE (mean and std over seeds) against k, per dataset,
+    with Neural BTF as a dashed line; returns its Markdown section."""
+    fig = Figure(figsize=(5, 3.5))
+    ax = fig.subplots()
+    for dataset, group in runs.groupby("dataset"):
+        clustered = group[group["params.method.name"] == "clustered"]
+        stats = clustered.groupby("k")["metrics.rmse"].agg(["mean", "std", "count"])
+        if not stats.empty:
+            ax.errorbar(stats.index, stats["mean"], yerr=stats["std"].fillna(0), marker="o",
+                        capsize=3, label=f"{dataset} clustered")
+        neural = group[group["params.method.name"] == "neural_btf"]["metrics.rmse"]
+        if not neural.empty:
+            ax.axhline(neural.mean(), linestyle="--", label=f"{dataset} Neural BTF")
+    ax.set_xlabel("k (clusters)")
+    ax.set_ylabel("RMSE (normalized)")
+    ax.set_xscale("log")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "rmse_vs_k.png", dpi=110)
+    return "## RMSE versus k\n\n![rmse_vs_k](rmse_vs_k.png) (error bars: std over seeds)\n"

@@ -1,0 +1,189 @@
+"""Runners of the BTF chain's data stages: load, crop, preprocess, pca, kmeans, representatives.
+
+Each runner reads only its own settings from the config, calls a pure function, and lets
+:class:`pipeline.core.stage.Context` decide whether anything needs computing; each declares
+its code version where it runs (bump it when a change alters the stage's output).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig
+
+from pipeline.btf.preprocess import Normalization, encoder_inputs, fit_normalization
+from pipeline.core.cache import Entry, canonical_json, save_arrays, save_json
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.stage import Context, folder_fingerprint, plain_settings
+
+log = logging.getLogger(__name__)
+
+# --------------------------------------------------------------------------- load
+
+
+def dataset_root(cfg: DictConfig) -> Path:
+    """The dataset folder; the built-in synthetic BTF is generated there on first use."""
+    ds = cfg.dataset
+    if ds.name == "synthetic" and ds.root is None:
+        from pipeline.btf.synthetic import write_synthetic_btf
+
+        gen = plain_settings(ds.synthetic)
+        views = plain_settings(ds.views)
+        tag = hashlib.sha256(canonical_json({"gen": gen, "views": views}).encode()).hexdigest()
+        root = Path(cfg.paths.data) / f"synthetic_btf-{ds.format}-{gen['ext']}-{tag[:10]}"
+        if not root.is_dir():
+            log.info("generating the built-in synthetic BTF into %s", root)
+        return write_synthetic_btf(
+            root,
+            size=gen["size"],
+            seed=gen["seed"],
+            format=ds.format,
+            ext=gen["ext"],
+            views=views,
+            quality=gen["quality"],
+        )
+    if ds.root is None:
+        raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/the/dataset")
+    root = Path(ds.root).expanduser()
+    if not root.is_dir():
+        raise DataError(f"dataset root does not exist or is not a folder: {root}")
+    return root
+
+
+def load(ctx: Context) -> Entry:
+    """Decode the dataset once into a memory-mappable ``images.npy`` (n, H, W, 3)."""
+    from pipeline.data.btf import count_btf_images, load_btf
+
+    ds = ctx.cfg.dataset
+    root = dataset_root(ctx.cfg).resolve()
+    views = plain_settings(ds.views)
+    settings = {
+        "format": ds.format,
+        "root": str(root),
+        "views": views,
+        "fingerprint": folder_fingerprint(root),
+    }
+
+    def compute(folder: Path) -> dict:
+        n, height, width = count_btf_images(root, format=ds.format, views=views)
+        images = np.lib.format.open_memmap(
+            folder / "images.npy", mode="w+", dtype=np.float32, shape=(n, height, width, 3)
+        )
+        btf = load_btf(root, format=ds.format, views=views, out=images)
+        images.flush()
+        del images
+        save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))
+        return {"n_images": n, "height": height, "width": width}
+
+    return ctx.run("load", settings, {}, compute, version="1")
+
+
+# --------------------------------------------------------------------------- crop
+
+
+def crop(ctx: Context, loaded: Entry) -> Entry:
+    """Cut a ``btf.crop.size`` square at ``btf.crop.offset`` and lay it out as ABRDFs (M, N, 3)."""
+    settings = plain_settings(ctx.cfg.btf.crop)
+    size = int(settings["size"])
+    y0, x0 = (int(v) for v in settings["offset"])
+    images = loaded.array("images")
+    n, height, width, _ = images.shape
+    if size < 1 or y0 < 0 or x0 < 0 or y0 + size > height or x0 + size > width:
+        raise ConfigError(
+            f"btf.crop.size={size} at crop.offset=[{y0}, {x0}] does not fit the texture "
+            f"of {height}x{width} texels ({loaded.manifest.get('settings', {}).get('root')})"
+        )
+
+    def compute(folder: Path) -> dict:
+        abrdf = np.lib.format.open_memmap(
+            folder / "abrdf.npy", mode="w+", dtype=np.float32, shape=(size * size, n, 3)
+        )
+        # Image by image: the crop of one image is one column of the ABRDF matrix.
+        for i in range(n):
+            abrdf[:, i, :] = images[i, y0 : y0 + size, x0 : x0 + size, :].reshape(-1, 3)
+        abrdf.flush()
+        del abrdf
+        save_arrays(folder, directions=loaded.array("directions", mmap=False))
+        return {"M": size * size, "N": n}
+
+    return ctx.run("crop", settings, {"load": loaded}, compute, version="1")
+
+
+# --------------------------------------------------------------------------- preprocess
+
+
+def preprocess(ctx: Context, cropped: Entry) -> Entry:
+    """Fit the eq. 1-6 normalization (per-dimension mean/std of log values, alpha)."""
+
+    def compute(folder: Path) -> dict:
+        norm = fit_normalization(cropped.array("abrdf"))
+        save_arrays(folder, mean=norm.mean, std=norm.std)
+        save_json(folder, "alpha", norm.alpha)
+        return {"alpha": norm.alpha}
+
+    return ctx.run("preprocess", {}, {"crop": cropped}, compute, version="1")
+
+
+def normalization(entry: Entry) -> Normalization:
+    return Normalization(
+        entry.array("mean", mmap=False), entry.array("std", mmap=False), entry.json("alpha")
+    )
+
+
+# --------------------------------------------------------------------------- clusters
+
+
+def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
+    """PCA of the preprocessed ABRDFs; independent of k and of the run's seed."""
+    settings = plain_settings(ctx.cfg.btf.pca)
+
+    def compute(folder: Path) -> dict:
+        from pipeline.btf.clustering import pca_reduce
+
+        features = encoder_inputs(cropped.array("abrdf"), normalization(prep))
+        scores, ratio = pca_reduce(features, settings["n_components"], settings["random_state"])
+        save_arrays(folder, scores=scores, explained_variance_ratio=ratio)
+        return {"explained_variance": float(ratio.sum())}
+
+    return ctx.run("pca", settings, {"crop": cropped, "preprocess": prep}, compute, version="1")
+
+
+def kmeans(ctx: Context, reduced: Entry) -> Entry:
+    """k-means++ on the PCA scores for the run's single ``method.k``."""
+    # scikit-learn is imported only when a stage needs it: a cached rerun skips it.
+    from pipeline.btf.clustering import check_k, kmeans_pp
+
+    k = ctx.cfg.method.k
+    n_texels = reduced.array("scores").shape[0]
+    check_k(k, n_texels)
+    settings = {"k": k, "seed": ctx.cfg.seed, **plain_settings(ctx.cfg.btf.kmeans)}
+
+    def compute(folder: Path) -> dict:
+        labels, centers, inertia = kmeans_pp(
+            np.asarray(reduced.array("scores")),
+            k,
+            seed=ctx.cfg.seed,
+            n_init=settings["n_init"],
+            max_iter=settings["max_iter"],
+        )
+        save_arrays(folder, labels=labels, centers=centers)
+        return {"inertia": inertia}
+
+    return ctx.run("kmeans", settings, {"pca": reduced}, compute, version="1")
+
+
+def representatives(ctx: Context, cropped: Entry, clusters: Entry) -> Entry:
+    """The element-wise median ABRDF of each cluster, shape (k, N, 3)."""
+    k = int(clusters.manifest["settings"]["k"])
+
+    def compute(folder: Path) -> dict:
+        from pipeline.btf.clustering import cluster_medians
+
+        medians = cluster_medians(cropped.array("abrdf"), clusters.array("labels"), k)
+        save_arrays(folder, representatives=medians)
+        return {"k": k}
+
+    return ctx.run("representatives", {}, {"crop": cropped, "kmeans": clusters}, compute, version="1")

@@ -1,0 +1,266 @@
+"""Tables 1-2 of the clustered Neural BTF paper, the interpolation table and the k verdict.
+
+Pure functions of a DataFrame of runs (one row per MLflow run, columns ``params.*`` and
+``metrics.*`` as ``mlflow.search_runs`` returns them), so that they are tested on
+hand-made runs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+SIZE_ROWS = [
+    ("bytes_decoder", "decoder"),
+    ("bytes_latents", "latents"),
+    ("bytes_list", "list"),
+    ("bytes_extra", "per-texel scale"),
+    ("bytes_total", "total"),
+]
+INTERPOLATION_COLUMNS = [
+    ("rmse_heldout_model", "held-out dirs: model"),
+    ("rmse_heldout_nearest", "held-out dirs: nearest"),
+    ("rmse_heldout_linear", "held-out dirs: linear"),
+    ("rmse_offgrid_model", "off-grid vs truth: model"),
+    ("rmse_offgrid_nearest", "off-grid vs truth: nearest"),
+    ("rmse_offgrid_linear", "off-grid vs truth: linear"),
+]
+
+
+def _num(series: pd.Series) -> pd.Series:
+    return pd.to_numeric(series, errors="coerce")
+
+
+def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
+    """Add ``dataset``, ``model`` (column label), ``k`` and ``seed`` columns.
+
+    The model label is ``Neural BTF`` or ``k = <k>`` like the paper's columns, with
+    ``+scale`` when the graininess fix is on and ``(rep. target)`` when the clustered
+    model was trained against the representatives, ``(bfloat16)`` when the decoder's products
+    ran in bfloat16 (``train.precision``), and ``(<E> epochs)`` when it was trained for
+    another number of epochs than most runs of its dataset.
+    """
+    runs = runs.copy()
+    root = runs.get("params.dataset.root", pd.Series("", index=runs.index)).fillna("")
+    name = runs["params.dataset.name"].fillna("?")
+    leaf = root.map(lambda r: r.rstrip("/").split("/")[-1] if r not in ("", "None") else "")
+    # Generic formats are told apart by their folder; presets (WOOL, ...) by their name.
+    generic = name.isin(["ubo2003", "utia"]) & (leaf != "")
+    label = pd.Series(np.where(generic, name + ":" + leaf, name), index=runs.index)
+    # The same source cropped or subset differently is a different dataset: a 12 x 12
+    # smoke crop must never be averaged with a 48 x 48 one.
+    # btf.crop.size; runs logged before A's settings moved under btf.* have crop.size.
+    crop = _num(runs.get("params.btf.crop.size", pd.Series(np.nan, index=runs.index)))
+    if "params.crop.size" in runs:
+        crop = crop.fillna(_num(runs["params.crop.size"]))
+    n_dirs = _num(runs.get("metrics.n_directions", pd.Series(np.nan, index=runs.index)))
+    shape = [f" {int(c)}²×{int(n)}" if pd.notna(c) and pd.notna(n) else ""
+             for c, n in zip(crop, n_dirs, strict=True)]
+    runs["dataset"] = label + shape
+    runs["k"] = _num(runs.get("params.method.k", pd.Series(np.nan, index=runs.index)))
+    runs["seed"] = _num(runs["params.seed"])
+    method = runs["params.method.name"]
+    components = _num(runs.get("metrics.n_components", pd.Series(np.nan, index=runs.index)))
+    label = np.where(method == "neural_btf", "Neural BTF", "k = " + runs["k"].map(_fmt_k))
+    label = np.where(method == "pca", "PCA c = " + components.map(_fmt_k), label)
+    scale = runs.get("params.method.texel_scale", pd.Series("none", index=runs.index))
+    label = np.where((method == "clustered") & ~scale.isin(["none", None]), label + " +scale",
+                     label)
+    target = runs.get("params.method.target", pd.Series("texel", index=runs.index))
+    label = np.where((method == "clustered") & (target == "representative"),
+                     label + " (rep. target)", label)
+    # The decoder's products in bfloat16 (train.precision) give other numbers: another
+    # model, not another seed. Runs from before train.precision have no such parameter.
+    precision = runs.get("params.train.precision", pd.Series("", index=runs.index)).fillna("")
+    label = np.where(precision.isin(["", "float32"]), label, label + " (" + precision + ")")
+    # A run trained for another number of epochs than most runs of its dataset (say, a 4x
+    # longer convergence check) is another model, not another seed.
+    epochs = runs.get("params.train.epochs", pd.Series("", index=runs.index)).fillna("")
+    usual = epochs.groupby(runs["dataset"]).transform(lambda e: e.mode().iloc[0])
+    runs["base_model"] = label
+    runs["epochs"] = _num(epochs)
+    label = np.where(epochs != usual, label + " (" + epochs + " epochs)", label)
+    runs["model"] = label
+    runs["order"] = np.where(method == "neural_btf", -1.0,
+                             np.where(method == "pca", 1e9 + components.fillna(0), runs["k"]))
+    return runs
+
+
+def drop_repeats(runs: pd.DataFrame) -> pd.DataFrame:
+    """Keep one run per computation: a rerun of the same job (all its stages cache hits)
+    records the same result again and must not count as another seed."""
+    key = pd.Series(runs["run_id"], index=runs.index, dtype=object)
+    for tag in ("tags.cache.linear", "tags.cache.evaluate"):
+        if tag in runs:
+            key = runs[tag].where(runs[tag].notna(), key)
+    return runs.loc[~key.duplicated()]
+
+
+def _fmt_k(k: float) -> str:
+    return "?" if pd.isna(k) else str(int(k))
+
+
+def _columns(runs: pd.DataFrame) -> list[str]:
+    return list(runs.sort_values(["order", "model"]).drop_duplicates("model")["model"])
+
+
+def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
+    """Table 1: exact bytes per dataset and model, and the compression ratios.
+
+    Ratio conventions: ``ratio (exact)`` = original bytes / total bytes;
+    ``ratio (paper)`` = original in MB (2^20 B, rounded to 1 MB) / total in KB (2^10 B,
+    rounded to 1 KB), which reproduces the paper's 1:1885, 1:5127, 1:4633, 1:3904.
+    """
+    rows = []
+    needed = [f"metrics.{m}" for m, _ in SIZE_ROWS] + ["metrics.bytes_original"]
+    if any(column not in runs for column in needed):
+        return pd.DataFrame()
+    for (dataset, model), group in runs.groupby(["dataset", "model"], sort=False):
+        group = group.dropna(subset=needed)
+        if group.empty:
+            continue
+        first = group.iloc[0]
+        row = {"dataset": dataset, "model": model}
+        for metric, name in SIZE_ROWS:
+            row[f"{name} [B]"] = int(first[f"metrics.{metric}"])
+        original = float(first["metrics.bytes_original"])
+        total = float(first["metrics.bytes_total"])
+        row["original [B]"] = int(original)
+        row["ratio (exact)"] = f"1:{original / total:.1f}"
+        row["ratio (paper)"] = f"1:{round(original / 2**20) * 1024 / round(total / 1024):.0f}"
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    if table.empty:
+        return table
+    order = {m: i for i, m in enumerate(_columns(runs))}
+    table = table.sort_values(["dataset", "model"], key=lambda s: s.map(order) if s.name ==
+                              "model" else s)
+    return table.reset_index(drop=True)
+
+
+def _mean_std(values: pd.Series) -> str:
+    values = values.dropna()
+    if values.empty:
+        return "–"
+    if len(values) == 1:
+        return f"{values.iloc[0]:.4f} (n=1)"
+    return f"{values.mean():.4f} ± {values.std(ddof=1):.4f} (n={len(values)})"
+
+
+def table_rmse(runs: pd.DataFrame, metric: str = "rmse") -> pd.DataFrame:
+    """Table 2: RMSE per dataset (rows) x model (columns), mean ± std over seeds (n)."""
+    columns = _columns(runs)
+    table = runs.pivot_table(
+        index="dataset", columns="model", values=f"metrics.{metric}", aggfunc=_mean_std
+    )
+    table = table.reindex(columns=[c for c in columns if c in table.columns])
+    return table.fillna("–")  # no run of that model on that dataset
+
+
+def table_interpolation(runs: pd.DataFrame) -> pd.DataFrame:
+    """RMSE at directions training never saw: model vs nearest and linear interpolation."""
+    present = [(m, n) for m, n in INTERPOLATION_COLUMNS if f"metrics.{m}" in runs]
+    if not present:
+        return pd.DataFrame()
+    rows = []
+    ordered = runs.sort_values(["dataset", "order", "model"])
+    for (dataset, model), group in ordered.groupby(["dataset", "model"], sort=False):
+        row = {"dataset": dataset, "model": model}
+        for metric, name in present:
+            row[name] = _mean_std(_num(group[f"metrics.{metric}"]))
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def k_verdict(runs: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
+    """Does k change the error by more than the seed-to-seed spread?
+
+    For each dataset, the clustered runs (without the per-texel scale) are grouped by k.
+    With at least two k values that each have at least two seeds, a one-way ANOVA tests
+    whether the mean RMSE differs between k values given the within-k (seed) variance,
+    and a Kruskal-Wallis test checks the same without assuming normality.
+    """
+    rows = []
+    clustered = runs[runs["model"].str.match(r"^k = \d+$")]
+    for dataset, group in clustered.groupby("dataset"):
+        by_k = {k: _num(g["metrics.rmse"]).dropna().to_numpy() for k, g in group.groupby("k")}
+        usable = {k: v for k, v in by_k.items() if len(v) >= 2}
+        row = {"dataset": dataset, "k values": ", ".join(str(int(k)) for k in sorted(by_k))}
+        if len(usable) < 2:
+            row["verdict"] = "not enough runs: need >= 2 seeds for each of >= 2 values of k"
+            rows.append(row)
+            continue
+        means = np.array([v.mean() for v in usable.values()])
+        seed_sd = np.sqrt(np.mean([v.var(ddof=1) for v in usable.values()]))
+        f_stat, p_anova = stats.f_oneway(*usable.values())
+        if np.ptp(np.concatenate(list(usable.values()))) == 0:
+            p_kw = 1.0
+        else:
+            p_kw = stats.kruskal(*usable.values()).pvalue
+        row.update(
+            {
+                "spread of k means": f"{np.ptp(means):.5f}",
+                "seed std (pooled)": f"{seed_sd:.5f}",
+                "ANOVA F": f"{f_stat:.2f}",
+                "ANOVA p": f"{p_anova:.3g}",
+                "Kruskal-Wallis p": f"{p_kw:.3g}",
+                "seeds per k": ", ".join(str(len(v)) for v in usable.values()),
+            }
+        )
+        if p_anova < alpha:
+            best = min(usable, key=lambda k: usable[k].mean())
+            row["verdict"] = (
+                f"k changes the RMSE beyond seed noise (ANOVA p={p_anova:.3g} < {alpha}); "
+                f"lowest mean at k={int(best)}"
+            )
+        else:
+            row["verdict"] = (
+                f"no evidence that k changes the RMSE beyond seed noise "
+                f"(ANOVA p={p_anova:.3g} >= {alpha})"
+            )
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def table_convergence(runs: pd.DataFrame, tolerance: float = 0.05) -> pd.DataFrame:
+    """Is a model converged? Its RMSE against the same model and seed trained longest.
+
+    One row per (dataset, model, seed, epochs) that has a longer run beside it: the RMSE of
+    both, how many times longer the reference trained, and the excess of the shorter run's
+    RMSE over the reference's, judged against ``tolerance`` (0.05 = within 5 %).
+    """
+    if "epochs" not in runs or runs["epochs"].isna().all():
+        return pd.DataFrame()
+    rows = []
+    ordered = runs.sort_values(["dataset", "order", "base_model", "seed", "epochs"])
+    for (dataset, model, seed), group in ordered.groupby(["dataset", "base_model", "seed"],
+                                                         sort=False):
+        rmse = _num(group["metrics.rmse"]).groupby(group["epochs"]).mean().dropna()
+        if len(rmse) < 2:
+            continue
+        longest = rmse.index.max()
+        for epochs, value in rmse.drop(longest).items():
+            excess = value / rmse[longest] - 1
+            rows.append({"dataset": dataset, "model": model, "seed": int(seed),
+                         "epochs": int(epochs), "RMSE": f"{value:.4f}",
+                         "reference epochs": int(longest),
+                         "reference RMSE": f"{rmse[longest]:.4f}",
+                         "length ratio": f"{longest / epochs:g}",
+                         "excess": f"{100 * excess:+.1f} %",
+                         f"within {100 * tolerance:g} %": bool(abs(excess) <= tolerance)})
+    return pd.DataFrame(rows)
+
+
+def missing_runs(runs: pd.DataFrame, ks: list[int]) -> list[str]:
+    """The paper grid cells (Neural BTF and each k, per dataset) with no finished run,
+    and cells with fewer than two seeds (no spread can be measured)."""
+    notes = []
+    for dataset, group in runs.groupby("dataset"):
+        for model in ["Neural BTF"] + [f"k = {k}" for k in ks]:
+            n = int((group["model"] == model).sum())
+            if n == 0:
+                notes.append(f"{dataset}: no run of {model}")
+            elif n == 1:
+                notes.append(f"{dataset}: {model} has 1 seed (no seed spread)")
+    return notes

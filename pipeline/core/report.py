@@ -1,0 +1,55 @@
+"""Report writing shared by the methods: runs read back from MLflow, tables on disk.
+
+Each method's ``report`` module turns a DataFrame of runs (one row per MLflow run, columns
+``params.*``, ``metrics.*`` and ``tags.*`` as ``mlflow.search_runs`` returns them) into
+Markdown sections, writing its tables with :func:`write_table`; ``python -m
+pipeline.tables`` fetches the runs once and hands them to each method.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+from pipeline.core.tracking import use_store
+
+
+def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> pd.DataFrame:
+    """Finished runs of the given MLflow experiments (all when empty) as one DataFrame."""
+    import mlflow
+
+    use_store(runs_dir)
+    found = [e.name for e in mlflow.search_experiments()]
+    names = [e for e in (experiments or found) if e in found]
+    if not names:
+        return pd.DataFrame()
+    runs = mlflow.search_runs(
+        experiment_names=names, filter_string=filter_string or "", output_format="pandas"
+    )
+    if runs.empty:
+        return runs
+    return runs[runs["status"] == "FINISHED"]
+
+
+def write_table(table: pd.DataFrame, out: Path, stem: str, title: str, note: str = "") -> str:
+    """Write ``stem``.md/.csv/.tex into ``out``; return the Markdown section."""
+    index = table.index.name is not None
+    table.to_csv(out / f"{stem}.csv", index=index)
+    table.to_latex(out / f"{stem}.tex", index=index, caption=title, label=f"tab:{stem}")
+    markdown = f"## {title}\n\n{table.to_markdown(index=index)}\n\n{note}\n"
+    (out / f"{stem}.md").write_text(markdown)
+    return markdown
+
+
+def param(runs: pd.DataFrame, name: str, default: str = "None") -> pd.Series:
+    """The ``params.<name>`` column as strings, ``default`` where a run lacks it."""
+    column = runs.get(f"params.{name}", pd.Series(default, index=runs.index))
+    return column.fillna(default).astype(str)
+
+
+def runs_of(runs: pd.DataFrame, methods) -> pd.DataFrame:
+    """The runs whose ``method.name`` is one of ``methods``."""
+    if runs.empty or "params.method.name" not in runs:
+        return runs.iloc[0:0]
+    return runs[runs["params.method.name"].isin(list(methods))]
