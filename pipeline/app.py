@@ -10,8 +10,8 @@ from omegaconf import DictConfig
 
 from pipeline.brdf_map import runner as brdf_runner
 from pipeline.btf import runner as btf_runner
-from pipeline.btf.stages import Context
 from pipeline.core.memory import process_peak_mb
+from pipeline.core.stage import Context
 from pipeline.core.tracking import SweepParentRun, job_run
 from pipeline.fourier import pattern_runner
 from pipeline.fourier import runner as fourier_runner

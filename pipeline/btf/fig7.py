@@ -50,7 +50,7 @@ def _reconstruct(cache: StageCache, run: pd.Series, query: np.ndarray) -> np.nda
 def draw_fig7(runs: pd.DataFrame, pairs_degrees: list, out_dir: Path) -> list[Path]:
     """Draw one figure per dataset; returns the written files (PNG and EXR).
 
-    runs : labelled runs (see ``btf_tables.label_runs``), one model per column is drawn
+    runs : labelled runs (see :func:`pipeline.btf.tables.label_runs`), one model per column is drawn
         (the run with the lowest seed).
     pairs_degrees : list of [theta_l, phi_l, theta_v, phi_v] in degrees.
     """
