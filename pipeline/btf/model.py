@@ -32,9 +32,8 @@ LATENT_DIM = 8
 class MaxPool3(nn.Module):
     """``nn.MaxPool1d(kernel_size=3, stride=3)`` as a maximum over the last axis of a
     (..., L // 3, 3) view: the same values and gradients (the first maximum of each triple
-    gets the gradient). ``MaxPool1d``'s CPU kernel with indices took 1 ms per call at the
-    paper's size; with this and the ReLU after it, an encoder step (5 ABRDFs, forward and
-    backward, 2 threads, AMX Xeon) took 7.4-7.7 ms against 9.3-9.7 ms."""
+    gets the gradient). Faster than ``MaxPool1d``'s CPU kernel, which also
+    computes the indices (docs/performance.md)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         n = x.shape[-1] // 3
@@ -77,12 +76,11 @@ class Encoder(nn.Module):
         already is, so it is not copied), with the layers' own parameters: the 3 x 1
         convolution is oneDNN's 2-D one, and the pool is torch's channels-last
         ``max_pool2d``, vectorized over the channels, where a maximum over the last axis of
-        3 strides through memory. Batch-norm runs on the plain layout:
-        torch's channels-last batch-norm made parameter gradients up to 1.8 % off float64
-        in ``tests/test_btf_model.py``, the plain one 3e-6 like :meth:`reference`. The same
-        values as :meth:`reference` up to rounding (float64: 1e-9); an encoder step (5
-        ABRDFs, forward and backward, 2 threads, AMX Xeon, medians of 40) took 5.2 ms
-        against 6.5-6.6 ms."""
+        3 strides through memory. Batch-norm runs on the plain layout: torch's
+        channels-last batch-norm gave parameter gradients far from float64 in
+        ``tests/test_btf_model.py``, the plain one as close as :meth:`reference`. The same
+        values as :meth:`reference` up to rounding, and faster than its 1-D layers
+        (docs/performance.md)."""
         h = abrdf.unsqueeze(2)
         blocks = list(self.features)
         for conv, batch_norm in zip(blocks[0::4], blocks[3::4], strict=True):

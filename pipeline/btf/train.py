@@ -124,8 +124,8 @@ def train(
     encoder = Encoder(n, encoder_channels).to(device)
     decoder = Decoder().to(device)
     params = list(encoder.parameters()) + list(decoder.parameters())
-    # fused: one kernel for all parameters. On the CPU, Adam's step took 0.7 ms against
-    # 1.5 ms (paper-size step, AMX Xeon) and differs in the last bit; SGD's is identical.
+    # fused: one kernel for all parameters instead of a loop of small ops over each
+    # (docs/performance.md). Adam's step differs in the last bit; SGD's is identical.
     if settings.optimizer == "adam":
         optimizer = torch.optim.Adam(params, lr=settings.lr, fused=True)
     else:

@@ -121,8 +121,8 @@ def segment_kmeans(
         Scale each feature to unit variance over the pixels first. Off by default:
         Fourier coefficients share the units of intensity, and standardizing lets the
         noisy high harmonics outweigh the diffuse and constant terms that separate
-        materials (measured on one synthetic pot: 61% accuracy standardized against
-        99.99% raw; the 128 x 128 pot of ``experiment=fourier`` gives 94.2% raw).
+        materials (on a synthetic pot, standardizing lowered the accuracy:
+        docs/performance.md).
 
     Returns
     -------

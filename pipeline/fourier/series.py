@@ -183,7 +183,7 @@ def _solve_svd(design: np.ndarray, observed: np.ndarray, penalty: np.ndarray) ->
 
     Same result as :func:`_solve_normal` where that is well conditioned, but works on
     cond(A) instead of cond(A)², like ``np.linalg.lstsq`` (and with its default cutoff).
-    About four times slower.
+    Slower (docs/performance.md).
     """
     n_pixels, n_rows, n_coeffs = design.shape
     root = np.broadcast_to(np.diag(np.sqrt(penalty)), (n_pixels, n_coeffs, n_coeffs))
@@ -202,7 +202,7 @@ _SOLVERS = {"normal": _solve_normal, "svd": _solve_svd}
 def _fit_kernel(images, light_dirs, normals, view, M, lam, clamp_diffuse, solver) -> np.ndarray:
     # threadpoolctl ships with scikit-learn. The batched LAPACK calls are thousands of
     # tiny problems: BLAS threads only add overhead, and on a busy machine OpenBLAS's
-    # threaded SVD of (P, 102, 42) stacks was measured 50x slower than single-threaded.
+    # threaded SVD of such stacks was far slower than single-threaded (docs/performance.md).
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1, user_api="blas"):
@@ -313,7 +313,7 @@ def fit_fourier(
     solver : {"normal", "svd"}
         "normal": batched normal equations (fast; exact for cond(A) up to ~1e7, a
         minimum-norm truncation beyond). "svd": batched SVD of the augmented system,
-        as accurate as ``np.linalg.lstsq`` (about 4x slower). The two agree whenever
+        as accurate as ``np.linalg.lstsq`` but slower. The two agree whenever
         λ > 0 makes the system well conditioned.
 
     Returns

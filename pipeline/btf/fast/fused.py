@@ -1,38 +1,30 @@
 """The decoder's training gradient by hand: forward and backward chunk by chunk, on threads.
 
 Why not autograd: on a paper-size step (5 ABRDFs x 6561 directions = 32,805 queries)
-autograd keeps every activation of the whole batch (14 MB a layer, far past the 1 MB L2
-cache of a core), makes separate passes for bias, ReLU and their gradients, and runs the
-thin 106-wide products on one intra-op thread pool that barely scales past one core
-(``python -m pipeline.btf.fast.bench`` measures all three). Here
+autograd keeps every activation of the whole batch (14 MB a layer, far past a core's L2
+cache), makes separate passes for bias, ReLU and their gradients, and runs the thin
+106-wide products on one intra-op thread pool that barely scales past one core
+(``python -m pipeline.bench`` compares the two; figures in docs/performance.md). Here
 
 - each chunk of queries goes forward and straight back while its activations are in cache;
 - biases are fused into the products; where the C++ kernels of :mod:`pipeline.btf.fast.kernels`
   build (:func:`_chunks_fused`), the last layer's forward, residual, loss and backward into
   the last hidden layer are one pass over that layer's activations (seven torch calls
   otherwise), and each ReLU's gradient is one pass with its bias gradient or the first
-  layer's weight gradient (two calls otherwise). With the kernels' first version, one
-  worker's 16,384 rows in chunks of 8192 (bfloat16, AMX Xeon, medians of 5 interleaved
-  rounds) took 7.8 against 9.9 ms, and the training loop's step at the paper's batch 17.7
-  against 20.5 ms (bfloat16) and 32.1 against 34.2 ms (float32; 3 interleaved rounds of
-  40 steps);
+  layer's weight gradient (two calls otherwise): fewer passes over activations that do
+  not fit a core's L2 cache together;
 - no (latent, direction) input row is ever built: the first layer's latent part is
   computed once per ABRDF and enters as a weight column picked by a one-hot input (see
   :meth:`DecoderStep.__call__`), so that a chunk may span ABRDFs and its size is free of
-  the batch's shape. Chunks that stopped at each ABRDF's end took 12.5 against 10.8 ms
-  (bfloat16, 5 x 6561 queries, 2 workers, medians of 5 interleaved rounds of 20 steps) and
-  12.9 against 3.4 ms at ``experiment=paper_cpu``'s 32 ABRDFs x 256 queries (whose chunks
-  had been 256 rows); float32 25.8 against 25.2 ms and 7.6 against 7.2 ms. The one-hot
-  input adds B multiply-adds per hidden unit and query, few at the batches used (5, 32);
+  the batch's shape (chunks that stopped at each ABRDF's end were small, and slow, at
+  ``experiment=paper_cpu``'s 256 queries per ABRDF). The one-hot input adds B
+  multiply-adds per hidden unit and query, few at the batches used (5, 32);
 - chunks run on ``workers`` threads, each op single-threaded, with private gradient buffers
   summed in a fixed order at the end (deterministic for a given number of workers);
 - each worker's chunk loop is a TorchScript function, whose interpreter does not hold
   Python's GIL; in eager mode every one of a chunk's ~36 torch calls hands the GIL between
-  the workers. A paper-size step of an earlier version of these loops (5 x 6561 queries,
-  AMX Xeon, medians of 5 interleaved rounds) took 48.9 ms eager against 34.7 ms scripted
-  in float32 with 2 workers (61.3 against 51.7 ms with one), and 25.5 against 18.5 ms in
-  bfloat16 (25.6 against 22.6 ms): two eager workers were no faster than one in bfloat16.
-  The gradients are bit for bit those of the eager loops.
+  the workers, so that two eager workers were no faster than one in bfloat16. The
+  gradients are bit for bit those of the eager loops.
 
 The result equals autograd's gradient of the mean squared error (``tests/test_fused.py``).
 
@@ -40,10 +32,10 @@ The result equals autograd's gradient of the mean squared error (``tests/test_fu
 master weights, what ``torch.autocast(dtype=torch.bfloat16)`` would do to the decoder:
 weights, biases, directions and activations are rounded to bfloat16, each product sums in
 float32 and rounds its output to bfloat16; the residual, the loss and the accumulated
-gradients stay float32. Each hidden layer and its ReLU is one oneDNN call. On a CPU with
-AMX the step ran 2.4-2.6x as fast as float32's (``python -m pipeline.btf.fast.bench``, 5 runs);
-on a CPU without bfloat16 units oneDNN takes slower code paths (not measured: check with
-the bench). The gradient differs from float32's by bfloat16's rounding
+gradients stay float32. Where the CPU supports bfloat16, each hidden layer and its ReLU
+is one oneDNN call (plain products elsewhere). It pays on a CPU with AMX or AVX512-BF16;
+without them the products take slower code paths (check with ``python -m pipeline.bench``;
+docs/performance.md). The gradient differs from float32's by bfloat16's rounding
 (``tests/test_fused.py`` bounds it).
 """
 
@@ -59,11 +51,8 @@ from pipeline.btf.model import Decoder
 from pipeline.btf.train_settings import PRECISIONS
 
 # Queries per chunk. float32 is fastest when a chunk's activations stay in a core's L2
-# cache; bfloat16 products are so fast that each op's fixed cost dominates small chunks.
-# The step at 5 x 6561 queries, 2 workers, with the C++ kernels, medians of 5 interleaved
-# rounds of 20 steps on an AMX Xeon, M queries/s: float32 1.46 / 1.42 / 1.37 / 1.26 at
-# 512 / 1024 / 2048 / 4096 (512 against 1024 is within the noise of other rounds; 1024
-# kept); bfloat16 2.89 / 3.24 / 3.56 / 3.76 at 1024 / 2048 / 4096 / 8192.
+# cache; bfloat16 products are so fast that each op's fixed cost dominates small chunks
+# (the sizes compared: docs/performance.md).
 DEFAULT_CHUNK = {"float32": 1024, "bfloat16": 8192}
 
 
@@ -295,7 +284,7 @@ def _forward(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[torch
              layers: int, onednn: bool) -> list[torch.Tensor]:
     """[rows, then the outputs of the first ``layers`` layers] (see :func:`_chunks`).
     ``onednn``: each layer and its ReLU is one oneDNN call (a separate bfloat16 ReLU pass
-    measured half to three quarters of the product's time), addmm elsewhere."""
+    costs a large share of the product's time: docs/performance.md), addmm elsewhere."""
     a = [rows]
     for k in range(layers):
         bias: torch.Tensor | None = None

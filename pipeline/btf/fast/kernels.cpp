@@ -1,5 +1,5 @@
-// Fused CPU kernels of the decoder's training step (pipeline/btf/fused.py; built by
-// pipeline/btf/kernels.py).
+// Fused CPU kernels of the decoder's training step (pipeline/btf/fast/fused.py; built by
+// pipeline/btf/fast/kernels.py).
 //
 // torch has no single op for these: each replaces several memory passes over a chunk's
 // (rows x 106) activations by one. The products are the storage type's (float32, float64, or
@@ -170,8 +170,8 @@ void relu_backward_kernel(int64_t rows, int64_t hidden, const at::Tensor& h, con
 #ifdef NEURAL_BTF_AVX512
 // The same kernels on 16 lanes of AVX-512, for float32 and (where the CPU has AVX512_BF16)
 // bfloat16 storage, float32 sums: a row of 106 is 6 full vectors and a masked one. GCC's
-// own vectorization of the loops above ran bfloat16 rows at about 2 cycles an element (its
-// rounding and 8-lane vectors).
+// own vectorization of the loops above was slow on bfloat16 rows (its rounding and 8-lane
+// vectors; docs/performance.md).
 #ifdef NEURAL_BTF_AVX512_BF16
 struct VecBFloat16 {
   using Raw = uint16_t;
@@ -236,8 +236,8 @@ void output_layer_avx512(int64_t rows, int64_t hidden, const at::Tensor& a, cons
   }
   double sum_squares = 0;
   // Two rows at a time, whose dot products are independent chains the core overlaps, and
-  // the gradient sums loaded once for both: 8192 rows of 106 took about 0.4 ms against
-  // 0.48 ms a row at a time (bfloat16; 4 or 8 rows were no faster).
+  // the gradient sums loaded once for both (faster than one row at a time; 4 or 8 rows
+  // were no faster than 2: docs/performance.md).
   std::vector<__m512> av(2 * blocks);
   auto rows_at = [&]<int N>(int64_t r) {
     __m512 s[N][O];

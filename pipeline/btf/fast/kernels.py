@@ -10,11 +10,11 @@ several (``pipeline.btf.fast.fused`` uses them when :func:`available`):
   sums (a bias gradient) or the first layer's weight gradient from its input rows.
 
 They are compiled with ``torch.utils.cpp_extension`` (g++ and ninja, which the project
-installs) for this machine's CPU, once per machine: the build lands under
-``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) and took about 10 s on a
-2-core Xeon. Where the build fails (no compiler), the step falls back to plain torch ops
-and says so once. On a CPU with AVX-512 the kernels run on 16-lane vectors (bfloat16 ones
-also need its bfloat16 instructions); elsewhere on what the compiler makes of plain loops
+installs) for this machine's CPU, once per machine (its duration: docs/performance.md):
+the build lands under ``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``).
+Where the build fails (no compiler), the step falls back to plain torch ops and says so
+once. On a CPU with AVX-512 the kernels run on 16-lane vectors (bfloat16 ones also need
+its bfloat16 instructions); elsewhere on what the compiler makes of plain loops
 (``tests/test_kernels.py`` compares the two).
 """
 
@@ -40,7 +40,8 @@ _state: dict = {}
 # The /proc/cpuinfo lines that tell CPUs apart (x86: model name, flags; ARM: CPU part,
 # Features).
 _CPU_LINES = ("model name", "flags", "CPU implementer", "CPU part", "Features")
-# A build lock older than this was left by a build that was killed (a build took 10 s).
+# A build lock older than this was left by a build that was killed (a build takes far
+# less: docs/performance.md).
 STALE_LOCK_SECONDS = 600
 
 
