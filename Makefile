@@ -5,7 +5,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint tables clean-runs
+.PHONY: demo test tables
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)

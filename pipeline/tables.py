@@ -1,4 +1,4 @@
-"""``python -m pipeline.tables``: regenerate the papers' tables and figures from MLflow.
+r"""``python -m pipeline.tables``: regenerate the papers' tables and figures from MLflow.
 
 Reads the finished runs back once (``mlflow.search_runs``, with the user's experiments and
 filter) and hands them to each method's report (:mod:`pipeline.btf.report`,
@@ -6,7 +6,7 @@ filter) and hands them to each method's report (:mod:`pipeline.btf.report`,
 tables (Markdown, CSV, LaTeX) and figures (PNG, EXR) under ``${paths.runs}/tables/``; all
 sections go into ``summary.md``. Works with whatever subset of runs exists and says what
 is missing. Options (Hydra overrides): ``paths.runs=...``,
-``tables.experiments=[btf,...]``, ``tables.filter="tags.note = 'x'"``.
+``tables.experiments=[btf,...]``, ``"tables.filter=\"tags.note = 'x'\""`` (quoted for the shell).
 """
 
 from __future__ import annotations
