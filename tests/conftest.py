@@ -1,4 +1,5 @@
-"""Shared fixtures: the real Hydra config, composed and shrunk with experiment=smoke."""
+"""Shared fixtures (plain helpers are in ``helpers.py``): an empty MLflow store, and the
+real Hydra config shrunk with experiment=smoke."""
 
 from __future__ import annotations
 
@@ -15,17 +16,8 @@ import shutil
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
+from helpers import compose_config
 from omegaconf import DictConfig
-
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-
-
-def compose_config(*overrides: str) -> DictConfig:
-    """Compose ``conf/config.yaml`` exactly as ``python -m pipeline`` would."""
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides))
 
 
 @pytest.fixture(scope="session")

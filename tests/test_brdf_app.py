@@ -9,7 +9,7 @@ from pathlib import Path
 import mlflow
 import numpy as np
 import pytest
-from conftest import compose_config
+from helpers import compose_config
 from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import CONF_DIR, SHARED, compose_config
+from helpers import CONF_DIR, SHARED, compose_config
 from hydra import compose, initialize_config_dir
 from hydra.types import RunMode
 from mlflow.tracking import MlflowClient

@@ -1,0 +1,25 @@
+"""Plain helpers shared by the tests (fixtures live in ``conftest.py``).
+
+Tests import from here (``from helpers import compose_config``): pytest's default
+"prepend" import mode puts ``tests/`` (a folder without ``__init__.py``) at the front of
+``sys.path`` before it imports a test module, so ``helpers`` is found there.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+ROOT = Path(__file__).resolve().parents[1]  # the repository
+CONF_DIR = ROOT / "conf"
+SHARED = ROOT.parent / "shared"  # real datasets, where the checkout has them
+
+
+def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictConfig:
+    """Compose ``conf/config.yaml`` exactly as ``python -m pipeline`` would (with the
+    ``hydra`` section too if asked: its sweeper's parameters, for instance)."""
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides),
+                       return_hydra_config=return_hydra_config)
