@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.core.cache import StageCache, _publish, canonical_json, save_arrays, stage_key
+from pipeline.core.cache import StageCache, publish, canonical_json, save_arrays, stage_key
 
 
 def test_key_ignores_key_order_and_int_vs_float():
@@ -106,7 +106,7 @@ def test_two_publishers_of_the_same_key_leave_one_good_entry(tmp_path):
         tmp.mkdir()
         save_arrays(tmp, x=np.full(3, value))
         (tmp / "manifest.json").write_text("{}")
-        _publish(tmp, final)
+        publish(tmp, final)
     assert [p.name for p in final.parent.iterdir()] == ["key"]
     np.testing.assert_array_equal(np.load(final / "x.npy"), np.full(3, 1))
     assert os.path.isfile(final / "manifest.json")

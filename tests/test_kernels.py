@@ -72,7 +72,7 @@ def plain_loops():
     """kernels.cpp built with the plain loops only, as ``torch.ops.neural_btf_plain``."""
     if not kernels.available():
         pytest.skip("the fused kernels did not build here (see test_kernels_build)")
-    cpp_extension.load(name=f"pipeline_btf_kernels_plain_{kernels._cpu_key()}",
+    cpp_extension.load(name=f"pipeline_btf_kernels_plain_{kernels.cpu_key()}",
                        sources=[str(kernels.SOURCE)], is_python_module=False,
                        extra_cflags=kernels.FLAGS + ["-DNEURAL_BTF_GENERIC",
                                                      "-DNEURAL_BTF_NAMESPACE=neural_btf_plain"])

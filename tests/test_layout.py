@@ -380,24 +380,10 @@ def test_no_module_uses_another_modules_private_names():
     assert offenders == []
 
 
-# Tests that reach a private name because the pipeline has no public way to it yet; each
-# goes once the name is made public (an entry that no longer applies fails the test).
-TESTS_USING_PRIVATE_NAMES = {
-    # the rename race of two writers of one key, without the lock
-    "tests/test_cache.py pipeline.core.cache._publish",
-    # the build name of the plain-loops build (the CPU's key, as kernels.py builds)
-    "tests/test_kernels.py pipeline.btf.fast.kernels._cpu_key",
-    # the FFT overlap search, against brute force
-    "tests/test_quilting.py pipeline.fourier.quilting._OverlapSearch",
-}
-
-
 def test_tests_use_only_public_names():
-    """The same rule for tests/ (names of pipeline modules), with the listed exceptions."""
-    found = {re.sub(r":\d+ ", " ", use)
-             for path in sorted(TESTS.glob("*.py")) for use in _private_uses(path, True)}
-    assert found - TESTS_USING_PRIVATE_NAMES == set(), "new private names used by tests"
-    assert TESTS_USING_PRIVATE_NAMES - found == set(), "no longer used: remove from the list"
+    """The same rule for tests/ (names of pipeline modules)."""
+    found = [use for path in sorted(TESTS.glob("*.py")) for use in _private_uses(path, True)]
+    assert found == []
 
 
 def test_tests_take_helpers_from_helpers_and_fixtures_from_conftest():
@@ -579,11 +565,7 @@ EXAMPLES = sorted(name for name, path in MODULES.items()
 MUST_RUN = {"pipeline.btf.synthetic", "pipeline.fourier.series", "pipeline.fourier.quilting"}
 # Examples that fail because of a mistake in pipeline/ (reported; strict: remove the
 # entry once fixed).
-BROKEN_EXAMPLES = {
-    # pipeline/data/btf.py:23 uses ``path`` and ``n`` from the line above, which is
-    # skipped; it needs ``# doctest: +SKIP`` like its neighbours.
-    "pipeline.data.btf": "line 23 needs # doctest: +SKIP",
-}
+BROKEN_EXAMPLES: dict[str, str] = {}
 
 
 def test_examples_are_found():

@@ -10,7 +10,7 @@ from scipy.ndimage import gaussian_filter
 
 from pipeline.core.errors import ConfigError
 from pipeline.fourier.quilting import (
-    _OverlapSearch,
+    OverlapSearch,
     candidate_positions,
     min_error_boundary_cut,
     quilt,
@@ -62,7 +62,7 @@ def test_fft_overlap_error_matches_brute_force():
     rng = np.random.default_rng(0)
     source = rng.normal(size=(20, 17, 3))
     block, overlap = 6, 2
-    search = _OverlapSearch(source, block, overlap)
+    search = OverlapSearch(source, block, overlap)
     template = rng.normal(size=(block, block, 3))
     for left, top in ((True, False), (False, True), (True, True)):
         mask = search.masks[left, top][..., None]

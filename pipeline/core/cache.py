@@ -176,7 +176,7 @@ class StageCache:
                 "created": time.time(),
             }
             _write_atomic(tmp / MANIFEST, json.dumps(manifest, indent=1))
-            _publish(tmp, final)
+            publish(tmp, final)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -185,7 +185,7 @@ class StageCache:
         return Entry(stage, key, final, hit=False, seconds=seconds, manifest=manifest)
 
 
-def _publish(tmp: Path, final: Path) -> None:
+def publish(tmp: Path, final: Path) -> None:
     """Rename ``tmp`` onto ``final`` unless a complete entry is already there."""
     try:
         os.rename(tmp, final)

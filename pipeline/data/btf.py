@@ -20,7 +20,7 @@ Formats and their colour encodings:
 Examples
 --------
 >>> n, height, width = count_btf_images(root, "ubo2003")         # doctest: +SKIP
->>> images = np.lib.format.open_memmap(path, "w+", np.float32, (n, height, width, 3))
+>>> images = np.lib.format.open_memmap(path, "w+", np.float32, (n, height, width, 3))  # doctest: +SKIP
 >>> btf = load_btf(root, "ubo2003", out=images)                    # doctest: +SKIP
 """
 

@@ -166,7 +166,7 @@ def _grid(out_shape, block_size, overlap):
 # --------------------------------------------------------------------------- quilting
 
 
-class _OverlapSearch:
+class OverlapSearch:
     """All-candidate overlap SSD by FFT cross-correlation against a fixed source."""
 
     def __init__(self, source: np.ndarray, block_size: int, overlap: int):
@@ -273,7 +273,7 @@ def quilt(
                 f"channel_weights must be {source.shape[2]} values >= 0, got shape {weights.shape}"
             )
     scale = np.sqrt(weights)
-    search = _OverlapSearch(source * scale, block_size, overlap)
+    search = OverlapSearch(source * scale, block_size, overlap)
     corners, canvas_shape = _grid(out_shape, block_size, overlap)
     canvas = np.zeros((*canvas_shape, source.shape[2]))
     chosen = np.empty((len(corners), 2), dtype=np.int64)

@@ -45,7 +45,7 @@ _CPU_LINES = ("model name", "flags", "CPU implementer", "CPU part", "Features")
 STALE_LOCK_SECONDS = 600
 
 
-def _cpu_key() -> str:
+def cpu_key() -> str:
     """A short hash of the CPU's model and instruction-set flags: ``-march=native`` code
     built on one CPU may not run on another that shares the build folder."""
     try:
@@ -70,7 +70,7 @@ def _load() -> bool:
         return False
     from torch.utils import cpp_extension
 
-    name = f"pipeline_btf_kernels_{_cpu_key()}"
+    name = f"pipeline_btf_kernels_{cpu_key()}"
     build_dir = Path(cpp_extension._get_build_directory(name, False))
     _remove_stale_lock(build_dir / "lock")
     # ninja comes with the project's environment, whose bin folder may not be on PATH.
