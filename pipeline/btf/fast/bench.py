@@ -1,13 +1,21 @@
-"""``python -m pipeline.btf.fast.bench``: speed and memory figures of method A at the paper's sizes.
+"""``python -m pipeline.bench``: speed and memory figures of method A at the paper's sizes.
 
 Prints, in one run on one machine:
 
 - the float32 matrix-multiply peak (the yardstick), at the threads the figures use;
-- decoder training throughput at the paper's batch (5 ABRDFs x all 6561 directions per
-  step) of a naive autograd loop and of ``pipeline.btf.train.train`` (the fused, chunked,
-  threaded step), in queries/s, GFLOP/s and as a share of the peak, and of the recipe
-  ``experiment=paper_cpu`` uses (``conf/train/cpu.yaml``: 32 ABRDFs x 256 directions);
-  the same for the decoder alone (autograd against the fused step, no encoder);
+- training throughput at the paper's batch (5 ABRDFs x all 6561 directions per step) of a
+  naive autograd loop and of ``pipeline.btf.train.train`` on its default path (the fused,
+  chunked, threaded step with its C++ kernels, no machine tuning) and with the opt-in
+  tuning (``train.keep_awake``, ``train.omp_spin_count``, ``train.reuse_freed_memory``:
+  :mod:`pipeline.btf.fast.tuning`), each in a child process of its own
+  (:mod:`pipeline.btf.fast.bench_child`; the loops: :mod:`pipeline.btf.fast.bench_loops`),
+  in queries/s, GFLOP/s and as a share of the peak;
+  the default path at the recipe ``experiment=paper_cpu`` uses (``conf/train/cpu.yaml``:
+  32 ABRDFs x 256 directions); the decoder alone (autograd against the fused step, no
+  encoder);
+- the same in bfloat16 (``train.precision=bfloat16``), where oneDNN supports bfloat16 on
+  this CPU (AVX-512 or AMX); elsewhere its products take emulated code paths far slower
+  than float32's, and the bench skips them and says so;
 - encoder throughput (ABRDFs/s, forward and backward);
 - reconstruction throughput: Neural BTF (all M x N) and clustered (k x N decoded once);
 - with ``--paper-run``: time and peak resident memory of every stage of a paper-size run
@@ -18,7 +26,8 @@ The last line is one JSON object (keys in README.md), also logged to MLflow (exp
 ``bench`` under ``--runs``). Timings are medians of repeats; compare them as ratios within
 one run, never across runs on a shared machine. A measurement tool, not a test.
 
-    python -m pipeline.btf.fast.bench [--threads 2] [--paper-run] [--load-size 256] [--runs runs]
+    python -m pipeline.bench [--threads 2] [--steps 30] [--paper-run 200] [--load-size 256]
+                             [--runs runs]
 """
 
 from __future__ import annotations
@@ -36,11 +45,18 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
+from pipeline.btf.fast import kernels
+from pipeline.btf.fast.bench_child import OPENMP_SPIN_VARIABLES, TUNED, Isolated
+from pipeline.btf.fast.bench_loops import (
+    CONF,
+    N_PAPER,
+    decoder_training,
+    paper_channels,
+    pipeline_training,
+)
 from pipeline.btf.model import Decoder, Encoder, parameter_count
 
-N_PAPER = 6561
 M_PAPER = 10_000
-CONF = Path(__file__).resolve().parents[1] / "conf"
 # Decoder multiply-adds per query: 12*106 + 2*106*106 + 106*3.
 DECODER_MACS = 12 * 106 + 2 * 106 * 106 + 106 * 3
 TRAIN_FLOPS_PER_QUERY = 3 * 2 * DECODER_MACS  # forward + backward ~ 3x forward
@@ -54,10 +70,6 @@ def _median_seconds(fn, repeats: int) -> float:
         fn()
         times.append(time.perf_counter() - start)
     return float(np.median(times))
-
-
-def paper_channels() -> tuple[int, ...]:
-    return tuple(OmegaConf.load(CONF / "btf" / "default.yaml").model.encoder_channels)
 
 
 def matmul_peak(size: int = 2048, repeats: int = 5, dtype=torch.float32) -> float:
@@ -84,168 +96,28 @@ def _rates(queries_per_step: float, seconds_per_step: float) -> dict:
             "steps_per_s": 1 / seconds_per_step}
 
 
-def naive_training(steps: int, channels):
-    """A plain autograd loop at the paper's batch: each step encodes 5 ABRDFs, repeats each
-    latent for all N directions, concatenates the direction inputs and backpropagates.
-    Returns a callable that runs ``steps`` steps and returns their seconds."""
-    torch.manual_seed(0)
-    encoder, decoder = Encoder(N_PAPER, channels), Decoder()
-    # The blocks as a plain implementation would write them, conv -> ReLU -> torch's
-    # MaxPool1d -> batch-norm on (batch, C, L) tensors (Encoder.reference), not the
-    # pipeline's faster equivalents (model.MaxPool3 first, the channels-last forward).
-    for block in range(0, len(encoder.features), 4):
-        encoder.features[block + 1] = torch.nn.ReLU()
-        encoder.features[block + 2] = torch.nn.MaxPool1d(kernel_size=3, stride=3)
-    params = list(encoder.parameters()) + list(decoder.parameters())
-    optimizer = torch.optim.SGD(params, lr=0.05)
-    abrdfs = torch.randn(5, 3, N_PAPER)
-    directions = torch.rand(N_PAPER, 4)
-    targets = torch.rand(5 * N_PAPER, 3)
-    index = torch.arange(N_PAPER).repeat(5)
-
-    def run() -> float:
-        start = time.perf_counter()
-        for _ in range(steps):
-            latents = encoder.reference(abrdfs)
-            pred = decoder(latents.repeat_interleave(N_PAPER, 0), directions[index])
-            loss = torch.nn.functional.mse_loss(pred, targets)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-        return time.perf_counter() - start
-
-    return run
-
-
-class Isolated:
-    """A plain PyTorch loop (``naive`` or ``decoder_naive``) timed in a child process that
-    runs with libgomp's default settings, as a user's own program would: ``import
-    pipeline`` lowers OpenMP's spin-waiting for the pipeline's loops
-    (``pipeline.btf.fast.tuning.SPIN_COUNT``). On a 2-core AMX Xeon a spin count of 10,000 made the
-    naive loop slower (75 against 64 ms a step; at 30,000: 59-63 ms, no slower). Calling it
-    runs ``steps`` steps there and returns their seconds, like the other loops'
-    callables."""
-
-    def __init__(self, kind: str, steps: int, threads: int):
-        from pipeline.btf.fast.tuning import openmp_default_environment
-
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "pipeline.btf.fast.bench", "--serve", kind, "--steps", str(steps),
-             "--threads", str(threads)],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-            env=openmp_default_environment())
-
-    def __call__(self) -> float:
-        self.process.stdin.write("run\n")
-        self.process.stdin.flush()
-        while line := self.process.stdout.readline():
-            if line.startswith("seconds "):
-                return float(line.split()[1])
-        raise RuntimeError(f"the bench's child process ended (exit {self.process.wait()})")
-
-    def close(self) -> None:
-        self.process.stdin.close()
-        self.process.wait()
-
-
-def _serve(kind: str, steps: int) -> None:
-    """The child's side of :class:`Isolated`: a timing per line read from stdin."""
-    run = (naive_training(steps, paper_channels()) if kind == "naive"
-           else decoder_training(False, steps, torch.get_num_threads()))
-    for _ in sys.stdin:
-        print(f"seconds {run()!r}", flush=True)
-
-
-def decoder_training(fused: bool, steps: int, threads: int, precision: str = "float32"):
-    """The decoder alone at the paper's batch (5 fixed latents x all N directions): autograd
-    on the concatenated (latent, direction) rows, or the pipeline's fused step
-    (``pipeline.btf.fast.fused.DecoderStep``) with its default chunk, in ``precision``. Both
-    compute the latents' gradient and take an SGD step on the decoder, so the two differ only
-    in how the decoder's forward and backward are computed. The fused step runs with the
-    cores kept awake, as in training (``pipeline.btf.fast.tuning.keep_cpus_awake``). Returns a callable
-    that runs ``steps`` steps and returns their seconds."""
-    from pipeline.btf.fast.fused import Batch, DecoderStep
-    from pipeline.btf.fast.tuning import keep_cpus_awake
-
-    torch.manual_seed(0)
-    decoder = Decoder()
-    optimizer = torch.optim.SGD(decoder.parameters(), lr=1e-3)
-    latents = torch.randn(5, 8, requires_grad=True)
-    features = torch.rand(N_PAPER, 4)
-    targets = torch.rand(5, N_PAPER, 3)
-    directions = torch.arange(N_PAPER).repeat(5, 1)
-    step = (DecoderStep(decoder, features, workers=threads, precision=precision)
-            if fused else None)
-
-    def one_step() -> None:
-        optimizer.zero_grad(set_to_none=True)
-        if fused:
-            torch.set_num_threads(1)  # as in training: one op per thread, chunks side by side
-            step.assign(step(Batch(latents.detach(), directions, targets)))
-            torch.set_num_threads(threads)
-        else:
-            pred = decoder(latents.repeat_interleave(N_PAPER, 0),
-                           features[directions.reshape(-1)])
-            torch.nn.functional.mse_loss(pred, targets.reshape(-1, 3)).backward()
-        optimizer.step()
-
-    def run() -> float:
-        with keep_cpus_awake(threads if fused else 0):
-            one_step()  # untimed warm-up
-            start = time.perf_counter()
-            for _ in range(steps):
-                one_step()
-            return time.perf_counter() - start
-
-    return run
-
-
-def pipeline_training(batch: int, queries: int, steps: int, channels, threads: int,
-                      precision: str = "float32", optimizer: str = "sgd", lr: float = 0.05):
-    """The project's training loop (``pipeline.btf.train.train``) on random ABRDFs: data
-    handling, normalization, encoder, fused decoder step and optimizer (by default the
-    paper's plain SGD, as in the naive loop), as in a real run. Returns a callable that runs
-    ``steps`` steps and returns their training seconds."""
-    from pipeline.btf.preprocess import fit_normalization
-    from pipeline.btf.train import train
-    from pipeline.btf.train_settings import TrainSettings
-
-    rng = np.random.default_rng(0)
-    m = max(2 * batch, 64)
-    abrdf = rng.random((m, N_PAPER, 3), dtype=np.float32)
-    norm = fit_normalization(abrdf)
-    features = rng.random((N_PAPER, 4), dtype=np.float32) * 2 - 1
-    settings = TrainSettings(epochs=10**6, batch_size=batch, queries_per_abrdf=queries,
-                             max_steps=steps, optimizer=optimizer, lr=lr, threads=threads,
-                             device="cpu", precision=precision)
-
-    def run() -> float:
-        return train(abrdf, abrdf, np.arange(m), norm, features, np.arange(N_PAPER), settings,
-                     seed=0, encoder_channels=channels).seconds
-
-    return run
-
-
-def interleaved(loops: dict, queries_per_step: dict, steps: int, rounds: int = 3) -> dict:
+def interleaved(loops: dict, queries_per_step: dict, steps: int, bf16: bool,
+                rounds: int = 3) -> dict:
     """Time the loops in turn, ``rounds`` times after one warm-up each, so that a machine
     that slows down or speeds up meanwhile affects all of them alike; medians per loop.
-    The float32 and bfloat16 matmul peaks are measured in every round too
-    (``matmul_gflops`` and ``matmul_gflops_bf16``, the medians; ``..._rounds``, each
+    The float32 matmul peak (and with ``bf16`` the bfloat16 one) is measured in every round
+    too (``matmul_gflops``, ``matmul_gflops_bf16``: the medians; ``..._rounds``: each
     round's), so the shares of them compare like with like."""
     for run in loops.values():
         run()
     times = {name: [] for name in loops}
-    peaks, peaks_bf16 = [], []
+    peaks = {"matmul_gflops": []} | ({"matmul_gflops_bf16": []} if bf16 else {})
     for _ in range(rounds):
-        peaks.append(matmul_peak())
-        peaks_bf16.append(matmul_peak(dtype=torch.bfloat16))
+        for key, rounds_of_key in peaks.items():
+            rounds_of_key.append(matmul_peak(dtype=torch.bfloat16 if "bf16" in key
+                                             else torch.float32))
         for name, run in loops.items():
             times[name].append(run() / steps)
     figures = {name: _rates(queries_per_step[name], float(np.median(t)))
                for name, t in times.items()}
-    return figures | {"matmul_gflops": float(np.median(peaks)), "matmul_gflops_rounds": peaks,
-                      "matmul_gflops_bf16": float(np.median(peaks_bf16)),
-                      "matmul_gflops_bf16_rounds": peaks_bf16}
+    for key, rounds_of_key in peaks.items():
+        figures |= {key: float(np.median(rounds_of_key)), f"{key}_rounds": rounds_of_key}
+    return figures
 
 
 def encoder_throughput(batch: int, channels) -> float:
@@ -332,6 +204,58 @@ def _drop_page_cache() -> bool:
         return False
 
 
+def bfloat16_skip_reason() -> str | None:
+    """Why this CPU gets no bfloat16 figures, or None where oneDNN supports bfloat16 here
+    (AVX-512 or AMX): elsewhere its bfloat16 products take emulated code paths, orders of
+    magnitude slower than float32's, which would stretch the bench to hours."""
+    if torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        return None
+    return ("oneDNN does not support bfloat16 on this CPU (torch.ops.mkldnn."
+            "_is_mkldnn_bf16_supported() is False; native bfloat16 instructions: "
+            f"{cpu_bfloat16_support()}): its bfloat16 products would take slow emulated paths")
+
+
+def tuning_in_effect(threads: int) -> dict:
+    """What :data:`~pipeline.btf.fast.bench_child.TUNED` does on this machine at ``threads``
+    threads: the spinning processes ``keep_awake`` starts (none under a CPU quota, or with
+    fewer threads than cores: :func:`pipeline.btf.fast.tuning.keep_cpus_awake`), the spin
+    count, and whether glibc's malloc is there to keep freed memory."""
+    from pipeline.btf.fast.tuning import can_keep_awake, glibc
+
+    cpus = len(os.sched_getaffinity(0)) if can_keep_awake() else 0
+    return {"keep_awake_processes": cpus if cpus and threads >= max(2, cpus) else 0,
+            "omp_spin_count": TUNED["omp_spin_count"],
+            "reuse_freed_memory": glibc() is not None}
+
+
+def training_figures(steps: int, threads: int, channels, recipe, bf16: bool) -> dict:
+    """Every training loop's figures, timed in turn (:func:`interleaved`). The naive loops
+    and the pipeline's loop at the paper's batch, default and tuned, run in child processes
+    (:class:`~pipeline.btf.fast.bench_child.Isolated`); the recipe's loop and the fused
+    decoder step in this one."""
+    paper = {"train_naive": Isolated("naive", steps, threads),
+             "train_default": Isolated("train", steps, threads),
+             "train_tuned": Isolated("train", steps, threads, tuned=True)}
+    if bf16:
+        paper |= {"train_default_bf16": Isolated("train", steps, threads, precision="bfloat16"),
+                  "train_tuned_bf16": Isolated("train", steps, threads, tuned=True,
+                                               precision="bfloat16")}
+    children = paper | {"decoder_naive": Isolated("decoder_naive", steps, threads)}
+    loops = children | {"decoder_fused": decoder_training(True, steps, threads)}
+    if bf16:
+        loops["decoder_fused_bf16"] = decoder_training(True, steps, threads, "bfloat16")
+    loops["train_paper_recipe"] = pipeline_training(
+        recipe.batch_size, recipe.queries_per_abrdf, steps, channels, threads,
+        optimizer=recipe.optimizer, lr=recipe.lr)
+    queries = {name: 5 * N_PAPER for name in loops}
+    queries["train_paper_recipe"] = recipe.batch_size * recipe.queries_per_abrdf
+    try:
+        return interleaved(loops, queries, steps, bf16)
+    finally:
+        for child in children.values():
+            child.close()
+
+
 def _print_training(name: str, row: dict, peak: float, peak_bf16: float | None = None) -> None:
     """One loop's line; a bfloat16 loop gets its share of both peaks (``share_of_peak``
     and ``share_of_bf16_peak`` in the JSON)."""
@@ -344,8 +268,74 @@ def _print_training(name: str, row: dict, peak: float, peak_bf16: float | None =
           f"{row['gflops']:.1f} GFLOP/s = {shares}, {row['steps_per_s']:.1f} steps/s")
 
 
+def _ratio(figures: dict, key: str, faster: str, slower: str, what: str) -> None:
+    """``figures[key]``: the queries/s of loop ``faster`` over those of ``slower``."""
+    figures[key] = figures[faster]["queries_per_s"] / figures[slower]["queries_per_s"]
+    print(f"  {what}: {figures[key]:.3f}x")
+
+
+def _print_paths(figures: dict, precision: str) -> None:
+    """The pipeline's loop at the paper's batch in ``precision``, default and tuned."""
+    suffix = "_bf16" if precision == "bfloat16" else ""
+    peak = figures["matmul_gflops"]
+    peak_bf16 = figures["matmul_gflops_bf16"] if suffix else None
+    default, tuned = f"train_default{suffix}", f"train_tuned{suffix}"
+    figures[f"train_fused{suffix}"] = figures[default]
+    _print_training(f"pipeline loop, {precision}, default (5 x all N)", figures[default], peak,
+                    peak_bf16)
+    _ratio(figures, f"train_speedup{suffix}", default, "train_naive",
+           "speed-up over the naive loop")
+    _print_training(f"pipeline loop, {precision}, opt-in tuning (5 x all N)", figures[tuned],
+                    peak, peak_bf16)
+    _ratio(figures, f"tuning_speedup{suffix}", tuned, default,
+           "what the opt-in tuning buys (tuned / default)")
+
+
+def print_training(figures: dict, recipe, bf16_skipped: str | None) -> None:
+    """The training figures' lines; adds the ratios (``train_speedup``,
+    ``tuning_speedup``, ...) and ``train_fused`` (the default path's figures again)."""
+    peak, threads, tuning = figures["matmul_gflops"], figures["threads"], figures["tuning"]
+    print(f"matmul peak: {peak:.1f} GFLOP/s (median of "
+          f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_rounds'])}, one per round "
+          f"of the training loops; {threads} threads, device {figures['device']}; the "
+          f"training figures below run on the CPU)")
+    ops = "C++ kernels" if figures["kernels"] else "plain torch ops (the kernels did not build)"
+    awake = tuning["keep_awake_processes"]
+    print(f"default path: fused step with {ops}, no machine tuning, libgomp's defaults; "
+          f"opt-in tuning: train.keep_awake=true ({awake or 'no'} spinning processes here), "
+          f"train.omp_spin_count={tuning['omp_spin_count']}, train.reuse_freed_memory=true"
+          f"{'' if tuning['reuse_freed_memory'] else ' (no effect: not glibc)'}")
+    if set(os.environ) & set(OPENMP_SPIN_VARIABLES):
+        print(f"note: {'/'.join(OPENMP_SPIN_VARIABLES)} set in this environment: the loops "
+              "run in this process (decoder, recipe, matmul) run with it, the child processes "
+              "without")
+    _print_training("naive autograd loop (5 x all N)", figures["train_naive"], peak)
+    _print_paths(figures, "float32")
+    if bf16_skipped is None:
+        print(f"bfloat16 matmul peak: {figures['matmul_gflops_bf16']:.1f} GFLOP/s (median of "
+              f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_bf16_rounds'])}); "
+              f"the CPU's bfloat16 instructions: {figures['cpu_bf16']}")
+        _print_paths(figures, "bfloat16")
+    else:
+        print(f"bfloat16 figures skipped: {bf16_skipped}")
+    _print_training("decoder alone, autograd (5 x all N)", figures["decoder_naive"], peak)
+    _print_training("decoder alone, fused step (5 x all N)", figures["decoder_fused"], peak)
+    _ratio(figures, "decoder_speedup", "decoder_fused", "decoder_naive",
+           "speed-up of the decoder's step")
+    if bf16_skipped is None:
+        _print_training("decoder alone, fused step in bfloat16 (5 x all N)",
+                        figures["decoder_fused_bf16"], peak, figures["matmul_gflops_bf16"])
+        _ratio(figures, "decoder_speedup_bf16", "decoder_fused_bf16", "decoder_naive",
+               "speed-up of the decoder's step")
+    _print_training(f"pipeline loop, default, experiment=paper_cpu recipe ({recipe.batch_size} x "
+                    f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
+
+
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m pipeline.bench", description=__doc__.splitlines()[0].replace("``", ""),
+        epilog="Timings are medians of interleaved rounds; compare them as ratios within one "
+               "run. bfloat16 loops only where oneDNN supports bfloat16 on the CPU.")
     parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
     parser.add_argument("--steps", type=int, default=30, help="training steps per timing")
     parser.add_argument("--runs", default="runs", help="paths.runs holding mlflow.db")
@@ -356,75 +346,26 @@ def main(argv=None) -> dict:
     parser.add_argument("--load-size", type=int, default=0,
                         help="also time loading a 6561-file UBO2003 folder of this texture size "
                              "(256 = the real datasets; generated once under --runs)")
-    parser.add_argument("--serve", choices=("naive", "decoder_naive"),
-                        help=argparse.SUPPRESS)  # the child of Isolated
     args = parser.parse_args(argv)
     if args.threads:
         torch.set_num_threads(args.threads)
-    if args.serve:
-        _serve(args.serve, args.steps)
-        return {}
     threads = torch.get_num_threads()
     channels = paper_channels()
     device = "cuda" if torch.cuda.is_available() else "cpu"
+    bf16_skipped = bfloat16_skip_reason()
     figures: dict = {"device": f"{device} ({torch.cuda.get_device_name()})" if device == "cuda"
                      else "cpu", "threads": threads,
                      "machine": platform.processor() or platform.machine(),
                      "torch": torch.__version__, "cpu_bf16": cpu_bfloat16_support(),
+                     # Built here, once, before the child processes load them.
+                     "kernels": kernels.available(), "tuning": tuning_in_effect(threads),
                      "decoder_parameters": parameter_count(Decoder()),
                      "encoder_channels": list(channels)}
+    if bf16_skipped is not None:
+        figures["bf16_skipped"] = bf16_skipped
     recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
-    naive = {"train_naive": Isolated("naive", args.steps, threads),
-             "decoder_naive": Isolated("decoder_naive", args.steps, threads)}
-    figures |= interleaved(
-        {"train_naive": naive["train_naive"],
-         "train_fused": pipeline_training(5, -1, args.steps, channels, threads),
-         "train_paper_recipe": pipeline_training(recipe.batch_size, recipe.queries_per_abrdf,
-                                                 args.steps, channels, threads,
-                                                 optimizer=recipe.optimizer, lr=recipe.lr),
-         "train_fused_bf16": pipeline_training(5, -1, args.steps, channels, threads,
-                                               precision="bfloat16"),
-         "decoder_naive": naive["decoder_naive"],
-         "decoder_fused": decoder_training(True, args.steps, threads),
-         "decoder_fused_bf16": decoder_training(True, args.steps, threads, "bfloat16")},
-        {"train_naive": 5 * N_PAPER, "train_fused": 5 * N_PAPER,
-         "train_paper_recipe": recipe.batch_size * recipe.queries_per_abrdf,
-         "train_fused_bf16": 5 * N_PAPER, "decoder_naive": 5 * N_PAPER,
-         "decoder_fused": 5 * N_PAPER, "decoder_fused_bf16": 5 * N_PAPER},
-        args.steps)
-    for child in naive.values():
-        child.close()
-    peak = figures["matmul_gflops"]
-    print(f"matmul peak: {peak:.1f} GFLOP/s (median of "
-          f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_rounds'])}, one per round "
-          f"of the training loops; {threads} threads, device {figures['device']}; the "
-          f"training figures below run on the CPU)")
-    _print_training("naive autograd loop (5 x all N)", figures["train_naive"], peak)
-    _print_training("pipeline loop (5 x all N)", figures["train_fused"], peak)
-    figures["train_speedup"] = (figures["train_fused"]["queries_per_s"]
-                                / figures["train_naive"]["queries_per_s"])
-    print(f"  speed-up over the naive loop: {figures['train_speedup']:.2f}x")
-    peak_bf16 = figures["matmul_gflops_bf16"]
-    print(f"bfloat16 matmul peak: {peak_bf16:.1f} GFLOP/s (median of "
-          f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_bf16_rounds'])}); the CPU's "
-          f"bfloat16 instructions: {figures['cpu_bf16']}")
-    _print_training("pipeline loop, train.precision=bfloat16 (5 x all N)",
-                    figures["train_fused_bf16"], peak, peak_bf16)
-    figures["train_speedup_bf16"] = (figures["train_fused_bf16"]["queries_per_s"]
-                                     / figures["train_naive"]["queries_per_s"])
-    print(f"  speed-up over the naive loop: {figures['train_speedup_bf16']:.2f}x")
-    _print_training("decoder alone, autograd (5 x all N)", figures["decoder_naive"], peak)
-    _print_training("decoder alone, fused step (5 x all N)", figures["decoder_fused"], peak)
-    figures["decoder_speedup"] = (figures["decoder_fused"]["queries_per_s"]
-                                  / figures["decoder_naive"]["queries_per_s"])
-    print(f"  speed-up of the decoder's step: {figures['decoder_speedup']:.2f}x")
-    _print_training("decoder alone, fused step in bfloat16 (5 x all N)",
-                    figures["decoder_fused_bf16"], peak, peak_bf16)
-    figures["decoder_speedup_bf16"] = (figures["decoder_fused_bf16"]["queries_per_s"]
-                                       / figures["decoder_naive"]["queries_per_s"])
-    print(f"  speed-up of the decoder's step: {figures['decoder_speedup_bf16']:.2f}x")
-    _print_training(f"pipeline loop, experiment=paper_cpu recipe ({recipe.batch_size} x "
-                    f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
+    figures |= training_figures(args.steps, threads, channels, recipe, bf16_skipped is None)
+    print_training(figures, recipe, bf16_skipped)
     figures["encoder_abrdfs_per_s"] = encoder_throughput(32, channels)
     print(f"encoder: {figures['encoder_abrdfs_per_s']:.0f} ABRDFs/s (forward + backward)")
     seconds = reconstruction_seconds(256)
