@@ -22,9 +22,27 @@ Prints, in one run on one machine:
   on the synthetic BTF (one Neural BTF and one clustered job, each in its own process);
 - with ``--load-size 256``: loading a 6561-file UBO2003 folder, decoded and cached.
 
-The last line is one JSON object (keys in README.md), also logged to MLflow (experiment
-``bench`` under ``--runs``). Timings are medians of repeats; compare them as ratios within
-one run, never across runs on a shared machine. A measurement tool, not a test.
+The last line is one JSON object, also logged to MLflow (experiment ``bench`` under
+``--runs``). Timings are medians of repeats; compare them as ratios within one run, never
+across runs on a shared machine. A measurement tool, not a test. Its keys:
+
+- ``matmul_gflops`` (``_rounds``: each round's), ``matmul_gflops_bf16`` (``_rounds``);
+- each loop's ``queries_per_s``, ``gflops``, ``steps_per_s``, ``share_of_peak`` (and
+  ``share_of_bf16_peak`` for bfloat16 loops), under ``train_naive``, ``train_default``
+  (``train_fused``: the same figures), ``train_tuned``, ``train_paper_recipe``,
+  ``decoder_naive``, ``decoder_fused``, and with ``_bf16`` ``train_default_bf16``
+  (``train_fused_bf16``), ``train_tuned_bf16``, ``decoder_fused_bf16``;
+- the ratios ``train_speedup`` (default / naive), ``tuning_speedup`` (tuned / default),
+  ``decoder_speedup`` (fused / autograd), each also with ``_bf16``;
+- ``tuning``: what the opt-in tuning does here (``keep_awake_processes``, spinning
+  processes, 0 where none start; ``omp_spin_count``; ``reuse_freed_memory``: glibc found);
+  ``kernels``: whether the C++ kernels built; ``cpu_bf16``: the CPU's native bfloat16
+  instructions (``amx_bf16``, ``avx512_bf16`` or ``none``); ``bf16_skipped``: why the
+  ``_bf16`` keys are missing, where they are;
+- ``encoder_abrdfs_per_s``, ``reconstruct_queries_per_s``, ``reconstruct_neural_btf_s``,
+  ``reconstruct_clustered_k2000_s``; ``paper_run.<variant>.*`` and ``load_*`` with
+  ``--paper-run`` and ``--load-size``; ``device``, ``threads``, ``machine``, ``torch``,
+  ``decoder_parameters``, ``encoder_channels``.
 
     python -m pipeline.bench [--threads 2] [--steps 30] [--paper-run 200] [--load-size 256]
                              [--runs runs]
