@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.core.cache import StageCache, publish, canonical_json, save_arrays, stage_key
+from pipeline.core.cache import StageCache, canonical_json, publish, save_arrays, stage_key
 
 
 def test_key_ignores_key_order_and_int_vs_float():

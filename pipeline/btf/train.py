@@ -149,6 +149,12 @@ def train(
             optimizer, lambda step: 0.5 ** (step / half_life_steps))
     else:
         schedule = None
+    if (settings.precision == "bfloat16" and device.type == "cpu"
+            and not torch.ops.mkldnn._is_mkldnn_bf16_supported()):
+        # Without AVX512-BF16 or AMX, bfloat16 products run on emulated paths, many times
+        # slower than float32 (docs/performance.md).
+        log.warning("train.precision=bfloat16 on a CPU without bfloat16 support (no "
+                    "AVX512-BF16 or AMX): expect training far slower than float32")
     step_fn = DecoderStep(decoder, features, workers=workers,
                           chunk=settings.chunk if device.type == "cpu" else 1 << 20,
                           precision=settings.precision)
