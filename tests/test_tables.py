@@ -192,3 +192,27 @@ def test_no_convergence_table_without_runs_of_different_lengths(tmp_path, settin
     _log_runs(tmp_path, RUNS)
     out = build_tables(tmp_path, settings)
     assert not (out / "convergence.csv").exists()
+
+
+def test_runs_near_the_mean_abrdf_baseline_are_flagged(tmp_path, settings):
+    experiment_id = init_store(tmp_path, "btf")
+    for seed, rmse in ((0, 0.03), (1, 0.14)):  # against a baseline of 0.15
+        with mlflow.start_run(experiment_id=experiment_id, tags={"cache.evaluate": str(seed)}):
+            mlflow.log_params({"method.name": "neural_btf", "method.k": None, "seed": seed,
+                               "dataset.name": "synthetic"})
+            mlflow.log_metrics({"rmse": rmse, "rmse_mean_abrdf": 0.15})
+    out = build_tables(tmp_path, settings)
+    failed = pd.read_csv(out / "failed_runs.csv")
+    assert list(failed["seed"]) == [1] and failed.loc[0, "ratio"] == 0.93
+    assert "did not beat the trivial baseline" in (out / "summary.md").read_text()
+
+
+def test_a_failed_training_warns_and_reports_its_ratio(caplog):
+    from pipeline.btf.runner import check_against_baseline
+
+    good = {"rmse": 0.03, "rmse_mean_abrdf": 0.15}
+    check_against_baseline(good)
+    assert good["rmse_ratio_to_mean_abrdf"] == pytest.approx(0.2) and not caplog.records
+    bad = {"rmse": 0.16, "rmse_mean_abrdf": 0.15}
+    check_against_baseline(bad)
+    assert "training failed" in caplog.text and "1.07 x the mean-ABRDF baseline" in caplog.text

@@ -57,6 +57,15 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
                 both.reset_index(), out, "graininess",
                 "Graininess fix: clustered RMSE without / with a per-texel scale",
                 "The scale costs one float per texel (bytes_extra)."))
+    failed = tables.failed_runs(runs)
+    if not failed.empty:
+        found.append(write_table(
+            failed, out, "failed_runs",
+            "WARNING: runs that did not beat the trivial baseline",
+            "These models end within 10 % of the mean-ABRDF baseline (every texel "
+            "reconstructed as the mean ABRDF) or above it: their training failed, and their "
+            "RMSE in Table 2 measures no compression. Check train.* (lr, steps, schedule) "
+            "against the crop size."))
     interpolation = tables.table_interpolation(runs)
     if not interpolation.empty:
         found.append(write_table(interpolation, out, "interpolation",

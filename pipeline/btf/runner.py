@@ -218,10 +218,31 @@ def run(ctx: Context) -> dict[str, float]:
         train_queries=summary["queries"], final_loss=summary["final_loss"],
         n_texels=cropped.manifest["summary"]["M"], n_directions=cropped.manifest["summary"]["N"],
     )
+    check_against_baseline(metrics)
     if mlflow.active_run() is not None:
         mlflow.log_artifact(str(evaluated.file("rmse_per_direction.npy")), "evaluate")
         mlflow.log_text(json.dumps(metrics, indent=1), "metrics.json")
     return metrics
+
+
+# A model whose error is within this fraction of the mean-ABRDF baseline, or above it, has
+# learnt next to nothing: its training failed, whatever its loss curve says.
+NEAR_BASELINE = 0.9
+
+
+def check_against_baseline(metrics: dict) -> None:
+    """Add ``rmse_ratio_to_mean_abrdf``; warn and tag the run when the model ends within
+    10 % of the trivial mean-ABRDF baseline or above it (``tags.training_failed``)."""
+    ratio = metrics["rmse"] / metrics["rmse_mean_abrdf"]
+    metrics["rmse_ratio_to_mean_abrdf"] = ratio
+    if ratio < NEAR_BASELINE:
+        return
+    message = (f"training failed: RMSE {metrics['rmse']:.4g} is {ratio:.2f} x the mean-ABRDF "
+               f"baseline ({metrics['rmse_mean_abrdf']:.4g}); check train.* (lr, steps) "
+               f"against the crop size")
+    log.warning(message)
+    if mlflow.active_run() is not None:
+        mlflow.set_tag("training_failed", message)
 
 
 def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
@@ -268,5 +289,7 @@ def run_linear(ctx: Context) -> dict[str, float]:
     cropped = stages.crop(ctx, loaded)
     prep = stages.preprocess(ctx, cropped)
     fitted = linear_stage(ctx, cropped, prep)
-    return {**fitted.json("metrics"), "n_texels": cropped.manifest["summary"]["M"],
-            "n_directions": cropped.manifest["summary"]["N"]}
+    metrics = {**fitted.json("metrics"), "n_texels": cropped.manifest["summary"]["M"],
+               "n_directions": cropped.manifest["summary"]["N"]}
+    check_against_baseline(metrics)
+    return metrics

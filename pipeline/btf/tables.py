@@ -158,6 +158,22 @@ def table_rmse(runs: pd.DataFrame, metric: str = "rmse") -> pd.DataFrame:
     return table.fillna("–")  # no run of that model on that dataset
 
 
+def failed_runs(runs: pd.DataFrame, near: float = 0.9) -> pd.DataFrame:
+    """Runs whose RMSE is within ``1 - near`` of the mean-ABRDF baseline or above it: the
+    model learnt next to nothing (computed from the metrics, so older runs are checked too).
+    """
+    if "metrics.rmse_mean_abrdf" not in runs:
+        return pd.DataFrame()
+    ratio = _num(runs["metrics.rmse"]) / _num(runs["metrics.rmse_mean_abrdf"])
+    failed = runs[ratio >= near]
+    return pd.DataFrame({
+        "dataset": failed["dataset"], "model": failed["model"], "seed": failed["seed"],
+        "RMSE": failed["metrics.rmse"].round(4),
+        "mean-ABRDF baseline": failed["metrics.rmse_mean_abrdf"].round(4),
+        "ratio": ratio[failed.index].round(2), "run": failed["run_id"],
+    }).reset_index(drop=True)
+
+
 def table_interpolation(runs: pd.DataFrame) -> pd.DataFrame:
     """RMSE at directions training never saw: model vs nearest and linear interpolation."""
     present = [(m, n) for m, n in INTERPOLATION_COLUMNS if f"metrics.{m}" in runs]
