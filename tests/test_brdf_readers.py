@@ -12,6 +12,7 @@ from pipeline.data.brdf import (
     UTIA_N_BYTES,
     MeasuredBRDF,
     half_vector_angles,
+    merl_azimuths,
     merl_half_diff_angles,
     missing_mask_by_polar_angle,
     read_merl_brdf,
@@ -197,3 +198,29 @@ def test_synthetic_utia_file_holds_the_ground_truth(tmp_path):
     expected = truth.evaluate(brdf.light, brdf.view)
     np.testing.assert_allclose(brdf.reflectance[brdf.measured], expected[brdf.measured])
     assert list(tmp_path.iterdir()) == [path]
+
+
+def test_merl_azimuths_are_spread_evenly():
+    phi_h = merl_azimuths(90 * 180)  # one theta_h row of the table
+    assert phi_h.min() >= 0.0 and phi_h.max() < 2 * np.pi
+    counts = np.bincount((phi_h / (2 * np.pi) * 96).astype(int), minlength=96)
+    assert counts.min() >= 165 and counts.max() <= 173  # 16200 / 96 = 168.75 per cell
+
+
+def test_merl_reader_places_entries_at_their_azimuths(tmp_path):
+    reflectance = np.ones((N_MERL, 3))
+    brdf = read_merl_brdf(write_merl_brdf(tmp_path / "m.binary", reflectance))
+    light, view = brdf.light[::991], brdf.view[::991]
+    theta_h, phi_h, cos_kh = half_vector_angles(light, view)
+    half_diff = brdf.half_diff[::991]
+    np.testing.assert_allclose(theta_h, half_diff[:, 0], atol=1e-6)
+    np.testing.assert_allclose(np.arccos(cos_kh), half_diff[:, 1], atol=1e-6)
+    expected = merl_azimuths(N_MERL)[::991]
+    off_pole = theta_h > 1e-3  # the half vector's azimuth is undefined at the normal
+    np.testing.assert_allclose(
+        np.angle(np.exp(1j * (phi_h - expected)))[off_pole], 0.0, atol=1e-6
+    )
+    # spread_azimuths=False keeps the table's own frame: every half vector at phi_h = 0.
+    plain = read_merl_brdf(tmp_path / "m.binary", spread_azimuths=False)
+    _, phi_plain, _ = half_vector_angles(plain.light[::991], plain.view[::991])
+    np.testing.assert_allclose(np.sin(phi_plain[off_pole]), 0.0, atol=1e-9)

@@ -140,7 +140,9 @@ def data_stage(ctx: Context) -> Entry:
             "ground_truth": "truth" in arrays,
         }
 
-    return ctx.run("brdf_data", settings, {}, compute, version="1")
+    # Version 2: the MERL reader places each entry at its own half-vector azimuth (phi_h = 0
+    # before), so MERL samples cached by version 1 are stale.
+    return ctx.run("brdf_data", settings, {}, compute, version="2")
 
 
 def _above(light: np.ndarray, view: np.ndarray) -> np.ndarray:

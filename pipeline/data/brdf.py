@@ -21,7 +21,11 @@ MERL isotropic BRDF
     (pi/2)))``, theta_d index ``floor(theta_d / (pi/2) * 90)``, phi_d index
     ``floor(phi_d / pi * 180)``; channel scales 1/1500, 1.15/1500, 1.66/1500; negative means
     missing. The reader returns the tabulated values at the lower edge of each index cell
-    (the angles the index formula maps exactly back to) with phi_h = 0.
+    (the angles the index formula maps exactly back to). The table has no phi_h axis
+    because the BRDF is isotropic: each value holds at every phi_h. The reader therefore
+    places each entry at its own azimuth phi_h (:func:`merl_azimuths`, spread evenly over
+    [0, 2 pi)) rather than at phi_h = 0, so the samples cover the half-vector hemisphere
+    as isotropy implies (see :func:`read_merl_brdf`).
 """
 
 from __future__ import annotations
@@ -345,13 +349,40 @@ def merl_half_diff_angles() -> np.ndarray:
     return np.stack([theta_h, theta_d, phi_d], axis=-1)
 
 
-def half_diff_to_directions(half_diff: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rusinkiewicz half/difference angles (phi_h = 0) to light and view directions.
+def merl_azimuths(n: int) -> np.ndarray:
+    """Half-vector azimuths phi_h for ``n`` isotropic samples, spread evenly over [0, 2 pi).
+
+    The golden-ratio (Weyl) sequence ``phi_h[k] = 2 pi frac(k / golden)``: deterministic,
+    equidistributed over every run of consecutive indices, and not aligned with the MERL
+    table's (theta_d, phi_d) axes (an index stride like ``k mod n_phi`` would tie phi_h to
+    phi_d, since the table index is ``phi_d + 180 (theta_d + 90 theta_h)``).
+
+    Parameters
+    ----------
+    n : int
+        Number of samples.
+
+    Returns
+    -------
+    ndarray of shape (n,)
+        Radians in [0, 2 pi).
+    """
+    golden = 0.5 * (np.sqrt(5.0) - 1.0)
+    return 2.0 * np.pi * np.mod(np.arange(n, dtype=np.float64) * golden, 1.0)
+
+
+def half_diff_to_directions(
+    half_diff: np.ndarray, phi_h: np.ndarray | float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rusinkiewicz half/difference angles to light and view directions.
 
     Parameters
     ----------
     half_diff : ndarray of shape (n, 3)
         ``(theta_h, theta_d, phi_d)`` in radians.
+    phi_h : float or ndarray of shape (n,), optional
+        Azimuth of the half vector (default 0): both directions are rotated by it about
+        the normal, which leaves theta_h, theta_d and phi_d unchanged.
 
     Returns
     -------
@@ -371,16 +402,29 @@ def half_diff_to_directions(half_diff: np.ndarray) -> tuple[np.ndarray, np.ndarr
     )
     half = np.stack([s, np.zeros_like(s), c], axis=-1)
     view = 2.0 * np.sum(light * half, axis=-1, keepdims=True) * half - light
-    return to_angles(light), to_angles(view)
+    light, view = to_angles(light), to_angles(view)
+    # Rotating about the normal adds phi_h to both azimuths (theta is unchanged).
+    light[:, 1] = np.mod(light[:, 1] + phi_h, 2.0 * np.pi)
+    view[:, 1] = np.mod(view[:, 1] + phi_h, 2.0 * np.pi)
+    return light, view
 
 
-def read_merl_brdf(path: str | os.PathLike) -> MeasuredBRDF:
+def read_merl_brdf(path: str | os.PathLike, spread_azimuths: bool = True) -> MeasuredBRDF:
     """Read a MERL isotropic BRDF binary.
 
     Parameters
     ----------
     path : path-like
         The ``.binary`` file.
+    spread_azimuths : bool, optional
+        Place table entry k at the half-vector azimuth ``merl_azimuths(n)[k]`` (default)
+        instead of phi_h = 0. Isotropy makes each value hold at every phi_h; with
+        phi_h = 0 for all entries the half vectors fill a single azimuth, and a fit of
+        (theta_h, phi_h) (method B) sees one phi column of its observed distribution and
+        loses the lobe. Replicating every entry at each of a fit's phi cells would be
+        exact but multiply 1.46 M samples by ~100; one evenly spread azimuth per entry
+        gives each (theta_h, phi_h) cell an unbiased subsample of the entries of its
+        theta_h band (thousands of them at the default grids) at no cost.
 
     Returns
     -------
@@ -407,7 +451,8 @@ def read_merl_brdf(path: str | os.PathLike) -> MeasuredBRDF:
     measured = np.all(np.isfinite(raw) & (raw >= 0.0), axis=1)
     reflectance = np.where(measured[:, None], raw * MERL_SCALES, 0.0)
     half_diff = merl_half_diff_angles()
-    light, view = half_diff_to_directions(half_diff)
+    phi_h = merl_azimuths(half_diff.shape[0]) if spread_azimuths else 0.0
+    light, view = half_diff_to_directions(half_diff, phi_h)
     return MeasuredBRDF(reflectance, light, view, measured, half_diff=half_diff, source=str(path))
 
 
