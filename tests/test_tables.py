@@ -85,7 +85,7 @@ def test_tables_from_hand_made_runs(tmp_path, settings):
 
     verdict = pd.read_csv(out / "k_verdict.csv")
     assert verdict.loc[0, "verdict"].startswith("k changes the RMSE beyond seed noise")
-    assert "lowest mean at k=1000" in verdict.loc[0, "verdict"]
+    assert "lowest mean at k = 1000" in verdict.loc[0, "verdict"]
 
     summary = (out / "summary.md").read_text()
     assert "synthetic: no run of k = 2000" in summary
@@ -216,3 +216,21 @@ def test_a_failed_training_warns_and_reports_its_ratio(caplog):
     bad = {"rmse": 0.16, "rmse_mean_abrdf": 0.15}
     check_against_baseline(bad)
     assert "training failed" in caplog.text and "1.07 x the mean-ABRDF baseline" in caplog.text
+
+
+def test_runs_of_two_recipes_are_never_averaged_as_seeds(tmp_path, settings):
+    """SGD and Adam runs of one model at the same epochs: two columns, labelled by what
+    differs; the threads setting (speed only) does not split them."""
+    experiment_id = init_store(tmp_path, "btf")
+    for seed, optimizer, threads, rmse in ((0, "sgd", 1, 0.05), (1, "sgd", 2, 0.07),
+                                           (0, "adam", 1, 0.02), (1, "adam", 2, 0.04)):
+        with mlflow.start_run(experiment_id=experiment_id,
+                              tags={"cache.evaluate": f"{optimizer}{seed}"}):
+            mlflow.log_params({"method.name": "clustered", "method.k": 500, "seed": seed,
+                               "dataset.name": "synthetic", "train.epochs": 16,
+                               "train.optimizer": optimizer, "train.threads": threads})
+            mlflow.log_metrics({"rmse": rmse})
+    rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
+    assert rmse.loc[0, "k = 500 [train.optimizer=adam]"] == "0.0300 ± 0.0141 (n=2)"
+    assert rmse.loc[0, "k = 500 [train.optimizer=sgd]"] == "0.0600 ± 0.0141 (n=2)"
+    assert "k = 500" not in rmse.columns

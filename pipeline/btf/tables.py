@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+
+from pipeline.btf.k_verdict import blocked_verdict, describe
+from pipeline.core.recipe import recipe_settings
 
 SIZE_ROWS = [
     ("bytes_decoder", "decoder"),
@@ -81,10 +83,39 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     runs["base_model"] = label
     runs["epochs"] = _num(epochs)
     label = np.where(epochs != usual, label + " (" + epochs + " epochs)", label)
+    # Runs are seeds of one model only when their recipes match: a column whose runs differ
+    # in anything else (optimizer, learning rate, held-out lights, ...) is split, each part
+    # labelled by what differs.
     runs["model"] = label
+    runs["model"] = runs["model"] + recipe_suffixes(runs)
     runs["order"] = np.where(method == "neural_btf", -1.0,
                              np.where(method == "pca", 1e9 + components.fillna(0), runs["k"]))
     return runs
+
+
+def recipe_suffixes(runs: pd.DataFrame, most: int = 3) -> pd.Series:
+    """For each run, ``" [key=value, ...]"`` naming the recipe settings in which it differs
+    from other runs of the same dataset and model label; ``""`` where they all agree.
+
+    Settings are compared where every run of the group has them (a setting added to the
+    code later does not split older runs from newer ones); the seed and settings of speed
+    or location are not part of a recipe (:mod:`pipeline.core.recipe`).
+    """
+    params = [c for c in runs.columns if c.startswith("params.")]
+    suffix = pd.Series("", index=runs.index)
+    for _, group in runs.groupby(["dataset", "model"], sort=False):
+        settings = pd.DataFrame(
+            [recipe_settings({c[len("params."):]: v for c, v in row.items() if pd.notna(v)})
+             for _, row in group[params].iterrows()], index=group.index)
+        shared = settings.dropna(axis=1)
+        varying = [c for c in shared.columns if shared[c].nunique() > 1]
+        if not varying:
+            continue
+        for index, row in shared[varying].iterrows():
+            parts = [f"{key}={row[key]}" for key in varying[:most]]
+            more = f", +{len(varying) - most} more" if len(varying) > most else ""
+            suffix[index] = " [" + ", ".join(parts) + more + "]"
+    return suffix
 
 
 def drop_repeats(runs: pd.DataFrame) -> pd.DataFrame:
@@ -189,52 +220,28 @@ def table_interpolation(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def k_verdict(runs: pd.DataFrame, alpha: float = 0.05) -> pd.DataFrame:
-    """Does k change the error by more than the seed-to-seed spread?
+def k_verdict(runs: pd.DataFrame, alpha: float = 0.05, target: float = 0.044) -> pd.DataFrame:
+    """Does k change the error beyond the seed-to-seed spread? (:mod:`pipeline.btf.k_verdict`)
 
-    For each dataset, the clustered runs (without the per-texel scale) are grouped by k.
-    With at least two k values that each have at least two seeds, a one-way ANOVA tests
-    whether the mean RMSE differs between k values given the within-k (seed) variance,
-    and a Kruskal-Wallis test checks the same without assuming normality.
+    For each dataset and clustered model family (runs whose labels differ only in k: the
+    same recipe otherwise), the seeds run at every k are the blocks of a two-way ANOVA
+    without interaction, checked by Friedman's rank test, with the trend against log k,
+    each step's effect with its 95 % interval and, without evidence, the power.
     """
     rows = []
-    clustered = runs[runs["model"].str.match(r"^k = \d+$")]
-    for dataset, group in clustered.groupby("dataset"):
-        by_k = {k: _num(g["metrics.rmse"]).dropna().to_numpy() for k, g in group.groupby("k")}
-        usable = {k: v for k, v in by_k.items() if len(v) >= 2}
-        row = {"dataset": dataset, "k values": ", ".join(str(int(k)) for k in sorted(by_k))}
-        if len(usable) < 2:
-            row["verdict"] = "not enough runs: need >= 2 seeds for each of >= 2 values of k"
-            rows.append(row)
-            continue
-        means = np.array([v.mean() for v in usable.values()])
-        seed_sd = np.sqrt(np.mean([v.var(ddof=1) for v in usable.values()]))
-        f_stat, p_anova = stats.f_oneway(*usable.values())
-        if np.ptp(np.concatenate(list(usable.values()))) == 0:
-            p_kw = 1.0
+    clustered = runs[runs["model"].str.match(r"^k = \d+")]
+    family = clustered["model"].str.replace(r"^k = \d+", "clustered", regex=True)
+    for (dataset, name), group in clustered.groupby(["dataset", family]):
+        table = group.pivot_table(index="seed", columns="k", values="metrics.rmse",
+                                  aggfunc="mean").dropna()
+        row = {"dataset": dataset, "model": name,
+               "k values": ", ".join(str(int(k)) for k in sorted(group["k"].unique()))}
+        if table.shape[0] < 2 or table.shape[1] < 2:
+            row["verdict"] = ("not enough runs: need >= 2 seeds, each run at every one of "
+                              ">= 2 values of k (complete blocks)")
         else:
-            p_kw = stats.kruskal(*usable.values()).pvalue
-        row.update(
-            {
-                "spread of k means": f"{np.ptp(means):.5f}",
-                "seed std (pooled)": f"{seed_sd:.5f}",
-                "ANOVA F": f"{f_stat:.2f}",
-                "ANOVA p": f"{p_anova:.3g}",
-                "Kruskal-Wallis p": f"{p_kw:.3g}",
-                "seeds per k": ", ".join(str(len(v)) for v in usable.values()),
-            }
-        )
-        if p_anova < alpha:
-            best = min(usable, key=lambda k: usable[k].mean())
-            row["verdict"] = (
-                f"k changes the RMSE beyond seed noise (ANOVA p={p_anova:.3g} < {alpha}); "
-                f"lowest mean at k={int(best)}"
-            )
-        else:
-            row["verdict"] = (
-                f"no evidence that k changes the RMSE beyond seed noise "
-                f"(ANOVA p={p_anova:.3g} >= {alpha})"
-            )
+            table.columns = [int(k) for k in table.columns]
+            row.update(describe(blocked_verdict(table, alpha, target), alpha, target))
         rows.append(row)
     return pd.DataFrame(rows)
 

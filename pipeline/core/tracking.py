@@ -23,6 +23,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from pipeline.core.recipe import recipe_id
+
 log = logging.getLogger(__name__)
 
 _OWN_URI = "PIPELINE_TRACKING_URI_SET_BY_PIPELINE"
@@ -149,6 +151,7 @@ def job_run(cfg: DictConfig, run_name: str | None = None) -> Iterator[Any]:
     tags = environment_tags()
     tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
     params = flatten(cfg)
+    tags["recipe"] = recipe_id(params)  # equal for seeds of one model (pipeline.core.recipe)
     with mlflow.start_run(
         experiment_id=experiment_id,
         run_name=run_name,

@@ -1,0 +1,42 @@
+"""A run's recipe: everything in its resolved config that can change its result, but the seed.
+
+Runs are seeds of one model only when their recipes match. Left out: the seed, and settings
+that only change speed or where things go (threads, device, chunk size, machine tuning,
+paths, tracking). Method A's settings moved under ``btf.``; older runs' spellings are read
+as the new ones, so that a store holding both still pools them.
+
+>>> recipe_id({"seed": 0, "train.lr": 0.1, "train.threads": 1}) == recipe_id(
+...     {"seed": 3, "train.lr": 0.1, "train.threads": 2})
+True
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+from collections.abc import Mapping
+
+from pipeline.core.cache import canonical_json
+
+# Settings that do not change what a run computes (up to the order of floating-point sums).
+NOT_RECIPE = re.compile(
+    r"^(seed|paths\..*|tracking\..*|hydra\..*|variant"
+    r"|train\.(threads|device|chunk|keep_awake|omp_spin_count|reuse_freed_memory))$"
+)
+_MOVED = re.compile(r"^(crop|pca|kmeans|model|sizes|interpolation)\.")
+
+
+def recipe_settings(params: Mapping[str, object]) -> dict[str, str]:
+    """The recipe part of flattened settings (``{"train.lr": ...}``), values as strings."""
+    found = {}
+    for key, value in params.items():
+        key = _MOVED.sub(r"btf.\1.", key)
+        if not NOT_RECIPE.match(key):
+            found[key] = str(value)
+    return found
+
+
+def recipe_id(params: Mapping[str, object]) -> str:
+    """A short hash of :func:`recipe_settings`: equal for seeds of one model."""
+    text = canonical_json(recipe_settings(params))
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
