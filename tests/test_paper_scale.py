@@ -20,7 +20,10 @@ def test_paper_experiment_produces_table1_with_the_papers_bytes(tmp_path):
     )
     assert done.returncode == 0, done.stderr[-3000:]
     sizes = pd.read_csv(runs / "tables" / "table1_sizes.csv").set_index("model")
-    assert list(sizes.index) == ["Neural BTF", "k = 500", "k = 1000", "k = 2000"]
+    neural = ["Neural BTF", "k = 500", "k = 1000", "k = 2000"]
+    assert list(sizes.index[:4]) == neural and sizes.index[4].startswith("PCA c = ")
+    assert sizes.iloc[4]["total [B]"] <= sizes.loc["k = 1000", "total [B]"]  # matched bytes
+    sizes = sizes.loc[neural]
     assert set(sizes["decoder [B]"]) == {97_532}
     assert list(sizes["latents [B]"]) == [320_000, 16_000, 32_000, 64_000]
     assert list(sizes["list [B]"]) == [0, 40_000, 40_000, 40_000]

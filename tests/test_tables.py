@@ -234,3 +234,16 @@ def test_runs_of_two_recipes_are_never_averaged_as_seeds(tmp_path, settings):
     assert rmse.loc[0, "k = 500 [train.optimizer=adam]"] == "0.0300 ± 0.0141 (n=2)"
     assert rmse.loc[0, "k = 500 [train.optimizer=sgd]"] == "0.0600 ± 0.0141 (n=2)"
     assert "k = 500" not in rmse.columns
+
+
+def test_table2_names_each_columns_learning_rate(tmp_path, settings):
+    experiment_id = init_store(tmp_path, "btf")
+    for method, k, train_lr, method_lr in (("neural_btf", None, "None", 0.05),
+                                          ("clustered", 500, 0.05, 0.08)):
+        with mlflow.start_run(experiment_id=experiment_id, tags={"cache.evaluate": method}):
+            mlflow.log_params({"method.name": method, "method.k": k, "seed": 0,
+                               "dataset.name": "synthetic", "train.lr": train_lr,
+                               "method.lr": method_lr})
+            mlflow.log_metrics({"rmse": 0.03})
+    text = (build_tables(tmp_path, settings) / "table2_rmse.md").read_text()
+    assert "Learning rates: Neural BTF: 0.05; k = 500: 0.05." in text

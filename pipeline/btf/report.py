@@ -39,7 +39,8 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
     found.append(write_table(rmse, out, "table2_rmse",
                              "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
                              "n = number of seeds. Clustered runs use each texel's own values "
-                             "as the training target unless marked (rep. target)."))
+                             "as the training target unless marked (rep. target). Learning "
+                             f"rates: {tables.learning_rates(runs) or 'not logged'}."))
     if "metrics.rmse_with_texel_scale" in runs:
         scaled = runs[runs["params.method.name"] == "clustered"]
         if not scaled.empty:

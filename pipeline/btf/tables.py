@@ -205,6 +205,19 @@ def failed_runs(runs: pd.DataFrame, near: float = 0.9) -> pd.DataFrame:
     }).reset_index(drop=True)
 
 
+def learning_rates(runs: pd.DataFrame) -> str:
+    """``"Neural BTF: 0.05; k = 500: 0.08"``: each trained column's learning rate
+    (``train.lr``, or the method's ``method.lr`` where ``train.lr`` is null)."""
+    train = runs.get("params.train.lr", pd.Series(None, index=runs.index))
+    method = runs.get("params.method.lr", pd.Series(None, index=runs.index))
+    rate = train.where(~train.isin([None, "None"]) & train.notna(), method)
+    trained = runs.assign(rate=rate)[rate.notna() & ~rate.isin(["None"])]
+    parts = [f"{model}: {', '.join(sorted(map(str, group['rate'].unique())))}"
+             for model, group in trained.sort_values(["order", "model"]).groupby(
+                 "model", sort=False)]
+    return "; ".join(parts)
+
+
 def table_interpolation(runs: pd.DataFrame) -> pd.DataFrame:
     """RMSE at directions training never saw: model vs nearest and linear interpolation."""
     present = [(m, n) for m, n in INTERPOLATION_COLUMNS if f"metrics.{m}" in runs]
