@@ -51,6 +51,22 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
     assert "git.commit" in run.data.tags and "version.torch" in run.data.tags
     for metric in ("rmse", "bytes_total", "compression_ratio", "rmse_mean_abrdf"):
         assert metric in run.data.metrics
+    # The smoke run holds 4 lights out: the headline RMSE is over the trained directions.
+    metrics = run.data.metrics
+    assert metrics["rmse"] == metrics["rmse_train_dirs"] != metrics["rmse_all_dirs"]
+    assert metrics["rmse_ratio_to_mean_abrdf"] == pytest.approx(
+        metrics["rmse"] / metrics["rmse_mean_abrdf"])
+    # The recipe tag is the same for another seed, not for another learning rate.
+    assert len(run.data.tags["recipe"]) == 12
+
+
+def test_the_recipe_tag_ignores_the_seed_and_speed_settings_only(smoke_cfg):
+    from pipeline.core.recipe import recipe_id
+    from pipeline.core.tracking import flatten
+
+    recipe = recipe_id(flatten(smoke_cfg()))
+    assert recipe == recipe_id(flatten(smoke_cfg("seed=3", "train.threads=1")))
+    assert recipe != recipe_id(flatten(smoke_cfg("train.lr=0.01")))
 
 
 def test_changing_train_settings_reuses_the_data_stages(smoke_cfg, caplog):

@@ -38,6 +38,9 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
     rmse = tables.table_rmse(runs)
     found.append(write_table(rmse, out, "table2_rmse",
                              "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
+                             "Over the directions each model was trained on: all N, unless "
+                             "lights were held out (btf.interpolation.holdout_lights; those "
+                             "directions are in the interpolation table). "
                              "n = number of seeds. Clustered runs use each texel's own values "
                              "as the training target unless marked (rep. target). Learning "
                              f"rates: {tables.learning_rates(runs) or 'not logged'}."))
@@ -73,7 +76,10 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
                                  "Interpolation at directions never trained on (RMSE)",
                                  "held-out: light directions removed from training, reference "
                                  "= measured data. off-grid: random directions off the 81-grid, "
-                                 "reference = the synthetic generator's ground truth."))
+                                 "reference = the synthetic generator's ground truth. Not a "
+                                 "blind test of the model: its encoder and the normalisation "
+                                 "saw each texel's values at the held-out directions, while "
+                                 "nearest and linear see only the training directions."))
     verdict = tables.k_verdict(runs, alpha=float(settings.alpha))
     if not verdict.empty:
         found.append(write_table(
