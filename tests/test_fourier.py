@@ -24,10 +24,12 @@ from pipeline.fourier.optical_pattern import (
     stripe_weights,
 )
 from pipeline.fourier.series import (
+    design_condition,
     fit_fourier,
     fourier_features,
     fourier_penalty,
     render_fourier,
+    resolve_solver,
     rms_error,
 )
 from pipeline.fourier.synthetic import (
@@ -94,6 +96,56 @@ def test_svd_solver_matches_lstsq_when_ill_conditioned(tiny):
     for row, col in ((0, 0), (2, 3)):
         expected, *_ = np.linalg.lstsq(features[:, row, col], images[:, row, col], rcond=None)
         np.testing.assert_allclose(coeffs[row, col], expected.T, rtol=1e-3, atol=1e-3)
+
+
+def test_plain_least_squares_on_the_paper_grid_equals_lstsq():
+    # Issue 18: λ = 0 on the paper's 6 x 55 light grid at M = 10, cond(A) ~ 1e12. The
+    # default solver must be plain least squares there, not a truncated pseudo-inverse.
+    lights = grid_light_dirs(SyntheticStackConfig().validated())
+    assert lights.shape == (330, 3)
+    normals = np.array([[[0.3, 0.1, 0.95], [-0.2, 0.25, 0.95]]])
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    cond, truncated = design_condition(lights, normals, 10)
+    assert 1e11 < cond[0, 0] < 1e13 and not truncated[0, 0]
+    # A glossy lobe plus noise: what a pixel of the synthetic pot sees.
+    mirror = 2 * (lights @ normals[0, 0])[:, None] * normals[0, 0] - lights
+    lobe = np.clip(mirror[:, 2], 0, 1) ** 30
+    rng = np.random.default_rng(0)
+    images = (0.2 * lights[:, 2] + lobe)[:, None, None, None] * np.ones((1, 1, 2, 3))
+    images += rng.normal(0, 0.005, images.shape)
+    features = fourier_features(lights, normals, 10)
+    fitted = fit_fourier(images, lights, normals, M=10, lam=0.0)
+    old = fit_fourier(images, lights, normals, M=10, lam=0.0, solver="normal")
+    for col in range(2):
+        expected, *_ = np.linalg.lstsq(features[:, 0, col], images[:, 0, col], rcond=None)
+        scale = np.abs(expected).max()
+        np.testing.assert_allclose(fitted[0, col], expected.T, rtol=0, atol=1e-6 * scale)
+        # The normal equations' eigenvalue cutoff gave another (truncated) solution.
+        assert np.abs(old[0, col] - expected.T).max() > 1e-2 * scale
+    # λ > 0 keeps the normal equations, which the penalty conditions: same as the SVD.
+    regularized = fit_fourier(images, lights, normals, M=10, lam=3.14)
+    by_svd = fit_fourier(images, lights, normals, M=10, lam=3.14, solver="svd")
+    np.testing.assert_allclose(regularized, by_svd, rtol=1e-6, atol=1e-9)
+
+
+def test_solver_choice():
+    assert resolve_solver("auto", 0.0) == "svd"
+    assert resolve_solver("auto", 0.5) == "normal"
+    assert resolve_solver("normal", 0.0) == "normal"
+    assert resolve_solver("svd", 3.14) == "svd"
+    with pytest.raises(ConfigError, match=r"solver must be one of \['auto', 'normal', 'svd'\]"):
+        resolve_solver("qr", 0.0)
+
+
+def test_design_condition_flags_normal_equal_to_view(tiny):
+    _, lights, _ = tiny
+    normals = np.array([[[0.0, 0.0, 1.0], [0.3, 0.0, 0.95]]])
+    cond, truncated = design_condition(lights, normals, 2)
+    # n = v: θs = θd for every light, so the a_d and a_1 columns coincide.
+    assert truncated.tolist() == [[True, False]]
+    assert cond[0, 1] < 1e6
+    features = fourier_features(lights, normals, 2)[:, 0, 1]
+    assert cond[0, 1] == pytest.approx(np.linalg.cond(features), rel=1e-6)
 
 
 def test_regularization_damps_high_harmonics(tiny):

@@ -14,14 +14,20 @@ They are fitted by regularized linear least squares (eq. 19)::
 
     E_r = Σ_n r_n² + λ Σ_{m=1..M} m² (a_m² + b_m²)
 
+λ = 0 is plain least squares (eq. 17), solved by a batched SVD with ``np.linalg.lstsq``'s
+cutoff (round-off only); λ > 0 by the normal equations, which the penalty keeps well
+conditioned (``solver="auto"``, :func:`resolve_solver`). The unregularized design is
+badly conditioned on the paper's 6 x 55 light grid (cond(A) ~ 1e12 at M = 10, see
+:func:`design_condition`): the plain fit shows the blow-up at high M that motivates eq. 19.
+
 The penalty is the Parseval form of ∫ |g'(θs)|² (eq. 18) up to the factor π, which the
 paper folds into λ; a_d and a_0 are not penalized. Where the normal equals the view
 (n = v), θs = θd for every light, so a_d and a_1 are not separately identifiable: with
 λ > 0 the penalty settles it (a_1 → 0), with λ = 0 the minimum-norm split is returned.
-Renders on the fitting normals are unaffected; renders on other normals are not. Every pixel has its own design
-matrix (its normal differs), so the fit solves one K×K normal-equation system per pixel,
-all at once in batches (stacked numpy linear algebra), never in a Python loop over
-pixels.
+Renders on the fitting normals are unaffected; renders on other normals are not. Every
+pixel has its own design matrix (its normal differs), so the fit solves one small system
+per pixel, all at once in batches (stacked numpy linear algebra), never in a Python loop
+over pixels.
 
 Example
 -------
@@ -45,6 +51,8 @@ __all__ = [
     "render_fourier",
     "fourier_features",
     "fourier_penalty",
+    "design_condition",
+    "resolve_solver",
     "n_fourier_coeffs",
     "rms_error",
 ]
@@ -55,10 +63,12 @@ VIEW = (0.0, 0.0, 1.0)
 _BATCH_BYTES = 64 * 2**20
 # Relative eigenvalue cutoff of the normal equations. Forming AᵀA loses everything below
 # about eps·‖AᵀA‖, so eigenvalues under 1e-14 of the largest are round-off: dropping
-# them keeps systems with cond(A) up to ~1e7 exact and truncates the rest. Note that
-# without regularization the paper's geometry is far worse: on the 6 x 55 light grid,
-# cond(A) is ~1e12 at M = 10 for a generic normal (θs spans well under a period, so
-# high harmonics are nearly dependent) -- the reason eq. 19 is needed.
+# them keeps systems with cond(A) up to ~1e7 exact and truncates the rest (a truncated
+# pseudo-inverse). With λ > 0 the penalty lifts the small eigenvalues, so nothing is
+# dropped; without regularization the paper's geometry is far worse: on the 6 x 55
+# light grid, cond(A) is ~1e12 at M = 10 for a generic normal (θs spans well under a
+# period, so high harmonics are nearly dependent) -- the reason eq. 19 is needed, and the
+# reason λ = 0 is not solved this way (see ``resolve_solver``).
 _EIG_CUTOFF = 1e-14
 
 
@@ -182,21 +192,48 @@ def _solve_svd(design: np.ndarray, observed: np.ndarray, penalty: np.ndarray) ->
     """Eq. 19 by batched SVD of the augmented system [A; sqrt(λD)] x = [y; 0].
 
     Same result as :func:`_solve_normal` where that is well conditioned, but works on
-    cond(A) instead of cond(A)², like ``np.linalg.lstsq`` (and with its default cutoff).
-    Slower (docs/performance.md).
+    cond(A) instead of cond(A)², like ``np.linalg.lstsq`` and with its cutoff
+    (singular values below eps · max(rows, K) of the largest, i.e. round-off). With
+    λ = 0 the zero rows are left out, so the result is ``lstsq(A, y)`` itself: plain
+    least squares, minimum-norm where a pixel is exactly rank-deficient. Slower
+    (docs/performance.md).
     """
     n_pixels, n_rows, n_coeffs = design.shape
-    root = np.broadcast_to(np.diag(np.sqrt(penalty)), (n_pixels, n_coeffs, n_coeffs))
-    augmented = np.concatenate([design, root], axis=1)
-    rhs = np.concatenate([observed, np.zeros((n_pixels, n_coeffs, observed.shape[2]))], axis=1)
-    left, singular, right_t = np.linalg.svd(augmented, full_matrices=False)
-    keep = singular > np.finfo(np.float64).eps * (n_rows + n_coeffs) * singular[:, :1]
+    if np.any(penalty):
+        root = np.broadcast_to(np.diag(np.sqrt(penalty)), (n_pixels, n_coeffs, n_coeffs))
+        design = np.concatenate([design, root], axis=1)
+        zeros = np.zeros((n_pixels, n_coeffs, observed.shape[2]))
+        observed = np.concatenate([observed, zeros], axis=1)
+    left, singular, right_t = np.linalg.svd(design, full_matrices=False)
+    keep = singular > _lstsq_cutoff(*design.shape[1:]) * singular[:, :1]
     inverse = np.where(keep, 1.0 / np.where(keep, singular, 1.0), 0.0)
-    projected = left.transpose(0, 2, 1) @ rhs  # (P, K, C)
+    projected = left.transpose(0, 2, 1) @ observed  # (P, K, C)
     return right_t.transpose(0, 2, 1) @ (inverse[..., None] * projected)
 
 
+def _lstsq_cutoff(n_rows: int, n_coeffs: int) -> float:
+    """``np.linalg.lstsq``'s default relative cutoff of the singular values (rcond=None)."""
+    return float(np.finfo(np.float64).eps * max(n_rows, n_coeffs))
+
+
 _SOLVERS = {"normal": _solve_normal, "svd": _solve_svd}
+SOLVER_NAMES = ("auto", *_SOLVERS)
+
+
+def resolve_solver(solver: str, lam: float) -> str:
+    """The solver that actually runs: ``"auto"`` is ``"svd"`` at λ = 0, ``"normal"`` above.
+
+    λ = 0 is plain least squares on a design that can be very badly conditioned (cond(A)
+    ~1e12 on the paper's grid at M = 10): only an SVD (``np.linalg.lstsq``'s method)
+    solves it without truncating. With λ > 0 the penalty conditions the normal equations,
+    which are several times faster and agree with the SVD. ``"normal"`` and ``"svd"`` are
+    used as given; ``"normal"`` at λ = 0 is a truncated pseudo-inverse (kept to compare).
+    """
+    if solver not in SOLVER_NAMES:
+        raise ConfigError(f"solver must be one of {list(SOLVER_NAMES)}, got {solver!r}")
+    if solver == "auto":
+        return "svd" if lam == 0 else "normal"
+    return solver
 
 
 def _fit_kernel(images, light_dirs, normals, view, M, lam, clamp_diffuse, solver) -> np.ndarray:
@@ -274,6 +311,48 @@ def fourier_features(
     return design.transpose(1, 0, 2).reshape(len(dirs), height, width, 2 * M + 2)
 
 
+def design_condition(
+    light_dirs, normals, M: int, view=VIEW, clamp_diffuse: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """Condition number of each pixel's unregularized design matrix A (eq. 17).
+
+    Parameters
+    ----------
+    light_dirs : array_like of shape (n, 3)
+    normals : array_like of shape (H, W, 3)
+    M : int
+    view : array_like of shape (3,)
+    clamp_diffuse : bool
+
+    Returns
+    -------
+    cond : ndarray of shape (H, W), float64
+        σ_max / σ_min of the (n, 2M + 2) matrix A; inf where σ_min is exactly 0.
+    truncated : ndarray of shape (H, W), bool
+        Where ``np.linalg.lstsq`` (and the λ = 0 fit) drops a singular value as
+        round-off: the pixel is numerically rank-deficient (e.g. normal = view).
+    """
+    from threadpoolctl import threadpool_limits
+
+    dirs, _ = check_dirs(light_dirs)
+    normals = _check_normals(normals)
+    M = _check_order(M)
+    view = _check_view(view)
+    height, width, _ = normals.shape
+    flat = normals.reshape(-1, 3)
+    n_coeffs = 2 * M + 2
+    singular = np.empty((len(flat), min(len(dirs), n_coeffs)))
+    step = _batch_size(len(dirs), n_coeffs)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for start in range(0, len(flat), step):
+            design = _features(dirs, flat[start : start + step], view, M, clamp_diffuse)
+            singular[start : start + step] = np.linalg.svd(design, compute_uv=False)
+    with np.errstate(divide="ignore"):
+        cond = singular[:, 0] / singular[:, -1]
+    truncated = singular[:, -1] <= _lstsq_cutoff(len(dirs), n_coeffs) * singular[:, 0]
+    return cond.reshape(height, width), truncated.reshape(height, width)
+
+
 def _check_order(M) -> int:
     if isinstance(M, bool) or int(M) != M or M < 0:
         raise ConfigError(f"M (highest harmonic) must be an integer >= 0, got {M!r}")
@@ -288,7 +367,7 @@ def fit_fourier(
     M: int = 10,
     lam: float = 3.14,
     clamp_diffuse: bool = False,
-    solver: str = "normal",
+    solver: str = "auto",
 ) -> np.ndarray:
     """Fit the eq. 16 Fourier-series BRDF at every pixel (eq. 19 regularized LSQ).
 
@@ -310,7 +389,9 @@ def fit_fourier(
     clamp_diffuse : bool
         Use max(cos θd, 0) as the diffuse basis (not in the paper); pass the same value
         to :func:`render_fourier`.
-    solver : {"normal", "svd"}
+    solver : {"auto", "normal", "svd"}
+        "auto" (default): "svd" at λ = 0 (plain least squares, equal to
+        ``np.linalg.lstsq``), "normal" at λ > 0 (:func:`resolve_solver`).
         "normal": batched normal equations (fast; exact for cond(A) up to ~1e7, a
         minimum-norm truncation beyond). "svd": batched SVD of the augmented system,
         as accurate as ``np.linalg.lstsq`` but slower. The two agree whenever
@@ -338,8 +419,7 @@ def fit_fourier(
             f"the Fourier model with M={M} needs N >= 2M + 2 = {2 * M + 2} images, "
             f"got N={len(dirs)}"
         )
-    if solver not in _SOLVERS:
-        raise ConfigError(f"solver must be one of {sorted(_SOLVERS)}, got {solver!r}")
+    solver = resolve_solver(solver, float(lam))
     normals = _check_normals(normals, images.shape[1:3])
     return _fit_kernel(
         images, dirs, normals, _check_view(view), M, float(lam), clamp_diffuse, solver
