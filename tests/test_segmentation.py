@@ -9,6 +9,7 @@ from scipy.ndimage import distance_transform_edt
 from pipeline.core.errors import ConfigError
 from pipeline.fourier.segmentation import (
     mean_image,
+    score_segmentation,
     segment_by_representatives,
     segment_kmeans,
     segmentation_accuracy,
@@ -86,3 +87,26 @@ def test_segmentation_inputs_are_checked():
         segment_by_representatives(image, [(0, 0)], "lab")
     with pytest.raises(ConfigError, match=r"k=17 must be an integer in \[1, 16\]"):
         segment_kmeans(image, 17)
+
+
+def test_object_accuracy_leaves_the_backdrop_out():
+    # 6 backdrop pixels all right, 4 object pixels half wrong: 8/10 overall, 2/4 on the object.
+    truth = np.array([[0, 0, 0, 0, 0], [0, 1, 1, 2, 2]])
+    pred = np.array([[5, 5, 5, 5, 5], [5, 1, 1, 1, 1]])
+    assert score_segmentation(pred, truth) == {"all": 0.8, "object": 0.5}
+    assert score_segmentation(pred, truth, backdrop=1)["object"] == 1.0  # labels 0, 2: right
+    assert score_segmentation(np.zeros((2, 2), int), np.zeros((2, 2), int)) == {"all": 1.0}
+
+
+def test_paper_method_in_rgb_scores_lower_on_the_pot_than_overall(pot):
+    # Issue 18: the backdrop is large and easy, so it inflates the all-pixel accuracy.
+    images, scene = pot
+    points = [_deepest_pixel(scene.regions == label) for label in range(3)]
+    scores = score_segmentation(
+        segment_by_representatives(mean_image(images), points, "rgb"), scene.regions
+    )
+    assert scores["object"] < scores["all"] - 0.02, scores
+    chroma = score_segmentation(
+        segment_by_representatives(mean_image(images), points, "chromaticity"), scene.regions
+    )
+    assert chroma["object"] > scores["object"], (chroma, scores)
