@@ -10,6 +10,7 @@ from PIL import Image
 
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.light_stack import (
+    load_btf_view,
     load_light_stack,
     load_normal_map,
     read_lp,
@@ -269,3 +270,45 @@ def test_synthetic_settings_are_checked(tmp_path):
         write_synthetic_stack(tmp_path / "a", size=32, n_azimuths=61, azimuth_step_deg=3.0)
     with pytest.raises(ConfigError, match="unknown synthetic-stack settings"):
         write_synthetic_stack(tmp_path / "a", size=32, colour="red")
+
+
+# --------------------------------------------------------------------------- BTF view
+
+
+@pytest.fixture(scope="module")
+def tiny_btf(tmp_path_factory):
+    """An 8 x 8 synthetic BTF in the UBO2003 layout (lossless PNG), two view folders."""
+    from pipeline.btf.synthetic import write_synthetic_btf
+
+    root = tmp_path_factory.mktemp("btf") / "tiny"
+    return write_synthetic_btf(root, size=8, format="ubo2003", ext="png", views=[(0, 0), (30, 90)])
+
+
+def test_btf_view_reads_as_a_light_stack_with_its_view_direction(tiny_btf):
+    from pipeline.data.btf import load_btf
+    from pipeline.data.directions import grid_81
+
+    stack = load_btf_view(tiny_btf, "ubo2003", (30, 90))
+    assert stack.images.shape == (81, 8, 8, 3) and stack.lp_path is None
+    np.testing.assert_allclose(stack.view_dir, [0.0, 0.5, np.sqrt(3) / 2], atol=1e-12)
+    theta, phi = grid_81().T
+    expected = np.stack(
+        [np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1
+    )
+    np.testing.assert_allclose(stack.light_dirs, expected, atol=1e-6)
+    btf = load_btf(tiny_btf, "ubo2003", views=[(30, 90)], progress=False)
+    np.testing.assert_array_equal(stack.images, btf.images)
+    assert all("tv030 pv090" in p.name for p in stack.paths)
+    # The view from the top is the RTI stacks' (0, 0, 1).
+    assert load_btf_view(tiny_btf, "ubo2003", (0, 0)).view_dir.tolist() == [0.0, 0.0, 1.0]
+    subset = stack.subset([0, 1])
+    assert subset.view_dir is stack.view_dir and len(subset.light_dirs) == 2
+
+
+def test_btf_view_errors(tiny_btf):
+    with pytest.raises(ConfigError, match=r"one \[theta_v, phi_v\] pair"):
+        load_btf_view(tiny_btf, "ubo2003", [[0, 0], [30, 90]])
+    with pytest.raises(ConfigError, match="not one of the 81 grid directions"):
+        load_btf_view(tiny_btf, "ubo2003", (10, 0))
+    with pytest.raises(DataError, match="requested view folder"):
+        load_btf_view(tiny_btf, "ubo2003", (15, 0))

@@ -11,6 +11,11 @@ line, the number of images, then one line per image::
 ``filename lx ly lz`` is a vector towards the light in the camera frame (x right, y up,
 z towards the camera). Non-unit vectors are normalized; zero vectors are rejected.
 
+A fixed view of a UBO2003 or UTIA BTF (one ``tvTTT_pvPPP/`` folder: 81 lights) is also a
+light stack: :func:`load_btf_view` reads it with the BTF reader. Its frame is the
+material's (z = the sample's normal, the BTF's θ/φ), and the view is that folder's
+direction rather than (0, 0, 1).
+
 Images may be JPEG, PNG (sRGB-encoded: linearized with the IEC 61966-2-1 EOTF; 16-bit
 grey PNGs keep their precision, 16-bit RGB ones are reduced to 8 bits by Pillow) or EXR
 (taken as linear). In memory a stack is float32, shape (n, H, W, 3),
@@ -26,7 +31,7 @@ Example
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +41,7 @@ from pipeline.data.images import read_exr, srgb_eotf
 
 __all__ = [
     "LightStack",
+    "load_btf_view",
     "load_light_stack",
     "load_normal_map",
     "read_lp",
@@ -67,6 +73,9 @@ class LightStack:
         Unit surface normals in the camera frame, when a normal map was given.
     lp_path : Path or None
         The ``.lp`` file the stack was read from.
+    view_dir : ndarray of shape (3,), float64
+        Unit vector towards the camera in the frame of ``light_dirs``: (0, 0, 1) for an
+        RTI stack (camera frame), the view folder's direction for a BTF view.
     """
 
     images: np.ndarray
@@ -74,6 +83,7 @@ class LightStack:
     paths: list[Path]
     normals: np.ndarray | None = None
     lp_path: Path | None = None
+    view_dir: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -91,6 +101,7 @@ class LightStack:
             paths=[self.paths[i] for i in index],
             normals=self.normals,
             lp_path=self.lp_path,
+            view_dir=self.view_dir,
         )
 
 
@@ -402,4 +413,53 @@ def load_light_stack(
             normal_map = load_normal_map(normals, images.shape[1:3])
     return LightStack(
         images=images, light_dirs=light_dirs, paths=paths, normals=normal_map, lp_path=lp_path
+    )
+
+
+# --------------------------------------------------------------------------- BTF view
+
+
+def load_btf_view(root: str | os.PathLike, format: str = "ubo2003", view=(0, 0)) -> LightStack:
+    """One view folder of a UBO2003 or UTIA BTF as a light stack (81 lights).
+
+    Parameters
+    ----------
+    root : path-like
+        The BTF's folder, holding the view folders ``tvTTT_pvPPP/``.
+    format : {"ubo2003", "utia"}
+        The layout and colour encoding (:mod:`pipeline.data.btf`).
+    view : (θ_view, φ_view) in whole degrees
+        One of the 81 grid directions, whose folder must be on disk.
+
+    Returns
+    -------
+    LightStack
+        Images in the canonical light order; ``light_dirs`` and ``view_dir`` are unit
+        vectors in the material's frame (x = φ 0°, z = the sample's normal), computed
+        from the angles in the file names. ``lp_path`` is None.
+
+    Raises
+    ------
+    ConfigError
+        ``view`` is not one grid direction, or ``format`` is unknown.
+    DataError
+        As :func:`pipeline.data.btf.load_btf` (missing folder, missing lights, ...).
+    """
+    from pipeline.core.errors import ConfigError
+    from pipeline.data.btf import load_btf
+    from pipeline.data.directions import unit_vectors
+
+    angles = np.asarray(view, dtype=np.float64)
+    if angles.shape != (2,):
+        raise ConfigError(
+            f"a BTF view is one [theta_v, phi_v] pair in degrees, got {np.asarray(view).tolist()}"
+        )
+    btf = load_btf(root, format, views=[tuple(angles)], progress=False)
+    light_dirs = unit_vectors(btf.directions[:, 0], btf.directions[:, 1])
+    view_dir = unit_vectors(btf.directions[0, 2], btf.directions[0, 3])
+    return LightStack(
+        images=btf.images,
+        light_dirs=light_dirs.astype(np.float32),
+        paths=btf.paths,
+        view_dir=view_dir.astype(np.float64),
     )
