@@ -64,7 +64,7 @@ def test_smoke_run_logs_metrics_and_figures_and_reuses_the_cache(fourier_cfg, ca
     with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         run_job(cfg)
     second = _stage_messages(caplog)
-    assert len(second) == 6 and all(" hit " in m for m in second.values()), second
+    assert len(second) == 7 and all(" hit " in m for m in second.values()), second
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         run_job(fourier_cfg("method.M=2", "method.lam=0.5"))  # one more point of a Fig. 6 sweep
@@ -75,17 +75,37 @@ def test_smoke_run_logs_metrics_and_figures_and_reuses_the_cache(fourier_cfg, ca
         "stack_normals",
         "stack_segmentation",
     ]
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
+        run_job(fourier_cfg("method.lam=0"))  # plain least squares: same cond(A) as M=3
+    fourth = _stage_messages(caplog)
+    assert " hit " in fourth["fourier_condition"] and " hit " not in fourth["fourier_fit"]
 
     client, runs = _runs(cfg)
-    assert [r.info.status for r in runs] == ["FINISHED"] * 3
+    assert [r.info.status for r in runs] == ["FINISHED"] * 4
+    assert runs[0].data.tags["fourier_solver"] == "svd"  # λ = 0: lstsq, not truncated
     run = runs[-1]  # the first
+    assert run.data.tags["fourier_solver"] == "normal"
     metrics = run.data.metrics
-    for name in ("rmse_heldout_fourier", "rmse_heldout_ptm", "rmse_heldout_hsh"):
-        assert 0 < metrics[name] < 0.05, (name, metrics[name])
+    for model in ("fourier", "ptm", "hsh"):
+        for split in ("heldout", "validation", "test"):
+            name = f"rmse_{split}_{model}"
+            assert 0 < metrics[name] < 0.05, (name, metrics[name])
     assert metrics["rmse_train_fourier"] < 0.05
     assert metrics["n_train_lights"] == 33 and metrics["n_heldout_lights"] == 4
-    assert metrics["segmentation_accuracy_paper"] >= 0.95
-    assert metrics["segmentation_accuracy_kmeans"] >= 0.95
+    assert metrics["n_validation_lights"] == 2 and metrics["n_test_lights"] == 2
+    # The backdrop's normal is the view: θs = θd there, so A is rank-deficient.
+    assert 0 < metrics["frac_pixels_rank_deficient"] < 1
+    assert metrics["cond_design_max"] >= metrics["cond_design_median"] > 1
+    for name in ("paper", "kmeans"):
+        for space in ("", "_rgb", "_chromaticity"):
+            for scope in ("", "object_"):
+                assert 0.5 < metrics[f"segmentation_accuracy_{scope}{name}{space}"] <= 1
+        # rgb (the paper's colour space) is the default
+        assert (
+            metrics[f"segmentation_accuracy_{name}"] == metrics[f"segmentation_accuracy_{name}_rgb"]
+        )
+    assert metrics["segmentation_accuracy_object_paper_chromaticity"] >= 0.95
     assert run.data.params["method.M"] == "3" and run.data.params["method.name"] == "fourier"
     assert run.data.tags["heldout_reference"] == "analytic"
     assert run.data.tags["mlflow.runName"].startswith("fourier M=3 lam=3.14 synthetic_stack")
@@ -164,6 +184,55 @@ def test_real_capture_downsampled_with_photometric_normals(fourier_cfg):
     assert run.data.tags["heldout_reference"] == "images"
 
 
+@pytest.fixture(scope="module")
+def tiny_btf(tmp_path_factory):
+    """An 8 x 8 synthetic BTF in the UBO2003 layout (JPEG, as the real one), two views."""
+    from pipeline.btf.synthetic import write_synthetic_btf
+
+    root = tmp_path_factory.mktemp("btf") / "tiny"
+    return write_synthetic_btf(root, size=8, format="ubo2003", views=[(0, 0), (30, 90)])
+
+
+def test_btf_view_is_a_light_stack_with_its_view_in_eq4(fourier_cfg, tiny_btf):
+    from pipeline.data.light_stack import load_btf_view
+    from pipeline.fourier.series import fit_fourier
+
+    cfg = fourier_cfg(
+        "dataset=btf_view", f"dataset.root={tiny_btf}", "dataset.views=[[30,90]]", "method.M=2"
+    )
+    run_job(cfg)
+    client, (run,) = _runs(cfg)
+    metrics = run.data.metrics
+    assert metrics["n_train_lights"] == 68 and metrics["n_heldout_lights"] == 13
+    assert metrics["n_validation_lights"] == 7 and metrics["n_test_lights"] == 6
+    assert 0 < metrics["rmse_test_fourier"] < 0.2
+    assert "view=[30, 90]" in run.data.tags["mlflow.runName"]
+    key = run.data.tags["cache.fourier_fit"]
+    coeffs = np.load(Path(cfg.paths.cache) / "fourier_fit" / key / "coeffs.npy")
+    # The fit used the folder's view v = (0, sin 30°, cos 30°), not (0, 0, 1).
+    view = np.array([0.0, 0.5, np.sqrt(3) / 2])
+    stack = load_btf_view(tiny_btf, "ubo2003", (30, 90))
+    held = np.arange(81) % 6 == 5
+    train, dirs = stack.images[~held], stack.light_dirs[~held]
+    flat = np.array([0.0, 0.0, 1.0])
+    np.testing.assert_allclose(
+        coeffs, fit_fourier(train, dirs, flat, view=view, M=2), rtol=1e-5, atol=1e-6
+    )
+    assert np.abs(coeffs - fit_fourier(train, dirs, flat, M=2)).max() > 1e-3
+    # Method A's preset with one view folder is the same light stack (same cache entries).
+    run_job(
+        fourier_cfg(
+            "dataset=ubo2003", f"dataset.root={tiny_btf}", "dataset.views=[[30,90]]", "method.M=2"
+        )
+    )
+    _, runs = _runs(cfg)
+    assert runs[0].data.tags["cache.fourier_fit"] == key
+    with pytest.raises(ConfigError, match=r"one view folder of a BTF.*got dataset.views=None"):
+        run_job(fourier_cfg("dataset=ubo2003", f"dataset.root={tiny_btf}"))
+    with pytest.raises(ConfigError, match="dataset=ubo2003 needs dataset.root"):
+        run_job(fourier_cfg("dataset=ubo2003", "dataset.views=[[30,90]]"))
+
+
 def test_light_stack_without_root_is_a_config_error(fourier_cfg):
     with pytest.raises(ConfigError, match="dataset=light_stack needs dataset.root"):
         run_job(fourier_cfg("dataset=light_stack"))
@@ -202,6 +271,8 @@ def _hand_made_runs() -> pd.DataFrame:
         for M in (1, 5, 10):
             for lam in (0.0, 3.14):
                 rms = offset + 0.01 + 0.001 * abs(M - 5) + (0.002 if lam == 0 else 0.0)
+                # The test lights disagree with the validation lights at M = 10.
+                test = rms + (0.01 if M == 10 else 0.0)
                 rows.append(
                     {
                         "status": "FINISHED",
@@ -217,23 +288,38 @@ def _hand_made_runs() -> pd.DataFrame:
                         "params.method.clamp_diffuse": "False",
                         "params.method.M": str(M),
                         "params.method.lam": str(lam),
-                        "metrics.rmse_heldout_fourier": rms,
-                        "metrics.rmse_heldout_ptm": offset + 0.02,
-                        "metrics.rmse_heldout_hsh": offset + 0.015,
+                        "metrics.rmse_validation_fourier": rms,
+                        "metrics.rmse_test_fourier": test,
+                        "metrics.rmse_validation_ptm": offset + 0.02,
+                        "metrics.rmse_test_ptm": offset + 0.021,
+                        "metrics.rmse_validation_hsh": offset + 0.015,
+                        "metrics.rmse_test_hsh": offset + 0.016,
                         "metrics.n_train_lights": 60.0,
-                        "metrics.n_heldout_lights": 12.0,
+                        "metrics.n_validation_lights": 6.0,
+                        "metrics.n_test_lights": 6.0,
+                        "metrics.cond_design_median": 10.0**M,
+                        "metrics.cond_design_max": 10.0 ** (M + 1),
+                        "metrics.frac_pixels_rank_deficient": 0.5,
+                        "metrics.segmentation_accuracy_paper_rgb": 0.92,
+                        "metrics.segmentation_accuracy_object_paper_rgb": 0.82,
+                        "metrics.segmentation_accuracy_paper_chromaticity": 0.99,
+                        "metrics.segmentation_accuracy_object_paper_chromaticity": 0.98,
+                        "tags.fourier_solver": "svd" if lam == 0 else "normal",
                     }
                 )
     runs = pd.DataFrame(rows)
     stale = runs.iloc[[0]].assign(start_time=pd.Timestamp("2025-01-01"))
-    stale["metrics.rmse_heldout_fourier"] = 99.0  # an older run of the same point: ignored
+    stale["metrics.rmse_validation_fourier"] = 99.0  # an older run of the same point: ignored
+    # A run from before the validation/test split: left out.
+    unsplit = runs.iloc[[1]].assign(**{"metrics.rmse_validation_fourier": np.nan})
     parent = pd.DataFrame([{"status": "FINISHED", "params.method.name": None}])
     other = runs.iloc[[0]].assign(**{"params.method.name": "brdf_map"})
-    return pd.concat([stale, runs, parent, other], ignore_index=True)
+    return pd.concat([stale, runs, unsplit, parent, other], ignore_index=True)
 
 
 def test_fourier_tables_on_hand_made_runs(tmp_path):
     runs = fourier_tables.label_runs(_hand_made_runs())
+    assert len(runs) == 1 + 12  # the stale run, then both setups' 6 points; not the unsplit
     assert sorted(runs["setup"].unique()) == [
         "coin, normals=photometric",
         "synthetic_stack, normals=given",
@@ -244,17 +330,42 @@ def test_fourier_tables_on_hand_made_runs(tmp_path):
     assert list(table.index) == [1, 5, 10, "PTM", "HSH"]
     assert table.loc[1, "λ = 0"] == pytest.approx(0.016)  # the latest run, not the stale one
     assert table.loc["PTM"].tolist() == pytest.approx([0.02, 0.02])
-    assert fourier_tables.best_point(synthetic) == (5, 3.14, pytest.approx(0.01))
-    summary = fourier_tables.summary_table(runs)
-    assert summary.loc["coin, normals=photometric", "Fourier (M=10, λ=3.14)"] == pytest.approx(
-        0.065
+    test_table = fourier_tables.fig6_table(synthetic, "test")
+    assert test_table.loc[10, "λ = 3.14"] == pytest.approx(0.025)
+    assert test_table.loc["HSH"].tolist() == pytest.approx([0.016, 0.016])
+    # Chosen on the validation lights, reported on the test lights.
+    assert fourier_tables.best_point(synthetic) == (
+        5,
+        3.14,
+        pytest.approx(0.01),
+        pytest.approx(0.01),
     )
-    assert summary.loc["coin, normals=photometric", "HSH"] == pytest.approx(0.065)
+    summary = fourier_tables.summary_table(runs)
+    coin = summary.loc["coin, normals=photometric"]
+    assert coin["test: Fourier (M=10, λ=3.14)"] == pytest.approx(0.075)
+    assert coin["validation: Fourier (chosen)"] == pytest.approx(0.06)
+    assert coin["test: HSH"] == pytest.approx(0.066)
+    assert coin["validation lights"] == 6 and coin["test lights"] == 6
+    assert fourier_tables.solvers(synthetic) == (
+        "λ = 0: SVD least squares (= np.linalg.lstsq); λ > 0: normal equations"
+    )
+    condition = fourier_tables.condition_table(synthetic)
+    assert condition.loc[10, "cond(A) median"] == pytest.approx(1e10)
+    segmentation = fourier_tables.segmentation_table(runs)
+    rows = segmentation.loc["synthetic_stack, normals=given"]
+    assert rows["colour space"].tolist() == ["rgb", "chromaticity"]
+    assert rows["object pixels"].tolist() == pytest.approx([0.82, 0.98])
 
     sections = fourier_tables.sections(_hand_made_runs(), tmp_path)
-    assert len(sections) == 1 + 2 * 2
-    assert "M = 5, λ = 3.14" in sections[1]
-    for stem in ("fourier_summary", "fig6_synthetic_stack_normals_given"):
+    assert len(sections) == 1 + 2 * 4 + 1
+    assert "M = 5, λ = 3.14" in sections[1] and "Solver: λ = 0: SVD" in sections[1]
+    for stem in (
+        "fourier_summary",
+        "fig6_synthetic_stack_normals_given",
+        "fig6_test_synthetic_stack_normals_given",
+        "fourier_condition_synthetic_stack_normals_given",
+        "fourier_segmentation",
+    ):
         for suffix in (".md", ".csv", ".tex"):
             assert (tmp_path / f"{stem}{suffix}").is_file()
     assert (tmp_path / "fig6_coin_normals_photometric.png").stat().st_size > 1000

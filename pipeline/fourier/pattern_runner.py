@@ -44,7 +44,6 @@ from pipeline.fourier.synthetic import SyntheticStackConfig, make_synthetic_scen
 log = logging.getLogger(__name__)
 
 
-
 def _file_settings(kind: str, value: str) -> dict:
     path = Path(value).expanduser().resolve()
     if not path.is_file():
@@ -204,7 +203,11 @@ def pattern_stage(ctx: Context, fitted: Entry, quilted: Entry, target: dict) -> 
         return {"mean": float(image[on_object].mean()), "max": float(image.max())}
 
     return ctx.run(
-        "pattern_render", settings, {"pattern_quilt": quilted, "fourier_fit": fitted}, compute, version="1"
+        "pattern_render",
+        settings,
+        {"pattern_quilt": quilted, "fourier_fit": fitted},
+        compute,
+        version="1",
     )
 
 

@@ -1,8 +1,9 @@
 """Method C's chain in the app (``method=fourier``): light stack, normals, fit, baselines.
 
-    stack_data ─┬─► stack_normals ─► fourier_fit ─┐
-                ├─► relight_baselines ────────────┼─► fourier_evaluate (metrics, figures)
-                └─► stack_segmentation ───────────┘  (segmentation: its own metrics, figure)
+    stack_data ─┬─► stack_normals ─┬─► fourier_fit ─┐
+                │                  └─► fourier_condition (cond(A) per M: metrics only)
+                ├─► relight_baselines ──────────────┼─► fourier_evaluate (metrics, figures)
+                └─► stack_segmentation ─────────────┘  (segmentation: its own metrics, figure)
 
 * ``stack_data``: reads the folder's ``.lp`` stack with the real reader and splits the
   lights into training and held-out ones. ``dataset=synthetic_stack`` (``root: null``)
@@ -10,17 +11,28 @@
   stack's own ``heldout/`` set and, since ``scene.json`` is there, the reference images
   are the generator's noise-free renders (the 8-bit PNGs differ from them by
   quantization only). ``dataset=light_stack`` holds out every ``holdout_every``-th light
-  of the folder; its reference images are the measured ones. ``crop``/``downsample``
-  shrink every array alike. The key holds the folder's fingerprint, so editing the
-  folder in place re-reads it.
+  of the folder; its reference images are the measured ones. A dataset with
+  ``format: ubo2003|utia`` (``dataset=btf_view``, or ``dataset=ubo2003|utia`` with one
+  ``dataset.views`` entry) reads that one view folder of a BTF (81 lights) in the
+  material's frame, with the folder's view direction in eq. 4 (the view is (0, 0, 1)
+  otherwise). The held-out lights are split in turn into validation lights (every
+  ``validation_every``-th, from the first) and test lights: M and λ are chosen on the
+  former and reported on the latter (``pipeline/fourier/report.py``).
+  ``crop``/``downsample`` shrink every array alike. The key holds the folder's
+  fingerprint, so editing the folder in place re-reads it.
 * ``stack_normals``: ``given`` (the stack's ``normals.npy``), ``flat`` (0, 0, 1),
   ``photometric`` (Lambertian photometric stereo on the training images) or a file.
-* ``fourier_fit``: eq. 19 with ``method.M``, ``method.lam``, ``method.clamp_diffuse``.
+* ``fourier_fit``: eq. 19 with ``method.M``, ``method.lam``, ``method.clamp_diffuse``
+  and the solver that runs (``method.solver: auto`` = SVD least squares at λ = 0, normal
+  equations at λ > 0); logged as the tag ``fourier_solver``.
+* ``fourier_condition``: cond(A) of every pixel's unregularized design matrix; its key
+  does not hold λ, so a Fig. 6 sweep computes it once per M.
 * ``relight_baselines``: PTM and HSH on the same training lights; their key does not
   hold M or λ, so a Fig. 6 sweep fits them once.
-* ``stack_segmentation``: the paper's nearest-representative labelling and k-means,
-  scored against the ground-truth regions when the stack has them.
-* ``fourier_evaluate``: held-out and training RMS, figures.
+* ``stack_segmentation``: the paper's nearest-representative labelling and k-means, in
+  RGB and in chromaticity, scored against the ground-truth regions when the stack has
+  them: over all pixels and over the object's pixels (region label != 0, the backdrop).
+* ``fourier_evaluate``: held-out (all, validation, test) and training RMS, figures.
 """
 
 from __future__ import annotations
@@ -32,11 +44,13 @@ from pathlib import Path
 
 import mlflow
 import numpy as np
+from omegaconf import OmegaConf
 
 from pipeline.core.cache import Entry, canonical_json, save_arrays, save_json
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.stage import Context, folder_fingerprint, plain_settings
-from pipeline.data.light_stack import load_light_stack, load_normal_map
+from pipeline.data.directions import canonical_views, view_folder_name
+from pipeline.data.light_stack import load_btf_view, load_light_stack, load_normal_map
 from pipeline.fourier.baselines import (
     fit_hsh,
     fit_ptm,
@@ -45,17 +59,29 @@ from pipeline.fourier.baselines import (
     render_ptm,
 )
 from pipeline.fourier.segmentation import (
+    COLOUR_SPACES,
     mean_image,
+    score_segmentation,
     segment_by_representatives,
     segment_kmeans,
-    segmentation_accuracy,
 )
-from pipeline.fourier.series import fit_fourier, render_fourier, rms_error
+from pipeline.fourier.series import (
+    VIEW,
+    design_condition,
+    fit_fourier,
+    render_fourier,
+    resolve_solver,
+    rms_error,
+)
 from pipeline.fourier.synthetic import load_synthetic_scene, write_synthetic_stack
 
 log = logging.getLogger(__name__)
 
 FIT_KEYS = ("M", "lam", "clamp_diffuse", "solver")
+BTF_FORMATS = ("ubo2003", "utia")
+# dataset=ubo2003|utia hold no method-C keys: these stand in for them (btf_view.yaml).
+BTF_HOLDOUT_EVERY = 6
+VALIDATION_EVERY = 2
 
 
 # --------------------------------------------------------------------------- helpers
@@ -118,9 +144,31 @@ def _unit(normals: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- data
 
 
+def btf_view(ds) -> tuple[int, int] | None:
+    """The one view (θ_v, φ_v) in degrees of a BTF dataset (``format: ubo2003|utia``).
+
+    None for a light-stack folder (no ``format``). Method C reads one view folder of a
+    BTF as a light stack, so ``dataset.views`` must name exactly one grid direction.
+    """
+    if ds.get("format") is None:
+        return None
+    if ds.format not in BTF_FORMATS:
+        raise ConfigError(f"dataset.format={ds.format!r} is not one of {list(BTF_FORMATS)}")
+    views = ds.get("views")
+    if views is None or len(views) != 1:
+        shown = None if views is None else plain_settings(views)
+        raise ConfigError(
+            f"method C reads one view folder of a BTF as a light stack: set "
+            f"dataset.views=[[theta_v,phi_v]] (degrees), got dataset.views={shown}"
+        )
+    return canonical_views(plain_settings(views))[0]
+
+
 def stack_root(cfg) -> Path:
     """The stack folder; the built-in synthetic pot is written under paths.data first."""
     ds = cfg.dataset
+    if OmegaConf.is_missing(ds, "root"):
+        raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/the/data")
     if ds.get("root") is None and ds.name == "synthetic_stack":
         gen = plain_settings(ds.synthetic)
         tag = hashlib.sha256(canonical_json(gen).encode()).hexdigest()[:10]
@@ -134,9 +182,8 @@ def stack_root(cfg) -> Path:
                     raise
         return root
     if ds.get("root") is None:
-        raise ConfigError(
-            f"dataset={ds.name} needs dataset.root=/path/to/a/folder (images plus one .lp file)"
-        )
+        what = "a BTF's folder of view folders" if btf_view(ds) else "images plus one .lp file"
+        raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/a/folder ({what})")
     root = Path(str(ds.root)).expanduser().resolve()
     if not root.is_dir():
         raise DataError(f"light-stack folder {root} does not exist or is not a folder")
@@ -144,9 +191,15 @@ def stack_root(cfg) -> Path:
 
 
 def _split(cfg, root: Path):
-    """(train images, train dirs, held-out images, held-out dirs) of the stack in ``root``."""
-    stack = load_light_stack(root)
-    every = cfg.dataset.get("holdout_every")
+    """(train images, train dirs, held-out images, held-out dirs, view) of the stack."""
+    ds = cfg.dataset
+    view = btf_view(ds)
+    if view is None:
+        stack = load_light_stack(root)
+        every = ds.get("holdout_every")
+    else:
+        stack = load_btf_view(root, ds.format, view)
+        every = ds.get("holdout_every", BTF_HOLDOUT_EVERY)
     if every is None:
         if not (root / "heldout").is_dir():
             raise DataError(
@@ -154,7 +207,7 @@ def _split(cfg, root: Path):
                 "dataset.holdout_every=K to hold out every K-th light instead"
             )
         test = load_light_stack(root / "heldout")
-        return stack.images, stack.light_dirs, test.images, test.light_dirs
+        return stack.images, stack.light_dirs, test.images, test.light_dirs, stack.view_dir
     n = len(stack.light_dirs)
     if isinstance(every, bool) or int(every) != every or not 2 <= every <= n:
         raise ConfigError(f"dataset.holdout_every={every!r} must be an integer in [2, {n}]")
@@ -164,7 +217,23 @@ def _split(cfg, root: Path):
         stack.light_dirs[~held],
         stack.images[held],
         stack.light_dirs[held],
+        stack.view_dir,
     )
+
+
+def validation_mask(n_heldout: int, every) -> np.ndarray:
+    """Which held-out lights are validation lights: every ``every``-th from the first.
+
+    The rest are test lights. (M, λ) are chosen on the validation lights and the error
+    is reported on the test lights, so the reported error is not the one minimized.
+    """
+    if isinstance(every, bool) or int(every) != every or every < 2:
+        raise ConfigError(f"dataset.validation_every={every!r} must be an integer >= 2")
+    if n_heldout < 2:
+        raise DataError(
+            f"{n_heldout} held-out light(s): need at least 2 (one validation, one test)"
+        )
+    return np.arange(n_heldout) % int(every) == 0
 
 
 def data_stage(ctx: Context) -> Entry:
@@ -175,16 +244,22 @@ def data_stage(ctx: Context) -> Entry:
     factor = int(ds.get("downsample") or 1)
     if factor < 1:
         raise ConfigError(f"dataset.downsample={factor} must be an integer >= 1")
+    view = btf_view(ds)
+    every = ds.get("validation_every", VALIDATION_EVERY)
     settings = {
         "root": str(root),
-        "fingerprint": folder_fingerprint(root),
-        "holdout_every": ds.get("holdout_every"),
+        "fingerprint": folder_fingerprint(root if view is None else root / view_folder_name(*view)),
+        "holdout_every": ds.get("holdout_every", None if view is None else BTF_HOLDOUT_EVERY),
+        "validation_every": every,
         "crop": crop,
         "downsample": factor,
     }
+    if view is not None:
+        settings.update(format=str(ds.format), view=list(view))
 
     def compute(folder: Path) -> dict:
-        train, train_dirs, test, test_dirs = _split(ctx.cfg, root)
+        train, train_dirs, test, test_dirs, view_dir = _split(ctx.cfg, root)
+        is_validation = validation_mask(len(test_dirs), every)
         reference = "images"
         if (root / "scene.json").is_file():  # the generator's truth, free of noise
             test, reference = load_synthetic_scene(root).render(test_dirs), "analytic"
@@ -193,6 +268,7 @@ def data_stage(ctx: Context) -> Entry:
             "train_dirs": train_dirs,
             "heldout_images": shrink(test, crop, factor),
             "heldout_dirs": test_dirs,
+            "heldout_is_validation": is_validation,
         }
         if (root / "normals.npy").is_file():
             normals = load_normal_map(root / "normals.npy", train.shape[1:3])
@@ -204,6 +280,9 @@ def data_stage(ctx: Context) -> Entry:
         return {
             "n_train": n,
             "n_heldout": len(test_dirs),
+            "n_validation": int(is_validation.sum()),
+            "n_test": int((~is_validation).sum()),
+            "view_dir": [float(v) for v in view_dir],
             "height": height,
             "width": width,
             "reference": reference,
@@ -211,7 +290,12 @@ def data_stage(ctx: Context) -> Entry:
             "given_normals": "given_normals" in arrays,
         }
 
-    return ctx.run("stack_data", settings, {}, compute, version="1")
+    return ctx.run("stack_data", settings, {}, compute, version="2")
+
+
+def view_of(data: Entry) -> np.ndarray:
+    """The view direction of a ``stack_data`` entry, (3,)."""
+    return np.asarray(data.manifest["summary"].get("view_dir", VIEW), dtype=np.float64)
 
 
 # --------------------------------------------------------------------------- normals
@@ -275,9 +359,12 @@ def normals_stage(ctx: Context, data: Entry) -> Entry:
 
 
 def fit_settings(cfg) -> dict:
-    """The eq. 19 settings of ``method.*`` (shared by method=fourier and fourier_pattern)."""
+    """The eq. 19 settings of ``method.*`` (shared by method=fourier and fourier_pattern),
+    with the solver that runs (``auto`` resolved: the same fit gets the same key)."""
     method = cfg.method
-    return {key: method[key] for key in FIT_KEYS}
+    settings = {key: method[key] for key in FIT_KEYS}
+    settings["solver"] = resolve_solver(str(settings["solver"]), float(settings["lam"]))
+    return settings
 
 
 def fit_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
@@ -290,6 +377,7 @@ def fit_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
             data.array("train_images"),
             data.array("train_dirs"),
             normals.array("normals"),
+            view=view_of(data),
             M=int(settings["M"]),
             lam=float(settings["lam"]),
             clamp_diffuse=bool(settings["clamp_diffuse"]),
@@ -299,7 +387,54 @@ def fit_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
         save_arrays(folder, coeffs=coeffs)
         return {"seconds": seconds, "n_coeffs": int(coeffs.shape[-1])}
 
-    return ctx.run("fourier_fit", settings, {"stack_data": data, "stack_normals": normals}, compute, version="1")
+    return ctx.run(
+        "fourier_fit",
+        settings,
+        {"stack_data": data, "stack_normals": normals},
+        compute,
+        version="2",
+    )
+
+
+def condition_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
+    """cond(A) of each pixel's unregularized design matrix at ``method.M`` (not λ).
+
+    Metrics: the median and largest cond(A) over the numerically full-rank pixels, and
+    the fraction of pixels where ``np.linalg.lstsq``'s cutoff drops a singular value
+    (rank-deficient: e.g. normal = view, where θs = θd).
+    """
+    settings = {key: ctx.cfg.method[key] for key in ("M", "clamp_diffuse")}
+
+    def compute(folder: Path) -> dict:
+        cond, truncated = design_condition(
+            data.array("train_dirs"),
+            normals.array("normals"),
+            int(settings["M"]),
+            view=view_of(data),
+            clamp_diffuse=bool(settings["clamp_diffuse"]),
+        )
+        full = cond[~truncated]
+        metrics = {
+            "cond_design_median": float(np.median(full)) if full.size else float("nan"),
+            "cond_design_max": float(full.max()) if full.size else float("nan"),
+            "frac_pixels_rank_deficient": float(truncated.mean()),
+        }
+        save_json(folder, "metrics", metrics)
+        return metrics
+
+    inputs = {"stack_data": data, "stack_normals": normals}
+    return ctx.run("fourier_condition", settings, inputs, compute, version="1")
+
+
+def heldout_errors(name: str, predicted, reference, is_validation) -> dict[str, float]:
+    """RMS on all held-out lights, on the validation lights and on the test lights."""
+    is_validation = np.asarray(is_validation, dtype=bool)
+    predicted, reference = np.asarray(predicted), np.asarray(reference)
+    return {
+        f"rmse_heldout_{name}": rms_error(predicted, reference),
+        f"rmse_validation_{name}": rms_error(predicted[is_validation], reference[is_validation]),
+        f"rmse_test_{name}": rms_error(predicted[~is_validation], reference[~is_validation]),
+    }
 
 
 def baselines_stage(ctx: Context, data: Entry) -> Entry:
@@ -308,18 +443,21 @@ def baselines_stage(ctx: Context, data: Entry) -> Entry:
     def compute(folder: Path) -> dict:
         train, train_dirs = data.array("train_images"), data.array("train_dirs")
         test, test_dirs = data.array("heldout_images"), data.array("heldout_dirs")
+        is_validation = data.array("heldout_is_validation")
         metrics = {}
         for name, fit, render in (("ptm", fit_ptm, render_ptm), ("hsh", fit_hsh, render_hsh)):
             start = time.perf_counter()
             coeffs = fit(train, train_dirs)
             metrics[f"time_fit_{name}"] = time.perf_counter() - start
             save_arrays(folder, **{name: coeffs})
-            metrics[f"rmse_heldout_{name}"] = rms_error(render(coeffs, test_dirs), test)
+            metrics.update(heldout_errors(name, render(coeffs, test_dirs), test, is_validation))
             metrics[f"rmse_train_{name}"] = rms_error(render(coeffs, train_dirs), train)
         save_json(folder, "metrics", metrics)
         return metrics
 
-    return ctx.run("relight_baselines", {"models": ["ptm", "hsh"]}, {"stack_data": data}, compute, version="1")
+    return ctx.run(
+        "relight_baselines", {"models": ["ptm", "hsh"]}, {"stack_data": data}, compute, version="2"
+    )
 
 
 # --------------------------------------------------------------------------- segmentation
@@ -340,11 +478,23 @@ def representative_points(regions: np.ndarray) -> list[list[int]]:
 
 
 def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
-    """Labels by the paper's method (when points exist) and by k-means; accuracy vs truth."""
+    """Labels by the paper's method (when points exist) and by k-means; accuracy vs truth.
+
+    ``labels_paper`` / ``labels_kmeans`` (what quilting reads) use
+    ``method.segmentation.colour_space``; both colour spaces are scored. Metrics, for
+    ``<name>`` in paper, kmeans: ``segmentation_accuracy_<name>`` (all pixels) and
+    ``segmentation_accuracy_object_<name>`` (object pixels: ground-truth label != 0) in
+    the chosen colour space, and the same with ``_rgb`` / ``_chromaticity`` appended.
+    """
     seg = plain_settings(ctx.cfg.method.segmentation)
     if seg["features"] not in ("mean_colour", "coefficients"):
         raise ConfigError(
             f"method.segmentation.features={seg['features']!r} is not mean_colour or coefficients"
+        )
+    if seg["colour_space"] not in COLOUR_SPACES:
+        raise ConfigError(
+            f"method.segmentation.colour_space={seg['colour_space']!r} is not one of "
+            f"{list(COLOUR_SPACES)}"
         )
     points = seg["points"]
     if points is None and data.manifest["summary"]["regions"]:
@@ -353,30 +503,49 @@ def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
     inputs = {"stack_data": data}
     if seg["features"] == "coefficients":
         inputs["fourier_fit"] = fitted
+    chosen = seg["colour_space"]
+    spaces = [chosen, *(s for s in COLOUR_SPACES if s != chosen)]
 
     def compute(folder: Path) -> dict:
         mean = mean_image(data.array("train_images"))
-        labels = {}
-        if points is not None:
-            labels["paper"] = segment_by_representatives(mean, points, seg["colour_space"])
+        labels = {}  # (name, colour space or None) -> (H, W) labels
+        for space in spaces:
+            if points is not None:
+                labels["paper", space] = segment_by_representatives(mean, points, space)
+            if seg["features"] == "mean_colour":
+                labels["kmeans", space] = segment_kmeans(
+                    mean,
+                    seg["n_regions"],
+                    seed=seg["seed"],
+                    colour_space=space,
+                    n_init=seg["n_init"],
+                )
         if seg["features"] == "coefficients":
-            features, space = fitted.array("coeffs", mmap=False), None
-        else:
-            features, space = mean, seg["colour_space"]
-        labels["kmeans"] = segment_kmeans(
-            features, seg["n_regions"], seed=seg["seed"], colour_space=space, n_init=seg["n_init"]
-        )
-        save_arrays(folder, mean_image=mean, **{f"labels_{k}": v for k, v in labels.items()})
+            labels["kmeans", None] = segment_kmeans(
+                fitted.array("coeffs", mmap=False),
+                seg["n_regions"],
+                seed=seg["seed"],
+                n_init=seg["n_init"],
+            )
+        used = {name: found for (name, space), found in labels.items() if space in (chosen, None)}
+        save_arrays(folder, mean_image=mean, **{f"labels_{k}": v for k, v in used.items()})
         metrics = {}
         truth = data.array("regions", mmap=False) if (data.path / "regions.npy").is_file() else None
         if truth is not None:
-            for name, found in labels.items():
-                metrics[f"segmentation_accuracy_{name}"] = segmentation_accuracy(found, truth)
-        _segmentation_figure(folder / "segmentation.png", mean, truth, labels)
+            for (name, space), found in labels.items():
+                scores = score_segmentation(found, truth)
+                suffixes = [""] if space is None else [f"_{space}"]
+                if space == chosen:
+                    suffixes.append("")
+                for suffix in suffixes:
+                    metrics[f"segmentation_accuracy_{name}{suffix}"] = scores["all"]
+                    if "object" in scores:
+                        metrics[f"segmentation_accuracy_object_{name}{suffix}"] = scores["object"]
+        _segmentation_figure(folder / "segmentation.png", mean, truth, used)
         save_json(folder, "metrics", metrics)
         return metrics
 
-    return ctx.run("stack_segmentation", settings, inputs, compute, version="1")
+    return ctx.run("stack_segmentation", settings, inputs, compute, version="2")
 
 
 def _segmentation_figure(path: Path, mean, truth, labels: dict) -> None:
@@ -409,14 +578,15 @@ def evaluate_stage(
     def compute(folder: Path) -> dict:
         coeffs, normal_map = fitted.array("coeffs", mmap=False), normals.array("normals")
         test, test_dirs = data.array("heldout_images"), data.array("heldout_dirs")
-        predicted = render_fourier(coeffs, test_dirs, normal_map, clamp_diffuse=clamp)
+        view = view_of(data)
+        predicted = render_fourier(coeffs, test_dirs, normal_map, view, clamp_diffuse=clamp)
         train = data.array("train_images")
+        train_predicted = render_fourier(
+            coeffs, data.array("train_dirs"), normal_map, view, clamp_diffuse=clamp
+        )
         metrics = {
-            "rmse_heldout_fourier": rms_error(predicted, test),
-            "rmse_train_fourier": rms_error(
-                render_fourier(coeffs, data.array("train_dirs"), normal_map, clamp_diffuse=clamp),
-                train,
-            ),
+            **heldout_errors("fourier", predicted, test, data.array("heldout_is_validation")),
+            "rmse_train_fourier": rms_error(train_predicted, train),
         }
         shown = np.linspace(0, len(test_dirs) - 1, min(figures["n_lights"], len(test_dirs)))
         shown = np.unique(shown.round().astype(int))
@@ -440,7 +610,7 @@ def evaluate_stage(
         "fourier_fit": fitted,
         "relight_baselines": baselines,
     }
-    return ctx.run("fourier_evaluate", figures, inputs, compute, version="1")
+    return ctx.run("fourier_evaluate", figures, inputs, compute, version="2")
 
 
 def _heldout_figure(path: Path, rows: dict, dirs: np.ndarray, exposure: float) -> None:
@@ -475,11 +645,14 @@ def _normals_figure(path: Path, normals: np.ndarray) -> None:
 
 
 def describe(cfg, data: Entry) -> str:
-    """A short run name: method, M, λ, data and normals."""
-    root = Path(data.manifest["settings"]["root"]).name
+    """A short run name: method, M, λ, data (and view) and normals."""
+    read = data.manifest["settings"]
+    root = Path(read["root"]).name
+    view = f" view={read['view']}" if "view" in read else ""
+    normals = Path(str(cfg.dataset.get("normals") or "flat")).name
     return (
         f"{cfg.method.name} M={cfg.method.M} lam={cfg.method.lam} "
-        f"{cfg.dataset.name}:{root} normals={Path(str(cfg.dataset.normals)).name}"
+        f"{cfg.dataset.name}:{root}{view} normals={normals}"
     )
 
 
@@ -488,6 +661,7 @@ def run(ctx: Context) -> dict[str, float]:
     data = data_stage(ctx)
     normals = normals_stage(ctx, data)
     fitted = fit_stage(ctx, data, normals)
+    condition = condition_stage(ctx, data, normals)
     baselines = baselines_stage(ctx, data)
     segmented = segmentation_stage(ctx, data, fitted)
     evaluated = evaluate_stage(ctx, data, normals, fitted, baselines)
@@ -495,15 +669,19 @@ def run(ctx: Context) -> dict[str, float]:
         **evaluated.json("metrics"),
         **baselines.json("metrics"),
         **segmented.json("metrics"),
+        **condition.json("metrics"),
     }
     summary = data.manifest["summary"]
     metrics.update(
         time_fit_fourier=fitted.manifest["summary"]["seconds"],
         n_train_lights=summary["n_train"],
         n_heldout_lights=summary["n_heldout"],
+        n_validation_lights=summary["n_validation"],
+        n_test_lights=summary["n_test"],
     )
     if mlflow.active_run() is not None:
         mlflow.set_tag("mlflow.runName", describe(ctx.cfg, data))
+        mlflow.set_tag("fourier_solver", fitted.manifest["settings"]["solver"])
         mlflow.set_tag("heldout_reference", summary["reference"])
         mlflow.log_artifacts(str(evaluated.path / "figures"), "figures")
         mlflow.log_artifact(str(segmented.file("segmentation.png")), "figures")
