@@ -307,3 +307,23 @@ def test_bfloat16_training_follows_float32_training():
     for a, b in zip(single.curve[1:], half.curve[1:], strict=True):
         assert b["rmse"] == pytest.approx(a["rmse"], rel=0.02)
     assert all(p.dtype == torch.float32 for p in half.decoder.parameters())
+
+
+@pytest.mark.parametrize("m, epoch_texels, expected_steps", [
+    (30, None, 2 * 6),  # one pass over 30 texels: 6 batches of 5, two epochs
+    (30, 60, 2 * 12),  # epochs of 60 texels: two passes over 30 per epoch
+    (60, 60, 2 * 12),  # the same number of steps on a crop twice as large
+])
+def test_epoch_texels_fixes_the_steps_whatever_the_crop(m, epoch_texels, expected_steps):
+    abrdf, features = _tiny_btf(m=m)
+    settings = TrainSettings(epochs=2, epoch_texels=epoch_texels, lr=0.01, batch_size=5,
+                             queries_per_abrdf=4, device="cpu")
+    result = train(abrdf, abrdf, np.arange(m), fit_normalization(abrdf), features,
+                   np.arange(abrdf.shape[1]), settings, seed=0, encoder_channels=(2, 2, 2))
+    assert result.steps == expected_steps
+    assert len(result.epoch_losses) == expected_steps // (m // 5)  # one loss per pass
+
+
+def test_epoch_texels_below_the_batch_is_refused():
+    with pytest.raises(ConfigError, match="train.epoch_texels=3"):
+        TrainSettings(epoch_texels=3, batch_size=5)

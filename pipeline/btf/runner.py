@@ -59,9 +59,10 @@ def train_stage(
         "method": method.name,
         "target": method.get("target", "texel"),
         "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY
-                  # float32 was the only precision before train.precision: runs that use
-                  # it keep their keys and cached results.
-                  and not (k == "precision" and v == "float32")},
+                  # float32 was the only precision before train.precision, one pass over M
+                  # the only epoch before train.epoch_texels: such runs keep their keys.
+                  and not (k == "precision" and v == "float32")
+                  and not (k == "epoch_texels" and v is None)},
         "model": plain_settings(cfg.btf.model),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),

@@ -137,11 +137,15 @@ def train(
     q = len(train_dirs) if all_queries else settings.queries_per_abrdf
     in_order = all_queries and np.array_equal(train_dirs, np.arange(n))  # no gather needed
     b = settings.batch_size
-    steps_per_epoch = m // b  # drop the last partial batch: batch-norm needs >= 2 samples
+    steps_per_pass = m // b  # drop the last partial batch: batch-norm needs >= 2 samples
+    # An epoch is one pass over the M texels, or epoch_texels texels whatever M is (so that
+    # a smaller crop does not silently mean fewer steps and an earlier-decaying schedule).
+    steps_per_epoch = (steps_per_pass if settings.epoch_texels is None
+                       else max(1, settings.epoch_texels // b))
     total = steps_per_epoch * settings.epochs
     if settings.max_steps >= 0:
         total = min(total, settings.max_steps)
-    if total < 1:
+    if total < 1 or steps_per_pass < 1:
         raise ConfigError(f"no training step: M={m} texels, batch_size={b}, max_steps")
     if settings.lr_half_life > 0:
         half_life_steps = settings.lr_half_life * steps_per_epoch
@@ -181,11 +185,11 @@ def train(
               tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar):
             if curve is not None:
                 measure(0)
-            for epoch in range(settings.epochs):
+            for epoch in range(-(-total // max(steps_per_pass, 1))):  # passes over M texels
                 order = rng.permutation(m)
                 running, count = 0.0, 0
                 clock = time.perf_counter()
-                for first in range(0, steps_per_epoch * b, b):
+                for first in range(0, steps_per_pass * b, b):
                     if step >= total:
                         break
                     texels = np.sort(order[first : first + b])

@@ -13,7 +13,11 @@ PRECISIONS = ("float32", "bfloat16")  # train.precision
 class TrainSettings:
     """Optimizer settings (``conf/train/*.yaml``).
 
-    epochs : passes over all texels.
+    epochs : passes over all texels, or over ``epoch_texels`` texels.
+    epoch_texels : None: an epoch is one pass over the crop's M texels; a number: an epoch
+        is that many texels whatever M is, so the number of steps (epochs x epoch_texels /
+        batch_size) and the schedule do not shrink with the crop (the loss is logged per
+        pass over M).
     lr : SGD learning rate (paper: 0.05 Neural BTF, 0.08 clustered).
     batch_size : ABRDFs per step (paper: 5).
     queries_per_abrdf : direction queries per ABRDF per step; -1 for all training directions.
@@ -43,6 +47,7 @@ class TrainSettings:
     """
 
     epochs: int = 1
+    epoch_texels: int | None = None
     lr: float = 0.05
     batch_size: int = 5
     queries_per_abrdf: int = 512
@@ -63,6 +68,9 @@ class TrainSettings:
     def __post_init__(self):
         if self.epochs < 1:
             raise ConfigError(f"train.epochs={self.epochs} must be >= 1")
+        if self.epoch_texels is not None and self.epoch_texels < self.batch_size:
+            raise ConfigError(f"train.epoch_texels={self.epoch_texels} must be null or >= "
+                              f"train.batch_size={self.batch_size}")
         if self.batch_size < 2:
             # Batch-norm in training mode needs at least two samples.
             raise ConfigError(f"train.batch_size={self.batch_size} must be >= 2")
