@@ -25,7 +25,16 @@ a Lambertian term rho_d / pi is added per channel. Two microfacet distributions 
 
     a = sqrt(a_x a_y), kappa = (a_x^2 - a_y^2) / (a_x^2 + a_y^2) (more microfacets tilted
     towards the rougher axis, like the Beckmann case); <h.n> = 1 still holds (the cos 2 phi
-    term integrates to 0), and g(k) is integrated numerically on a fine (0.5 deg) grid.
+    term integrates to 0). g(k) is integrated numerically on a fine (0.5 deg) grid, through
+    the form the cos 2 phi factor gives it: with k at azimuth phi_k, substituting
+    phi_h = phi_k + psi and dropping the sin 2 psi part (odd about k's plane, so it
+    integrates to 0),
+
+    g(theta_k, phi_k) = A(theta_k) + kappa B(theta_k) cos 2(phi_k - tangent_angle),
+
+    A, B = int (h.k0)_+ R(theta_h) {1, cos 2 psi} dw_h, k0 = (theta_k, 0), R the radial
+    factor: two integrals per distinct theta_k (tabulated on a 0.25 deg grid and
+    interpolated when there are many), instead of one per distinct direction.
 """
 
 from __future__ import annotations
@@ -150,14 +159,18 @@ class SyntheticAnisotropicBRDF:
         return np.cos(theta) * (1.0 + lam)
 
     def _numeric_g(self, directions: np.ndarray) -> np.ndarray:
-        unique, inverse = np.unique(np.round(directions, 10), axis=0, return_inverse=True)
-        h, solid_angle, theta_h, phi_h = _fine_hemisphere()
-        mass = self.distribution(theta_h, phi_h) * solid_angle
-        k = to_unit_vectors(unique)
-        out = np.empty(k.shape[0])
-        for start in range(0, k.shape[0], 32):  # bounds the temporary to ~33 MB
-            out[start : start + 32] = np.maximum(k[start : start + 32] @ h.T, 0.0) @ mass
-        return out[inverse.ravel()]
+        """g for ``kind="separable"`` from its two polar harmonics (module docstring)."""
+        theta, phi = directions[:, 0], directions[:, 1] - self.tangent_angle
+        kappa = (self.alpha_x**2 - self.alpha_y**2) / (self.alpha_x**2 + self.alpha_y**2)
+        unique, inverse = np.unique(np.round(theta, 10), return_inverse=True)
+        if unique.size <= _G_TABLE_NODES.size:
+            a, b = _separable_g_harmonics(unique, self.alpha_x * self.alpha_y)
+            a, b = a[inverse.ravel()], b[inverse.ravel()]
+        else:  # dense queries (renders): A and B are smooth in theta_k
+            table_a, table_b = _separable_g_table(self.alpha_x * self.alpha_y)
+            a = np.interp(theta, _G_TABLE_NODES, table_a)
+            b = np.interp(theta, _G_TABLE_NODES, table_b)
+        return a + kappa * b * np.cos(2.0 * phi)
 
     def specular(self, light: np.ndarray, view: np.ndarray) -> np.ndarray:
         """Specular BRDF of shape (n, 3) at light/view pairs of shape (n, 2); 0 below horizon."""
@@ -183,6 +196,40 @@ class SyntheticAnisotropicBRDF:
     def evaluate(self, light: np.ndarray, view: np.ndarray) -> np.ndarray:
         """Full BRDF (diffuse + specular) of shape (n, 3) at pairs of shape (n, 2)."""
         return self.diffuse(light, view) + self.specular(light, view)
+
+
+_G_TABLE_NODES = np.deg2rad(np.linspace(0.0, 90.0, 361))  # 0.25 deg
+
+
+def _separable_g_harmonics(theta: np.ndarray, alpha2: float) -> tuple[np.ndarray, np.ndarray]:
+    """A(theta_k) and B(theta_k) of the separable distribution (module docstring).
+
+    Parameters
+    ----------
+    theta : ndarray of shape (n,)
+        Polar angles of k (its azimuth is taken as 0).
+    alpha2 : float
+        a^2 = a_x a_y of the radial factor.
+
+    Returns
+    -------
+    a, b : ndarray of shape (n,)
+    """
+    h, solid_angle, theta_h, phi_h = _fine_hemisphere()
+    cos_t = np.cos(theta_h)
+    radial = np.exp(-np.tan(theta_h) ** 2 / alpha2) / (np.pi * alpha2 * cos_t**4)
+    weights = np.stack([radial, radial * np.cos(2.0 * phi_h)], axis=-1) * solid_angle[:, None]
+    k = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], axis=-1)
+    out = np.empty((theta.size, 2))
+    for start in range(0, theta.size, 32):  # bounds the temporary to ~33 MB
+        out[start : start + 32] = np.maximum(k[start : start + 32] @ h.T, 0.0) @ weights
+    return out[:, 0], out[:, 1]
+
+
+@lru_cache(maxsize=4)
+def _separable_g_table(alpha2: float) -> tuple[np.ndarray, np.ndarray]:
+    """A and B on ``_G_TABLE_NODES`` (cached: renders query them repeatedly)."""
+    return _separable_g_harmonics(_G_TABLE_NODES, alpha2)
 
 
 @lru_cache(maxsize=1)
