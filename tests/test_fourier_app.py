@@ -106,6 +106,10 @@ def test_smoke_run_logs_metrics_and_figures_and_reuses_the_cache(fourier_cfg, ca
             metrics[f"segmentation_accuracy_{name}"] == metrics[f"segmentation_accuracy_{name}_rgb"]
         )
     assert metrics["segmentation_accuracy_object_paper_chromaticity"] >= 0.95
+    # Flat normals = the view at every pixel: every A is singular, no cond(A) to report.
+    run_job(fourier_cfg("dataset.normals=flat"))
+    flat = _runs(cfg)[1][0].data.metrics
+    assert flat["frac_pixels_rank_deficient"] == 1.0 and "cond_design_median" not in flat
     assert run.data.params["method.M"] == "3" and run.data.params["method.name"] == "fourier"
     assert run.data.tags["heldout_reference"] == "analytic"
     assert run.data.tags["mlflow.runName"].startswith("fourier M=3 lam=3.14 synthetic_stack")

@@ -326,7 +326,8 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
                     f"fourier_condition_{slug}",
                     f"Method C, {setup}: conditioning of the unregularized fit",
                     "cond(A) = σ_max / σ_min of each pixel's design matrix (lights x 2M + 2, "
-                    "eq. 17), median and largest over the numerically full-rank pixels; "
+                    "eq. 17), median and largest over the pixels whose normal is not the "
+                    "view (where it is, A is singular by construction); "
                     "rank-deficient = the fraction of pixels where np.linalg.lstsq's cutoff "
                     "drops a singular value (e.g. normal = view, where θs = θd). "
                     f"Solver: {solvers(group)}.",

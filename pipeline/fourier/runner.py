@@ -399,31 +399,35 @@ def fit_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
 def condition_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
     """cond(A) of each pixel's unregularized design matrix at ``method.M`` (not λ).
 
-    Metrics: the median and largest cond(A) over the numerically full-rank pixels, and
-    the fraction of pixels where ``np.linalg.lstsq``'s cutoff drops a singular value
-    (rank-deficient: e.g. normal = view, where θs = θd).
+    Metrics: the median and largest cond(A) over the pixels whose normal is not the view
+    (where it is, θs = θd for every light and A is singular by construction: the
+    synthetic pot's flat backdrop), and the fraction of all pixels where
+    ``np.linalg.lstsq``'s cutoff drops a singular value (numerically rank-deficient: the
+    λ = 0 fit is minimum-norm there).
     """
     settings = {key: ctx.cfg.method[key] for key in ("M", "clamp_diffuse")}
 
     def compute(folder: Path) -> dict:
+        view = view_of(data)
+        normal_map = normals.array("normals", mmap=False)
         cond, truncated = design_condition(
             data.array("train_dirs"),
-            normals.array("normals"),
+            normal_map,
             int(settings["M"]),
-            view=view_of(data),
+            view=view,
             clamp_diffuse=bool(settings["clamp_diffuse"]),
         )
-        full = cond[~truncated]
-        metrics = {
-            "cond_design_median": float(np.median(full)) if full.size else float("nan"),
-            "cond_design_max": float(full.max()) if full.size else float("nan"),
-            "frac_pixels_rank_deficient": float(truncated.mean()),
-        }
+        unit = normal_map / np.linalg.norm(normal_map, axis=-1, keepdims=True)
+        generic = (unit @ view < 1.0 - 1e-6) & np.isfinite(cond)
+        metrics = {"frac_pixels_rank_deficient": float(truncated.mean())}
+        if generic.any():  # else no value: JSON and MLflow take no NaN
+            metrics["cond_design_median"] = float(np.median(cond[generic]))
+            metrics["cond_design_max"] = float(cond[generic].max())
         save_json(folder, "metrics", metrics)
         return metrics
 
     inputs = {"stack_data": data, "stack_normals": normals}
-    return ctx.run("fourier_condition", settings, inputs, compute, version="1")
+    return ctx.run("fourier_condition", settings, inputs, compute, version="2")
 
 
 def heldout_errors(name: str, predicted, reference, is_validation) -> dict[str, float]:
