@@ -24,12 +24,14 @@ def _run(kind, cutoff, w_u, missing, noprior, as_, seed=0, method="brdf_map", sp
         "metrics.rmse_missing": missing,
         "metrics.rmse_missing_noprior": noprior,
         "metrics.rmse_missing_as": as_,
+        "metrics.n_missing": 1000,
     }
     if split:  # near the mirror: 10 x the whole; off it: half the whole
         for part, factor in (("near_mirror", 10.0), ("off_mirror", 0.5)):
             row[f"metrics.rmse_missing_{part}"] = factor * missing
             row[f"metrics.rmse_missing_{part}_noprior"] = factor * noprior
             row[f"metrics.rmse_missing_{part}_as"] = factor * as_
+        row["metrics.n_missing_near_mirror"], row["metrics.n_missing_off_mirror"] = 100, 900
     return row
 
 
@@ -53,7 +55,7 @@ def test_prior_study_table_by_hand(runs):
     assert list(table.index) == [("synthetic_brdf (beckmann)", "60"),
                                  ("synthetic_brdf (separable)", "30")]
     assert list(table.columns) == [
-        "w_u = 0", "w_u = 0.05", "w_u = 0.5", "w_u = 2", "no prior", "Ashikhmin-Shirley",
+        "samples", "w_u = 0", "w_u = 0.05", "w_u = 0.5", "w_u = 2", "no prior", "Ashikhmin-Shirley",
         "best w_u > 0", "change vs no prior (%)"]
     separable = table.loc[("synthetic_brdf (separable)", "30")]
     assert separable["w_u = 0.5"] == pytest.approx(0.15)
@@ -71,6 +73,7 @@ def test_prior_study_split_uses_the_split_metrics(runs):
                              "rmse_missing_near_mirror")
     assert near.loc[("synthetic_brdf (separable)", "30"), "w_u = 0.5"] == pytest.approx(1.5)
     assert near.loc[("synthetic_brdf (separable)", "30"), "no prior"] == pytest.approx(2.0)
+    assert near["samples"].tolist() == [100, 100]
 
 
 def test_prior_study_is_empty_without_a_sweep_over_w_u(runs):
@@ -99,7 +102,9 @@ def test_sections_write_the_tables_and_the_figure(runs, tmp_path):
         assert (tmp_path / f"{stem}.md").is_file() and (tmp_path / f"{stem}.csv").is_file()
     assert (tmp_path / "brdf_prior_study.png").stat().st_size > 10_000
     csv = pd.read_csv(tmp_path / "brdf_prior_study_rmse_missing.csv")
+    assert csv["BRDF"].tolist() == ["synthetic_brdf (beckmann)", "synthetic_brdf (separable)"]
     assert csv["w_u = 0.5"].tolist() == [0.11, 0.15]
+    assert csv["change vs no prior (%)"].tolist() == [10.0, -25.0]
 
 
 def test_sections_without_brdf_runs(tmp_path):
