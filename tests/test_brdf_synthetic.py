@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.brdf_map.synthetic import SyntheticAnisotropicBRDF, _fine_hemisphere
+from pipeline.brdf_map.synthetic import SyntheticAnisotropicBRDF
 from pipeline.data.brdf import to_unit_vectors
 
 
 def _direct_g(brdf: SyntheticAnisotropicBRDF, directions: np.ndarray) -> np.ndarray:
-    """g(k) = sum over the fine grid of (h.k)_+ p(h) dw, one direction at a time."""
-    h, solid_angle, theta_h, phi_h = _fine_hemisphere()
+    """g(k) = sum of (h.k)_+ p(h) dw over the 0.5 deg midpoint grid of the hemisphere
+    (the generator's own quadrature grid), each direction directly."""
+    theta = (np.arange(180) + 0.5) * (0.5 * np.pi / 180)
+    phi = (np.arange(720) + 0.5) * (2.0 * np.pi / 720)
+    theta_h, phi_h = (a.ravel() for a in np.meshgrid(theta, phi, indexing="ij"))
+    solid_angle = np.sin(theta_h) * (0.5 * np.pi / 180) * (2.0 * np.pi / 720)
+    h = to_unit_vectors(np.stack([theta_h, phi_h], axis=-1))
     mass = brdf.distribution(theta_h, phi_h) * solid_angle
     return np.maximum(to_unit_vectors(directions) @ h.T, 0.0) @ mass
 
