@@ -210,8 +210,9 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
         extra = "" if metric == "rmse_missing" else (
             f" The split is at θh = {NEAR_MIRROR_DEG:g}° (the half vector's polar angle): "
             "near the mirror direction, the missing samples are the mirror pairs with light "
-            "and view both beyond the cutoff, few samples (the 'samples' column) with large "
-            "values and errors, which dominate the RMSE on all missing samples at 60°.")
+            "and view both beyond the cutoff: few samples (the 'samples' column) with large "
+            "values and errors; their share of the squared error on all missing samples is "
+            "samples x RMSE² against the other part's.")
         table = table.round(4).astype({"samples": "Int64"})
         if "change vs no prior (%)" in table:
             table["change vs no prior (%)"] = table["change vs no prior (%)"].round(1) + 0.0
