@@ -94,7 +94,7 @@ def test_table_rmse_pools_seeds(runs):
 
 def test_sections_write_the_tables_and_the_figure(runs, tmp_path):
     text = "\n".join(sections(runs, tmp_path))
-    assert "Method B prior study: RMSE on the all missing samples" in text
+    assert "Method B prior study: RMSE on all missing samples" in text
     assert "near the mirror direction" in text and "off the mirror direction" in text
     assert "![Method B prior study" in text
     for stem in ("brdf_map_rmse", "brdf_prior_study_rmse_missing",

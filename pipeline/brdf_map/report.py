@@ -27,8 +27,8 @@ MODELS = (("MAP", ""), ("no prior", "_noprior"), ("Ashikhmin-Shirley", "_as"))
 # The missing-region RMSE and its split at theta_h = NEAR_MIRROR_DEG (runner.py).
 STUDY_METRICS = (
     ("rmse_missing", "all missing samples"),
-    ("rmse_missing_off_mirror", "missing samples off the mirror direction"),
-    ("rmse_missing_near_mirror", "missing samples near the mirror direction"),
+    ("rmse_missing_off_mirror", "the missing samples off the mirror direction"),
+    ("rmse_missing_near_mirror", "the missing samples near the mirror direction"),
 )
 
 
@@ -218,7 +218,7 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
             table["change vs no prior (%)"] = table["change vs no prior (%)"].round(1) + 0.0
         sections.append(write_table(
             table.reset_index(), out, f"brdf_prior_study_{metric}",
-            f"Method B prior study: RMSE on the {where}",
+            f"Method B prior study: RMSE on {where}",
             "Rows: the BRDF and the light/view polar angle above which its samples are "
             "missing (the UTIA grid measures 0, 15, ..., 75°: 60 removes the 75° rings, "
             "15 leaves 0 and 15° only). Columns: the MAP fit at each prior strength w_u "
