@@ -211,7 +211,8 @@ def learning_rates(runs: pd.DataFrame) -> str:
     train = runs.get("params.train.lr", pd.Series(None, index=runs.index))
     method = runs.get("params.method.lr", pd.Series(None, index=runs.index))
     rate = train.where(~train.isin([None, "None"]) & train.notna(), method)
-    trained = runs.assign(rate=rate)[rate.notna() & ~rate.isin(["None"])]
+    trained = runs.assign(rate=rate)[rate.notna() & ~rate.isin(["None"])
+                                     & (runs["params.method.name"] != "pca")]  # no training
     parts = [f"{model}: {', '.join(sorted(map(str, group['rate'].unique())))}"
              for model, group in trained.sort_values(["order", "model"]).groupby(
                  "model", sort=False)]
