@@ -22,7 +22,7 @@ from pipeline.core.errors import ConfigError
 from pipeline.core.tracking import tracking_uri
 from pipeline.data.images import read_exr_channels
 from pipeline.fourier import report as fourier_tables
-from pipeline.fourier.runner import shrink
+from pipeline.fourier.stack import shrink
 from pipeline.fourier.synthetic import write_synthetic_stack
 
 REAL = SHARED / "data/rti/neuralrti-example"

@@ -31,6 +31,7 @@ from pipeline.core.stage import Context, plain_settings
 from pipeline.data.images import write_exr, write_image_8bit
 from pipeline.data.light_stack import load_normal_map
 from pipeline.fourier import runner as fr
+from pipeline.fourier.figures import display
 from pipeline.fourier.optical_pattern import (
     blob_weights,
     load_weight_map,
@@ -39,6 +40,7 @@ from pipeline.fourier.optical_pattern import (
 )
 from pipeline.fourier.quilting import candidate_positions, quilt, random_tiling, seam_cost
 from pipeline.fourier.series import render_fourier
+from pipeline.fourier.stack import data_stage
 from pipeline.fourier.synthetic import SyntheticStackConfig, make_synthetic_scene
 
 log = logging.getLogger(__name__)
@@ -192,7 +194,7 @@ def pattern_stage(ctx: Context, fitted: Entry, quilted: Entry, target: dict) -> 
         out = folder / "pattern"
         out.mkdir()
         write_exr(out / "pattern.exr", image)
-        write_image_8bit(out / "pattern.png", fr.display(image, pattern["exposure"]))
+        write_image_8bit(out / "pattern.png", display(image, pattern["exposure"]))
         colours = np.array([[0.9, 0.6, 0.3], [0.6, 0.1, 0.1], [0.2, 0.4, 0.8], [0.3, 0.7, 0.3]])
         palette = colours[np.arange(len(maps)) % len(colours)]
         write_image_8bit(out / "weights.png", np.einsum("nhw,nc->hwc", weights, palette))
@@ -224,7 +226,7 @@ def _quilting_figure(path, quilted: Entry, regions, light, view, clamp, exposure
             coeffs = quilted.array(f"{kind}_r{region}", mmap=False)
             image = np.maximum(render_fourier(coeffs, light, flat, view, clamp), 0.0)
             name = "quilting" if kind == "quilted" else "random"
-            axes[row, col].imshow(fr.display(image, exposure), interpolation="nearest")
+            axes[row, col].imshow(display(image, exposure), interpolation="nearest")
             axes[row, col].set_title(
                 f"region {region}: {kind}, seam cost {summary[f'seam_cost_{name}_r{region}']:.3g}",
                 fontsize=8,
@@ -239,7 +241,7 @@ def _quilting_figure(path, quilted: Entry, regions, light, view, clamp, exposure
 
 def run(ctx: Context) -> dict[str, float]:
     """The whole chain for ``method=fourier_pattern``; returns the metrics for MLflow."""
-    data = fr.data_stage(ctx)
+    data = data_stage(ctx)
     normals = fr.normals_stage(ctx, data)
     fitted = fr.fit_stage(ctx, data, normals)
     segmented = fr.segmentation_stage(ctx, data, fitted)
