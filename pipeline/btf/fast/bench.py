@@ -193,8 +193,9 @@ def load_times(runs: str, size: int) -> dict:
 
     from hydra import compose, initialize_config_dir
 
-    from pipeline.btf.stages import Context, load
+    from pipeline.btf.stages import load
     from pipeline.btf.synthetic import write_synthetic_btf
+    from pipeline.core.stage import Context
 
     root = write_synthetic_btf(Path(runs) / "data" / f"bench_ubo2003_{size}", size=size, seed=0)
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
