@@ -103,6 +103,30 @@ def test_utia_exr_xyz_round_trip(datasets):
     np.testing.assert_allclose(btf.images, truth, atol=3e-3)
 
 
+@pytest.mark.parametrize("format", ["ubo2003", "utia"])
+def test_linearize_chooses_the_decoding_of_8bit_images(datasets, format):
+    root = datasets[(format, "png")]
+    codes = load_btf(root, format, linearize="none").images
+    # "none" keeps the encoded values: the 8-bit codes / 255, whatever the layout.
+    np.testing.assert_array_equal(codes * np.float32(255.0), np.rint(codes * np.float32(255.0)))
+    np.testing.assert_array_equal(load_btf(root, format, linearize="gamma2.2").images, gamma_decode(codes))
+    np.testing.assert_array_equal(load_btf(root, format, linearize="srgb").images, srgb_eotf(codes))
+    own = {"ubo2003": gamma_decode, "utia": srgb_eotf}[format]
+    np.testing.assert_array_equal(load_btf(root, format).images, own(codes))
+
+
+def test_linearize_leaves_exr_linear(datasets):
+    root = datasets[("ubo2003", "exr")]
+    np.testing.assert_array_equal(
+        load_btf(root, "ubo2003", linearize="none").images, load_btf(root, "ubo2003").images
+    )
+
+
+def test_unknown_linearize_names_the_setting(datasets):
+    with pytest.raises(ConfigError, match=r"dataset\.linearize='gamma' .*srgb"):
+        load_btf(datasets[("ubo2003", "png")], "ubo2003", linearize="gamma")
+
+
 def test_utia_exr_with_rgb_labels_is_read_as_xyz(tmp_path):
     xyz = np.random.default_rng(0).uniform(0.1, 0.9, size=(4, 5, 3)).astype(np.float16)
     path = tmp_path / "tl000_pl000_tv000_pv000.exr"

@@ -78,9 +78,9 @@ def test_tables_from_hand_made_runs(tmp_path, settings):
     assert sizes.loc["k = 1000", "ratio (paper)"] == "1:4633"
 
     rmse = pd.read_csv(out / "table2_rmse.csv").set_index("dataset")
-    assert rmse.loc["synthetic", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"
-    assert rmse.loc["synthetic", "k = 500"] == "0.0302 ± 0.0002 (n=3)"
-    assert rmse.loc["synthetic", "k = 1000"] == "0.0252 ± 0.0002 (n=3)"
+    assert rmse.loc["synthetic:plain_weave", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"
+    assert rmse.loc["synthetic:plain_weave", "k = 500"] == "0.0302 ± 0.0002 (n=3)"
+    assert rmse.loc["synthetic:plain_weave", "k = 1000"] == "0.0252 ± 0.0002 (n=3)"
     assert "k = 2000" not in rmse.columns
 
     verdict = pd.read_csv(out / "k_verdict.csv")
@@ -88,7 +88,7 @@ def test_tables_from_hand_made_runs(tmp_path, settings):
     assert "lowest mean at k = 1000" in verdict.loc[0, "verdict"]
 
     summary = (out / "summary.md").read_text()
-    assert "synthetic: no run of k = 2000" in summary
+    assert "synthetic:plain_weave: no run of k = 2000" in summary
     assert "synthetic: Neural BTF has" not in summary  # two seeds: nothing to report
     for stem in ("table1_sizes", "table2_rmse", "interpolation", "k_verdict"):
         for ext in ("md", "csv", "tex"):
@@ -141,7 +141,7 @@ def test_different_crops_of_one_source_are_different_datasets(tmp_path, settings
             mlflow.log_metrics({"rmse": rmse, "n_directions": n})
     rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
     assert dict(zip(rmse["dataset"], rmse["k = 8"], strict=True)) == {
-        "synthetic 12²×729": "0.1600 (n=1)", "synthetic 48²×6561": "0.0300 (n=1)"}
+        "synthetic:plain_weave 12²×729": "0.1600 (n=1)", "synthetic:plain_weave 48²×6561": "0.0300 (n=1)"}
 
 
 def test_a_longer_run_is_its_own_model_and_its_curve_is_drawn(tmp_path, settings):
@@ -150,8 +150,8 @@ def test_a_longer_run_is_its_own_model_and_its_curve_is_drawn(tmp_path, settings
               curve=[(0, 0.0, 0.2), (100, 60.0, 0.05), (200, 120.0, 0.02)])
     out = build_tables(tmp_path, settings)
     rmse = pd.read_csv(out / "table2_rmse.csv").set_index("dataset")
-    assert rmse.loc["synthetic", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"  # not mixed in
-    assert rmse.loc["synthetic", "Neural BTF (64 epochs)"] == "0.0190 (n=1)"
+    assert rmse.loc["synthetic:plain_weave", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"  # not mixed in
+    assert rmse.loc["synthetic:plain_weave", "Neural BTF (64 epochs)"] == "0.0190 (n=1)"
     points = pd.read_csv(out / "training_curves.csv")
     assert list(points["step"]) == [0, 100, 200]
     assert list(points["seconds"]) == [0.0, 60.0, 120.0]
@@ -166,8 +166,8 @@ def test_a_bfloat16_run_is_its_own_model_not_another_seed(tmp_path, settings):
     _log_runs(tmp_path, [("neural_btf", None, 0, 0.0230)], precision="bfloat16")
     rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv").set_index(
         "dataset")
-    assert rmse.loc["synthetic", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"
-    assert rmse.loc["synthetic", "Neural BTF (bfloat16)"] == "0.0230 (n=1)"
+    assert rmse.loc["synthetic:plain_weave", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"
+    assert rmse.loc["synthetic:plain_weave", "Neural BTF (bfloat16)"] == "0.0230 (n=1)"
 
 
 def test_convergence_compares_each_run_with_the_same_model_and_seed_trained_longest(

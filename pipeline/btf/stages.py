@@ -55,9 +55,10 @@ def dataset_root(cfg: DictConfig) -> Path:
 
 def load(ctx: Context) -> Entry:
     """Decode the dataset once into a memory-mappable ``images.npy`` (n, H, W, 3)."""
-    from pipeline.data.btf import count_btf_images, load_btf
+    from pipeline.data.btf import DEFAULT_LINEARIZE, check_linearize, count_btf_images, load_btf
 
     ds = ctx.cfg.dataset
+    linearize = check_linearize(ds.get("linearize"), ds.format)
     root = dataset_root(ctx.cfg).resolve()
     views = plain_settings(ds.views)
     settings = {
@@ -66,13 +67,25 @@ def load(ctx: Context) -> Entry:
         "views": views,
         "fingerprint": folder_fingerprint(root),
     }
+    own_encoding = DEFAULT_LINEARIZE[ds.format]
+    if linearize != own_encoding:
+        # Only when it differs: entries decoded the layout's own way keep their keys.
+        settings["linearize"] = linearize
+        if ds.name == "synthetic" and ds.root is None and linearize != "none":
+            log.warning(
+                "dataset.linearize=%s, but the built-in BTF is written in the %s layout's "
+                "own encoding (%s): its values will not match the analytic ground truth",
+                linearize,
+                ds.format,
+                own_encoding,
+            )
 
     def compute(folder: Path) -> dict:
         n, height, width = count_btf_images(root, format=ds.format, views=views)
         images = np.lib.format.open_memmap(
             folder / "images.npy", mode="w+", dtype=np.float32, shape=(n, height, width, 3)
         )
-        btf = load_btf(root, format=ds.format, views=views, out=images)
+        btf = load_btf(root, format=ds.format, views=views, out=images, linearize=linearize)
         images.flush()
         del images
         save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))

@@ -37,6 +37,9 @@ def _num(series: pd.Series) -> pd.Series:
 def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     """Add ``dataset``, ``model`` (column label), ``k`` and ``seed`` columns.
 
+    The dataset label is the preset's name (``synthetic:<material>`` for the built-in
+    BTF, ``ubo2003:<folder>`` for a generic layout) with the crop and the direction count.
+
     The model label is ``Neural BTF`` or ``k = <k>`` like the paper's columns, with
     ``+scale`` when the graininess fix is on and ``(rep. target)`` when the clustered
     model was trained against the representatives, ``(bfloat16)`` when the decoder's products
@@ -50,6 +53,10 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     # Generic formats are told apart by their folder; presets (WOOL, ...) by their name.
     generic = name.isin(["ubo2003", "utia"]) & (leaf != "")
     label = pd.Series(np.where(generic, name + ":" + leaf, name), index=runs.index)
+    # The built-in BTF's material preset; runs from before the presets had plain_weave.
+    material = runs.get("params.dataset.synthetic.material", pd.Series(np.nan, index=runs.index))
+    material = material.fillna("plain_weave")
+    label = label.where(name != "synthetic", label + ":" + material)
     # The same source cropped or subset differently is a different dataset: a 12 x 12
     # smoke crop must never be averaged with a 48 x 48 one.
     # btf.crop.size; runs logged before A's settings moved under btf.* have crop.size.

@@ -17,6 +17,12 @@ Formats and their colour encodings:
     Some UTIA EXR files label their XYZ data R, G, B; when X, Y, Z are absent, R, G, B
     are read *as X, Y, Z*.
 
+How 8-bit images are linearized is a setting (``linearize``): each layout's own
+convention by default (:data:`DEFAULT_LINEARIZE`), or ``"gamma2.2"``, ``"srgb"`` or
+``"none"`` (keep the encoded values; the paper does not say whether its UBO2003 errors
+are on the encoded or the linear scale). EXR files hold linear values and are never
+re-encoded.
+
 Examples
 --------
 >>> n, height, width = count_btf_images(root, "ubo2003")         # doctest: +SKIP
@@ -70,6 +76,22 @@ FORMAT_EXTENSIONS: dict[str, tuple[str, ...]] = {
     "utia": ("png", "exr"),
 }
 UBO2003_GAMMA = 2.2
+# How 8-bit images are decoded to linear values: a layout's own convention and the choices.
+DEFAULT_LINEARIZE = {"ubo2003": "gamma2.2", "utia": "srgb"}
+LINEARIZE_CHOICES = ("gamma2.2", "srgb", "none")
+
+
+def check_linearize(linearize: str | None, format: str) -> str:
+    """The decoding to apply: ``linearize``, or ``format``'s convention when None."""
+    _check_format(format)
+    if linearize is None:
+        return DEFAULT_LINEARIZE[format]
+    if linearize not in LINEARIZE_CHOICES:
+        raise ConfigError(
+            f"dataset.linearize={linearize!r} is not one of {list(LINEARIZE_CHOICES)} "
+            f"(or null for the layout's own: {DEFAULT_LINEARIZE})"
+        )
+    return linearize
 
 
 @dataclass
@@ -253,7 +275,9 @@ def list_btf_files(root: str | PathLike, format: str = "ubo2003", views=None) ->
     return files
 
 
-def decode_btf_image(path: str | PathLike, format: str = "ubo2003") -> np.ndarray:
+def decode_btf_image(
+    path: str | PathLike, format: str = "ubo2003", linearize: str | None = None
+) -> np.ndarray:
     """Read one BTF image file as linear RGB.
 
     Parameters
@@ -262,6 +286,8 @@ def decode_btf_image(path: str | PathLike, format: str = "ubo2003") -> np.ndarra
         A ``.jpg``/``.jpeg``/``.png`` (8-bit) or ``.exr`` (half float) file.
     format : {"ubo2003", "utia"}
         Chooses the encoding (see the module docstring).
+    linearize : {"gamma2.2", "srgb", "none"} or None
+        Decoding of 8-bit files; None is the format's own (:data:`DEFAULT_LINEARIZE`).
 
     Returns
     -------
@@ -275,6 +301,7 @@ def decode_btf_image(path: str | PathLike, format: str = "ubo2003") -> np.ndarra
         Naming the file, if it is missing, corrupt, lacks the channels, or holds NaN/Inf.
     """
     _check_format(format)
+    linearize = check_linearize(linearize, format)
     path = Path(path)
     if path.suffix.lower() == ".exr":
         if format == "ubo2003":
@@ -291,9 +318,11 @@ def decode_btf_image(path: str | PathLike, format: str = "ubo2003") -> np.ndarra
             )
         return xyz_to_linear_srgb(xyz)
     encoded = read_image_8bit(path)
-    if format == "ubo2003":
+    if linearize == "gamma2.2":
         return gamma_decode(encoded, UBO2003_GAMMA)
-    return srgb_eotf(encoded)
+    if linearize == "srgb":
+        return srgb_eotf(encoded)
+    return encoded.astype(np.float32)
 
 
 def encode_btf_image(
@@ -348,6 +377,7 @@ def load_btf(
     views=None,
     out: np.ndarray | None = None,
     progress: bool = True,
+    linearize: str | None = None,
 ) -> BTF:
     """Load a UBO2003 or UTIA BTF as linear RGB in canonical order.
 
@@ -364,6 +394,8 @@ def load_btf(
         dataset is never held twice; get its shape from :func:`count_btf_images`.
     progress : bool
         Show a tqdm progress bar (only when stderr is a terminal).
+    linearize : {"gamma2.2", "srgb", "none"} or None
+        Decoding of 8-bit images (see :func:`decode_btf_image`).
 
     Returns
     -------
@@ -379,6 +411,7 @@ def load_btf(
     ConfigError
         For an unknown format, an off-grid view, or an ``out`` of the wrong shape/dtype.
     """
+    linearize = check_linearize(linearize, format)
     files = list_btf_files(root, format, views)
     height, width = image_size(files[0].path)
     shape = (len(files), height, width, 3)
@@ -393,7 +426,7 @@ def load_btf(
     for index, entry in enumerate(
         tqdm(files, desc=f"decode {Path(root).name}", unit="img", leave=False, disable=not show_bar)
     ):
-        image = decode_btf_image(entry.path, format)
+        image = decode_btf_image(entry.path, format, linearize)
         if image.shape[:2] != (height, width):
             raise DataError(
                 f"image is {image.shape[1]}x{image.shape[0]} (width x height) but "
