@@ -29,6 +29,43 @@ METHODS: dict[str, Callable[[Context], dict[str, float]]] = {
 }
 
 
+_A = (
+    "**Method A: Neural BTF{what}** (PAPERS.md A). `rmse`: eq. 10, over the crop's texels "
+    "and the directions the model was trained on, with values divided by the crop's maximum "
+    "(so in [0, 1]); held-out lights apart (`rmse_heldout_*`, against nearest and linear "
+    "interpolation). Baseline: `rmse_mean_abrdf` predicts every texel as the crop's mean "
+    "ABRDF; `rmse_ratio_to_mean_abrdf` = rmse / that (a tag `training_failed` marks >= 0.9). "
+    "`bytes_*`: Table 1's sizes. Artifacts: `config/` (resolved config, overrides), "
+    "`hydra/` (the job's log), `metrics.json`, the figures."
+)
+# The run's note in the MLflow UI: what it computed and how to read its metrics.
+DESCRIPTIONS: dict[str, str] = {
+    "neural_btf": _A.format(what=""),
+    "clustered": _A.format(what=" with clustering: one latent per k-means cluster"),
+    "pca": (
+        "**Method A's comparator: PCA at matched bytes.** Each texel's ABRDF as a mean plus "
+        "principal components (as many as the bytes of `method.match_clustered_k` allow, in `method.dtype`); `rmse` and "
+        "`rmse_mean_abrdf` as for the neural models (eq. 10, values divided by the crop's "
+        "maximum)."
+    ),
+    "brdf_map": (
+        "**Method B: MAP reconstruction of an anisotropic BRDF** (PAPERS.md B). "
+        "`rmse_measured*`: at the measured directions; `rmse_missing*`: at the missing ones "
+        "against the ground truth (near and off the mirror direction); suffixes `_noprior` "
+        "and `_as` are the fit without the prior and the Ashikhmin-Shirley baseline."
+    ),
+    "fourier": (
+        "**Method C: Fourier-series reflectance from a light stack** (PAPERS.md C). "
+        "`rmse_validation_*` chose M and lambda; `rmse_test_*` is the report, on held-out "
+        "lights never used for a choice; `fourier` against the PTM and HSH baselines."
+    ),
+    "fourier_pattern": (
+        "**Method C: optical pattern.** Regions segmented from the fitted coefficients, "
+        "quilted and blended over a target shape; artifacts `pattern/` and `figures/`."
+    ),
+}
+
+
 def run_job(cfg: DictConfig) -> float | None:
     """Run one job; returns the headline error (for Hydra sweepers) when there is one."""
     name = cfg.method.name
@@ -41,7 +78,7 @@ def run_job(cfg: DictConfig) -> float | None:
         from pipeline.btf.fast.tuning import set_omp_spin_count
 
         set_omp_spin_count(cfg.train.get("omp_spin_count"))
-    with job_run(cfg, run_name=run_name):
+    with job_run(cfg, run_name=run_name, description=DESCRIPTIONS.get(name, "")):
         ctx = Context.from_config(cfg)
         try:
             metrics = METHODS[name](ctx)
@@ -63,8 +100,9 @@ class SweepRun(SweepParentRun):
         self.run_tables = run_tables
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
-        super().on_multirun_end(config, **kwargs)
         if self.run_tables:
             from pipeline.tables import build_tables
 
-            build_tables(config.paths.runs)
+            # The parent holds the tables and figures too: the UI shows what the disk does.
+            build_tables(config.paths.runs, log_to=self.run_id)
+        super().on_multirun_end(config, **kwargs)

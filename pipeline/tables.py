@@ -19,8 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.brdf_map import report as brdf_map_report
 from pipeline.btf import report as btf_report
-from pipeline.core.report import fetch_runs
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.report import TABLES_EXPERIMENT, fetch_runs
+from pipeline.core.tracking import NOTE_TAG, environment_tags, init_store, tracking_uri
 from pipeline.fourier import report as fourier_report
 
 log = logging.getLogger(__name__)
@@ -33,8 +33,14 @@ def default_settings() -> DictConfig:
     return OmegaConf.load(CONF_DIR / "tables.yaml").tables
 
 
-def build_tables(runs_dir: str | Path, settings: DictConfig | None = None) -> Path:
-    """Write every method's tables and figures; returns the ``tables`` folder."""
+def build_tables(
+    runs_dir: str | Path, settings: DictConfig | None = None, log_to: str | None = None
+) -> Path:
+    """Write every method's tables and figures; returns the ``tables`` folder.
+
+    Everything written is also logged under ``tables/`` to the MLflow run ``log_to`` (the
+    sweep's parent) or, when None, to a run of its own in the experiment ``tables``.
+    """
     settings = settings if settings is not None else default_settings()
     out = Path(runs_dir) / "tables"
     out.mkdir(parents=True, exist_ok=True)
@@ -46,7 +52,33 @@ def build_tables(runs_dir: str | Path, settings: DictConfig | None = None) -> Pa
     (out / "summary.md").write_text(summary)
     print(summary)
     log.info("tables written to %s", out)
+    log_tables(runs_dir, out, settings, log_to, n_runs=len(runs))
     return out
+
+
+def log_tables(runs_dir, out: Path, settings: DictConfig, run_id: str | None, n_runs: int) -> str:
+    """Log the ``tables`` folder to run ``run_id``, or to a new run of the experiment
+    ``tables`` recording what it read (experiments, filter, number of runs)."""
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri(runs_dir))
+    if run_id is None:
+        experiment_id = init_store(runs_dir, TABLES_EXPERIMENT)
+        tags = environment_tags()
+        tags[NOTE_TAG] = (
+            "`python -m pipeline.tables`: every method's tables and figures, regenerated "
+            "from the finished runs of the experiments and filter in its params."
+        )
+        run = client.create_run(experiment_id, run_name=f"tables {out.parent.name}", tags=tags)
+        run_id = run.info.run_id
+        client.log_param(run_id, "tables.experiments", str(list(settings.experiments or [])))
+        client.log_param(run_id, "tables.filter", str(settings.filter))
+        client.log_param(run_id, "tables.runs_read", str(n_runs))
+        client.log_artifacts(run_id, str(out), "tables")
+        client.set_terminated(run_id, "FINISHED")
+    else:
+        client.log_artifacts(run_id, str(out), "tables")
+    return run_id
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="tables")

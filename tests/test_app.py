@@ -139,6 +139,6 @@ def test_tables_draw_fig7_from_the_cached_models(smoke_cfg):
     run_job(cfg)
     out = build_tables(cfg.paths.runs)
     pngs = sorted(p.name for p in out.glob("fig7_*.png"))
-    assert pngs == ["fig7_synthetic_12__729.png"]
+    assert pngs == ["fig7_synthetic_plain_weave_12__729.png"]
     # One EXR per pair and panel: reference + the one model, two direction pairs.
     assert len(list(out.glob("fig7_*.exr"))) == 4

@@ -41,6 +41,28 @@ def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_templ
     assert sum("computed" in line for line in pca_lines) == 1
     assert len({r.data.tags["cache.pca"] for r in children}) == 1
 
+    # The UI shows the work: the sweep's parent names what it swept; each job holds its
+    # resolved config, its overrides, its log and a description; the experiment opens
+    # on its runs (not on MLflow's GenAI overview).
+    assert parents[0].data.params["method.k"] == "4,8"
+    assert parents[0].data.params["seed"] == "0,1"
+    assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
+    child = children[0]
+    assert "rmse_mean_abrdf" in child.data.tags["mlflow.note.content"]
+    assert f"method.k={child.data.params['method.k']}" in child.data.tags["overrides"].split()
+    paths = _artifact_paths(client, child.info.run_id)
+    assert {"config/resolved.yaml", "config/overrides.yaml", "hydra/config.yaml",
+            "hydra/overrides.yaml", "hydra/__main__.log"} <= paths, paths
+    resolved = client.download_artifacts(child.info.run_id, "config/resolved.yaml", str(tmp_path))
+    assert f"k: {child.data.params['method.k']}" in Path(resolved).read_text()
+
+
+def _artifact_paths(client, run_id, path=None):
+    found = set()
+    for item in client.list_artifacts(run_id, path):
+        found |= _artifact_paths(client, run_id, item.path) if item.is_dir else {item.path}
+    return found
+
 
 def test_bad_input_exits_non_zero_with_the_path(tmp_path):
     missing = tmp_path / "nowhere"

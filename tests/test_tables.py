@@ -3,9 +3,10 @@
 import mlflow
 import pandas as pd
 import pytest
+from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
-from pipeline.core.tracking import init_store
+from pipeline.core.tracking import init_store, tracking_uri
 from pipeline.tables import build_tables, default_settings
 
 # (method, k, seed, rmse): k = 500 is clearly worse than k = 1000 beyond the seed spread.
@@ -76,6 +77,16 @@ def test_tables_from_hand_made_runs(tmp_path, settings):
     assert sizes.loc["Neural BTF", "ratio (paper)"] == "1:1885"  # 751 MB / 408 KB
     assert sizes.loc["k = 500", "ratio (paper)"] == "1:5127"  # the paper's 1:5127
     assert sizes.loc["k = 1000", "ratio (paper)"] == "1:4633"
+
+    # What the disk holds, MLflow holds: a run of the experiment "tables" with the outputs,
+    # and that run is never read back as a result by the next `python -m pipeline.tables`.
+    client = MlflowClient(tracking_uri(tmp_path))
+    logged = client.search_runs([client.get_experiment_by_name("tables").experiment_id])
+    assert len(logged) == 1 and logged[0].info.status == "FINISHED"
+    names = {a.path for a in client.list_artifacts(logged[0].info.run_id, "tables")}
+    assert {"tables/summary.md", "tables/table1_sizes.md", "tables/k_verdict.csv"} <= names
+    build_tables(tmp_path, settings)
+    assert pd.read_csv(out / "table1_sizes.csv").shape == (3, sizes.shape[1] + 1)
 
     rmse = pd.read_csv(out / "table2_rmse.csv").set_index("dataset")
     assert rmse.loc["synthetic:plain_weave", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"

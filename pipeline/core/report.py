@@ -14,13 +14,16 @@ import pandas as pd
 
 from pipeline.core.tracking import use_store
 
+TABLES_EXPERIMENT = "tables"  # where `python -m pipeline.tables` logs what it writes
+
 
 def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> pd.DataFrame:
     """Finished runs of the given MLflow experiments (all when empty) as one DataFrame."""
     import mlflow
 
     use_store(runs_dir)
-    found = [e.name for e in mlflow.search_experiments()]
+    # The tables' own runs hold outputs, not results.
+    found = [e.name for e in mlflow.search_experiments() if e.name != TABLES_EXPERIMENT]
     names = [e for e in (experiments or found) if e in found]
     if not names:
         return pd.DataFrame()

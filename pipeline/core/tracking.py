@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.core.recipe import recipe_id
@@ -30,6 +31,10 @@ log = logging.getLogger(__name__)
 _OWN_URI = "PIPELINE_TRACKING_URI_SET_BY_PIPELINE"
 PARENT_RUN_FILE = "mlflow_parent_run_id"
 PACKAGES = ("torch", "numpy", "scikit-learn", "mlflow", "hydra-core", "OpenEXR", "pandas")
+# MLflow 3's UI opens an experiment of this kind on its runs view (not the GenAI overview).
+EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
+EXPERIMENT_KIND = (EXPERIMENT_KIND_TAG, "custom_model_development")
+NOTE_TAG = "mlflow.note.content"  # the run's description in the UI (Markdown)
 
 
 def tracking_uri(runs: str | os.PathLike) -> str:
@@ -66,11 +71,15 @@ def init_store(runs: str | os.PathLike, experiment: str) -> str:
             client = MlflowClient(uri)
             found = client.get_experiment_by_name(experiment)
             if found is not None:
+                if EXPERIMENT_KIND_TAG not in found.tags:
+                    client.set_experiment_tag(found.experiment_id, *EXPERIMENT_KIND)
                 return found.experiment_id
             location = None
             if uri.startswith("sqlite:"):
                 location = (runs / "artifacts").as_uri()
-            return client.create_experiment(experiment, artifact_location=location)
+            return client.create_experiment(
+                experiment, artifact_location=location, tags=dict([EXPERIMENT_KIND])
+            )
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
 
@@ -122,14 +131,8 @@ def _git_commit() -> str:
 
 def _sweep_dir() -> Path | None:
     """The sweep folder when this process is a job of a Hydra multirun, else None."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-        from hydra.types import RunMode
-
-        hydra_cfg = HydraConfig.get()
-    except (ImportError, ValueError):
-        return None
-    if hydra_cfg.mode != RunMode.MULTIRUN:
+    hydra_cfg = _hydra_config()
+    if hydra_cfg is None or hydra_cfg.mode != RunMode.MULTIRUN:
         return None
     return Path(hydra_cfg.sweep.dir)
 
@@ -143,8 +146,16 @@ def _parent_run_id() -> str | None:
 
 
 @contextmanager
-def job_run(cfg: DictConfig, run_name: str | None = None) -> Iterator[Any]:
-    """Start the MLflow run of one job; it ends FAILED if the body raises."""
+def job_run(
+    cfg: DictConfig, run_name: str | None = None, description: str = ""
+) -> Iterator[Any]:
+    """Start the MLflow run of one job; it ends FAILED if the body raises.
+
+    Besides the flattened config as params, the run holds the resolved config
+    (``config/resolved.yaml``), the command-line overrides (``config/overrides.yaml`` and
+    the tag ``overrides``), ``description`` as its note in the UI and, when the job runs
+    under Hydra, Hydra's own files and the job's log (``hydra/``), logged as it ends.
+    """
     import mlflow
 
     experiment_id = init_store(cfg.paths.runs, cfg.tracking.experiment)
@@ -152,6 +163,10 @@ def job_run(cfg: DictConfig, run_name: str | None = None) -> Iterator[Any]:
     tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
     params = flatten(cfg)
     tags["recipe"] = recipe_id(params)  # equal for seeds of one model (pipeline.core.recipe)
+    overrides = _task_overrides()
+    tags["overrides"] = " ".join(overrides)
+    if description:
+        tags[NOTE_TAG] = description
     with mlflow.start_run(
         experiment_id=experiment_id,
         run_name=run_name,
@@ -159,13 +174,57 @@ def job_run(cfg: DictConfig, run_name: str | None = None) -> Iterator[Any]:
         tags=tags,
     ) as run:
         mlflow.log_params({k: _param_value(v) for k, v in params.items()})
+        mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
+        mlflow.log_text(OmegaConf.to_yaml(overrides), "config/overrides.yaml")
         log.info("MLflow run %s in %s", run.info.run_id, tracking_uri(cfg.paths.runs))
-        yield run
+        try:
+            yield run
+        finally:
+            _log_hydra_output()
+
+
+def _hydra_config():
+    """Hydra's config of this job, or None outside a Hydra app (a test, a notebook)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return HydraConfig.get()
+    except (ImportError, ValueError):
+        return None
+
+
+def _task_overrides() -> list[str]:
+    hydra_cfg = _hydra_config()
+    return list(hydra_cfg.overrides.task) if hydra_cfg is not None else []
+
+
+def _log_hydra_output() -> None:
+    """Log the job's Hydra folder (``.hydra/``: config, overrides; the job's ``.log``)."""
+    import mlflow
+
+    hydra_cfg = _hydra_config()
+    if hydra_cfg is None or not hydra_cfg.runtime.output_dir:
+        return
+    output = Path(hydra_cfg.runtime.output_dir)
+    for handler in logging.getLogger().handlers:
+        handler.flush()  # the job's .log file holds every line written so far
+    for path in sorted(output.glob(".hydra/*.yaml")) + sorted(output.glob("*.log")):
+        mlflow.log_artifact(str(path), "hydra")
 
 
 def _param_value(value: Any) -> str:
     text = str(value)
     return text if len(text) <= 6000 else text[:5997] + "..."
+
+
+def swept_settings(config: DictConfig) -> dict[str, str]:
+    """The multirun's settings from its config's sweeper and its command line, in order:
+    ``{"variant": "neural_btf,k128", "seed": "0", ...}`` (the command line wins)."""
+    settings = {str(k): str(v) for k, v in (config.hydra.sweeper.get("params") or {}).items()}
+    for override in config.hydra.overrides.task:
+        key, _, value = override.partition("=")
+        settings[key.lstrip("+~")] = value
+    return settings
 
 
 class SweepParentRun(Callback):
@@ -189,9 +248,13 @@ class SweepParentRun(Callback):
         sweep_dir.mkdir(parents=True, exist_ok=True)
         tags = environment_tags()
         tags["sweep.dir"] = str(sweep_dir)
-        tags["sweep.overrides"] = " ".join(config.hydra.overrides.task)
+        swept = swept_settings(config)
+        tags["sweep.overrides"] = " ".join(f"{k}={v}" for k, v in swept.items())
         run = client.create_run(experiment_id, run_name=f"sweep {sweep_dir.name}", tags=tags)
         self.run_id = run.info.run_id
+        # What the sweep varies (each job's value is among its own params) and what it fixes.
+        for key, value in swept.items():
+            client.log_param(self.run_id, key, _param_value(value))
         (sweep_dir / PARENT_RUN_FILE).write_text(self.run_id)
         # If a job fails, Hydra exits without on_multirun_end: mark the parent FAILED then.
         atexit.register(self._end, "FAILED")
