@@ -150,7 +150,7 @@ def measure(
 
         queries = offgrid_directions(int(cfg.btf.interpolation.offgrid), cfg.btf.interpolation.seed)
         gen = cfg.dataset.synthetic
-        truth = SyntheticBTF(size=gen.size, seed=gen.seed).evaluate(queries)
+        truth = SyntheticBTF(size=gen.size, seed=gen.seed, material=gen.material).evaluate(queries)
         size = int(cfg.btf.crop.size)
         y0, x0 = (int(v) for v in cfg.btf.crop.offset)
         truth = truth[:, y0 : y0 + size, x0 : x0 + size].reshape(len(queries), -1, 3)

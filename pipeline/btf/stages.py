@@ -44,6 +44,7 @@ def dataset_root(cfg: DictConfig) -> Path:
             ext=gen["ext"],
             views=views,
             quality=gen["quality"],
+            material=gen["material"],
         )
     if ds.root is None:
         raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/the/dataset")

@@ -1,25 +1,29 @@
-"""A procedural woven-fabric BTF with an analytic ground truth, and a writer in real layouts.
+"""Procedural fabric BTFs with an analytic ground truth, and a writer in real layouts.
 
-The material is a plain weave seen from above. Warp threads run along the image rows'
-direction (+y, down the image), weft threads along +x (across); at each crossing the
-thread on top alternates. Per texel the model knows:
+A :class:`SyntheticBTF` renders one of the fabric presets of
+:mod:`pipeline.btf.materials` seen from above (``material=``): ``plain_weave`` (the
+default: a red-and-beige plain weave), ``knit`` (jersey: columns of V-shaped loops of
+fuzzy wool), ``corduroy`` (dark cut-pile ridges with deep valleys) and ``satin`` (a
+printed 5-harness satin with long glossy floats). The preset gives per texel:
 
-- a height field (threads as flattened cylinders arching over and under each other, a
-  dark floor in the gaps), from which come normals and a *depth* (0 on the highest crest,
-  1 at the lowest floor);
-- which yarn is visible (warp, weft or gap: :attr:`SyntheticBTF.material_labels`), its
-  albedo (two yarn colours, per-thread variation, fine noise), and its tangent (along the
-  thread, twisted by the yarn's twist angle about the normal);
-- an Ashikhmin–Shirley anisotropic specular lobe aligned with that tangent.
+- which yarn is visible (its label: :attr:`SyntheticBTF.material_labels`, named by
+  :attr:`SyntheticBTF.label_names`), its albedo and a height field;
+- the in-plane direction of the visible fibre.
+
+From these the renderer derives, the same way for every preset, normals (from the
+height), a *depth* (0 on the highest crest, 1 at the lowest floor), a tangent along the
+fibre twisted by the yarn's twist angle about the normal, and an Ashikhmin–Shirley
+anisotropic specular lobe aligned with that tangent.
 
 Image value for light l and view v (both unit vectors, z = macro normal)::
 
     exposure · max(n·l, 0) · S(l) · M(v) · (albedo / π + k_s · AS(l, v))
 
-with smooth self-shadowing ``S(l) = exp(-k · depth · tan θ_l · a(φ_l))`` (deep texels
-darken at grazing light; ``a`` is weaker along the gap channel between parallel threads)
-and the same masking ``M(v)``, times a fade where the local surface turns from the view.
-Values are clipped to [0, 1]; the exposure keeps all but the brightest highlights below 1.
+with smooth self-shadowing ``S(l) = exp(-k · depth · tan θ_l · a(φ_l))``: deep texels
+darken at grazing light, and ``a`` grows for light crossing the fibre's channel rather
+than running along it; the same masking ``M(v)``, times a fade where the local surface
+turns from the view. Values are clipped to [0, 1]; each preset's exposure keeps all but
+the brightest highlights below 1.
 
 Directions: θ from the macro normal, φ from +x (image columns, to the right) toward +y
 (image rows, downward). The model accepts any direction, not only grid ones; directions
@@ -33,15 +37,17 @@ import os
 import shutil
 import sys
 import uuid
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from os import PathLike
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 from tqdm import tqdm
 
+from pipeline.btf.materials import Material, get_material
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.btf import encode_btf_image
 from pipeline.data.directions import (
@@ -54,146 +60,119 @@ from pipeline.data.directions import (
     utia_file_name,
     view_folder_name,
 )
+from pipeline.data.images import srgb_oetf
 
-WARP, WEFT, GAP = 0, 1, 2
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
-# Look of the three materials (rows warp, weft, gap); per-thread variation comes from
-# the seed. Warp: madder red; weft: undyed beige; gap: the dark floor between threads.
-_YARN_ALBEDO = np.array([[0.55, 0.10, 0.08], [0.70, 0.62, 0.42], [0.05, 0.04, 0.035]])
-_SPECULAR_WEIGHT = np.array([0.45, 0.30, 0.05])
-# Ashikhmin–Shirley exponents along the tangent (n_u) and the bitangent (n_v): a fibre
-# reflects a highlight narrow along its length and spread across it.
-_EXPONENT_ALONG = np.array([90.0, 40.0, 5.0])
-_EXPONENT_ACROSS = np.array([6.0, 3.0, 5.0])
-_TWIST_DEGREES = np.array([25.0, -15.0, 0.0])  # S-twist warp, Z-twist weft
-_FRESNEL_AT_NORMAL = 0.05
-_THREAD_HALF_WIDTH = 0.4  # in thread periods; the rest of the period is gap
-_THREAD_RADIUS = 0.3  # crest height above the thread's centre line, in periods
-_UNDULATION = 0.15  # how far a thread dips under its crossing threads, in periods
-_SHADOW_STRENGTH = 0.55
-_EXPOSURE = 3.0  # about 3e-5 of the values at grid directions clip at 1
+# Shadowing features of a direction: tan θ · (1, |sin(φ - β)| for each channel azimuth β).
+# Light that crosses a channel running at β is shadowed by its walls, light along it is
+# not. 0° and 90° (the plain weave's threads) come first; the diagonals serve fibres at
+# other angles, whose weight is shared between the two nearest channels.
+_CHANNEL_DEGREES = np.array([0.0, 90.0, 30.0, 60.0, 120.0, 150.0])
+_CHANNEL_STEP = 30.0
+_GEOMETRY_STREAM = 1  # the geometry's noise comes from default_rng([seed, 1])
 _GENERATOR_VERSION = 1
 _MARKER_NAME = "synthetic_btf.json"
 
 
 @dataclass(frozen=True)
 class SyntheticBTF:
-    """Procedural woven fabric, evaluable at any light and view direction.
+    """Procedural fabric, evaluable at any light and view direction.
 
     Parameters
     ----------
     size : int
         Texture is ``size × size`` texels.
     seed : int
-        Seeds the per-thread colours and the fine noise (``np.random.default_rng(seed)``).
-    n_threads : int
-        Warp (and weft) threads across the texture; even, so the weave tiles.
+        Seeds the per-thread colours, the fine noise and any random part of the geometry.
+    material : str
+        A preset of :data:`pipeline.btf.materials.MATERIALS`: ``"plain_weave"``,
+        ``"knit"``, ``"corduroy"`` or ``"satin"``.
+    n_threads : int or None
+        Repeats across the texture (threads, or wales for knit and corduroy); None takes
+        the preset's own. plain_weave needs an even number, satin a multiple of 5.
 
     Examples
     --------
     >>> fabric = SyntheticBTF(size=16, seed=0)
     >>> fabric.evaluate(np.array([[0.3, 1.0, 0.2, 4.0]])).shape
     (1, 16, 16, 3)
+    >>> SyntheticBTF(size=16, material="knit").label_names
+    ('left leg', 'right leg', 'gap')
     """
 
     size: int = 64
     seed: int = 0
-    n_threads: int = 4
+    material: str = "plain_weave"
+    n_threads: int | None = None
 
     def __post_init__(self):
         if not isinstance(self.size, int | np.integer) or self.size < 2:
             raise ConfigError(f"synthetic BTF size={self.size!r} must be an integer >= 2")
-        if (
-            not isinstance(self.n_threads, int | np.integer)
-            or self.n_threads < 2
-            or self.n_threads % 2
-        ):
-            raise ConfigError(f"n_threads={self.n_threads!r} must be an even integer >= 2")
+        preset = get_material(self.material)
+        if self.n_threads is None:
+            object.__setattr__(self, "n_threads", preset.n_threads)
+        preset.check_threads(self.n_threads)
+
+    @property
+    def preset(self) -> Material:
+        """The material's constants and geometry (:mod:`pipeline.btf.materials`)."""
+        return get_material(self.material)
 
     # --- per-texel geometry and material (computed once, cached) -------------------------
 
     @cached_property
-    def _geometry(self) -> dict[str, np.ndarray]:
-        size, periods = self.size, self.n_threads
-        centres = (np.arange(size) + 0.5) * periods / size  # texel centres in thread periods
-        y, x = np.meshgrid(centres, centres, indexing="ij")
-        warp_index, weft_index = np.floor(x), np.floor(y)
-        # Warp k is on top where (k + row of crossing) is even, weft on top elsewhere.
-        warp_centre = _UNDULATION * np.cos(np.pi * (y - 0.5) + np.pi * warp_index)
-        weft_centre = -_UNDULATION * np.cos(np.pi * (x - 0.5) + np.pi * weft_index)
-
-        def thread_surface(centre_line, across):
-            inside = np.abs(across) < _THREAD_HALF_WIDTH
-            bulge = np.sqrt(np.clip(1.0 - (across / _THREAD_HALF_WIDTH) ** 2, 0.0, None))
-            return np.where(inside, centre_line + _THREAD_RADIUS * bulge, -np.inf)
-
-        floor = np.full_like(x, -_UNDULATION - _THREAD_RADIUS)
-        surfaces = np.stack(
-            [
-                thread_surface(warp_centre, x - warp_index - 0.5),
-                thread_surface(weft_centre, y - weft_index - 0.5),
-                floor,
-            ]
-        )
-        labels = np.argmax(surfaces, axis=0)
-        # Heights in texels, so that their finite differences are slopes; a light blur
-        # removes the vertical cliffs at thread edges.
-        height = np.max(surfaces, axis=0) * size / periods
-        height = gaussian_filter(height, sigma=0.7, mode="wrap")
+    def _geometry(self) -> dict:
+        rng = np.random.default_rng([self.seed, _GEOMETRY_STREAM])
+        surface = self.preset.surface(self.size, self.n_threads, rng)
+        labels, height = surface.labels, surface.height
         slope_x = (np.roll(height, -1, axis=1) - np.roll(height, 1, axis=1)) / 2.0
         slope_y = (np.roll(height, -1, axis=0) - np.roll(height, 1, axis=0)) / 2.0
         normal = np.stack([-slope_x, -slope_y, np.ones_like(height)], axis=-1)
         normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
 
-        # Tangent: along the thread, projected into the tangent plane, then twisted.
+        # Tangent: along the fibre, projected into the tangent plane, then twisted.
         along = np.zeros_like(normal)
-        along[..., 0] = labels != WARP  # weft and floor: +x
-        along[..., 1] = labels == WARP  # warp: +y
+        along[..., :2] = surface.fibre
         tangent = along - np.sum(along * normal, axis=-1, keepdims=True) * normal
         tangent /= np.linalg.norm(tangent, axis=-1, keepdims=True)
-        twist = np.deg2rad(_TWIST_DEGREES[labels])[..., None]
+        twist_degrees = np.array([yarn.twist_degrees for yarn in self.preset.yarns])
+        twist = np.deg2rad(twist_degrees[labels])[..., None]
         tangent = tangent * np.cos(twist) + np.cross(normal, tangent) * np.sin(twist)
         bitangent = np.cross(normal, tangent)
 
         depth = (height.max() - height) / max(np.ptp(height), 1e-12)
         return {
-            "labels": labels,
-            "height": height,
+            "surface": surface,
             "normal": normal,
             "tangent": tangent,
             "bitangent": bitangent,
             "depth": depth,
-            "warp_index": warp_index.astype(np.int64),
-            "weft_index": weft_index.astype(np.int64),
         }
 
     @cached_property
     def albedo(self) -> np.ndarray:
         """Diffuse albedo per texel, ndarray of shape (size, size, 3), float32 in [0, 1]."""
-        geometry = self._geometry
         rng = np.random.default_rng(self.seed)
-        # Per-thread brightness and a little hue shift, so threads of one yarn differ.
-        thread_gain = rng.uniform(0.8, 1.2, size=(2, self.n_threads, 1))
-        thread_tint = 1.0 + rng.normal(0.0, 0.04, size=(2, self.n_threads, 3))
-        labels = geometry["labels"]
-        albedo = _YARN_ALBEDO[labels].copy()
-        for yarn, index in ((WARP, geometry["warp_index"]), (WEFT, geometry["weft_index"])):
-            on_yarn = labels == yarn
-            albedo[on_yarn] *= (thread_gain[yarn] * thread_tint[yarn])[index[on_yarn]]
-        # Fine fibre noise: multiplicative, slightly blurred so it is not pure pixel noise.
-        noise = gaussian_filter(rng.normal(0.0, 1.0, size=labels.shape), 0.6, mode="wrap")
-        albedo *= (1.0 + 0.12 * noise / max(noise.std(), 1e-12))[..., None]
+        albedo = self.preset.albedo(self._geometry["surface"], self.n_threads, rng)
         return np.clip(albedo, 0.0, 1.0).astype(np.float32)
 
     @property
     def material_labels(self) -> np.ndarray:
-        """Visible yarn per texel: 0 warp, 1 weft, 2 gap; ndarray (size, size), int."""
-        return self._geometry["labels"]
+        """Visible yarn per texel, ndarray (size, size), int; for plain_weave 0 warp,
+        1 weft, 2 gap; for every preset, label i is named ``label_names[i]``."""
+        return self._geometry["surface"].labels
+
+    @property
+    def label_names(self) -> tuple[str, ...]:
+        """Name of each label of :attr:`material_labels`, in label order."""
+        return self.preset.label_names
 
     @property
     def height(self) -> np.ndarray:
         """Height field in texel units, ndarray of shape (size, size), float64."""
-        return self._geometry["height"]
+        return self._geometry["surface"].height
 
     @property
     def normals(self) -> np.ndarray:
@@ -202,7 +181,7 @@ class SyntheticBTF:
 
     @property
     def tangents(self) -> np.ndarray:
-        """Unit thread tangents per texel (twisted), ndarray (size, size, 3), float64."""
+        """Unit fibre tangents per texel (twisted), ndarray (size, size, 3), float64."""
         return self._geometry["tangent"]
 
     # --- evaluation ---------------------------------------------------------------------
@@ -238,31 +217,34 @@ class SyntheticBTF:
 
     @cached_property
     def _flat_maps(self) -> dict[str, np.ndarray]:
-        geometry = self._geometry
-        labels = geometry["labels"].ravel()
+        geometry, yarns = self._geometry, self.preset.yarns
+        surface = geometry["surface"]
+        labels = surface.labels.ravel()
+
+        def per_texel(field):  # a Yarn field, looked up by each texel's label
+            return np.array([getattr(yarn, field) for yarn in yarns])[labels]
+
         flat = {
             name: geometry[name].reshape(-1, 3).T.astype(np.float32)  # (3, P) for matmul
             for name in ("normal", "tangent", "bitangent")
         }
-        # Occlusion exponent = features(direction) @ occlusion_weights, with features
-        # tan θ·(1, |sin φ|, |cos φ|): deep texels shadow more, and the walls of a thread's
-        # channel shadow light coming across the thread (|sin| of the angle to it) more
-        # than light along it. Warp runs along +y, so across it is |cos φ|.
-        weights = np.zeros((3, labels.size))
-        weights[0] = np.where(labels == GAP, 1.0, 0.35)
-        weights[1] = np.where(labels == WEFT, 0.65, 0.0)
-        weights[2] = np.where(labels == WARP, 0.65, 0.0)
-        flat["occlusion_weights"] = (_SHADOW_STRENGTH * geometry["depth"].ravel() * weights).astype(
-            np.float32
-        )
+        # Occlusion exponent = features(direction) @ occlusion_weights (see
+        # _CHANNEL_DEGREES): deep texels shadow more, and the walls of a fibre's channel
+        # shadow light coming across the fibre more than light along it.
+        weights = np.zeros((1 + len(_CHANNEL_DEGREES), labels.size))
+        weights[0] = per_texel("shadow")
+        weights[1:] = channel_weights(surface.fibre.reshape(-1, 2), per_texel("shadow_across"))
+        flat["occlusion_weights"] = (
+            self.preset.shadow_strength * geometry["depth"].ravel() * weights
+        ).astype(np.float32)
         flat["albedo_over_pi"] = (self.albedo.reshape(-1, 3) / np.pi).astype(np.float32)
-        along = _EXPONENT_ALONG[labels]
-        across = _EXPONENT_ACROSS[labels]
+        along = per_texel("exponent_along")
+        across = per_texel("exponent_across")
         flat["exponent_along"] = along.astype(np.float32)
         flat["exponent_across"] = across.astype(np.float32)
         # Ashikhmin–Shirley normalization times the yarn's specular weight.
         flat["specular_scale"] = (
-            _SPECULAR_WEIGHT[labels] * np.sqrt((along + 1) * (across + 1)) / (8 * np.pi)
+            per_texel("specular") * np.sqrt((along + 1) * (across + 1)) / (8 * np.pi)
         ).astype(np.float32)
         return flat
 
@@ -291,7 +273,8 @@ class SyntheticBTF:
         exponent = np.where(tangential > 1e-12, exponent, along)
         lobe = np.exp(exponent * np.log(np.maximum(n_dot_h, 1e-12)))
         lobe = np.where(n_dot_h > 0, lobe, 0.0)
-        fresnel = _FRESNEL_AT_NORMAL + (1 - _FRESNEL_AT_NORMAL) * (1 - light_dot_half) ** 5
+        fresnel_at_normal = self.preset.fresnel_at_normal
+        fresnel = fresnel_at_normal + (1 - fresnel_at_normal) * (1 - light_dot_half) ** 5
         # The 0.1 floor keeps the lobe finite where a texel turns edge-on to both.
         specular = (
             maps["specular_scale"]
@@ -300,11 +283,10 @@ class SyntheticBTF:
             / (light_dot_half * np.maximum(np.maximum(n_dot_l, n_dot_v), 0.1))
         )
 
-        def occlusion_features(theta, phi):  # (c,) -> (c, 3)
+        def occlusion_features(theta, phi):  # (c,) -> (c, 1 + channels)
             tan_theta = np.tan(np.minimum(theta, np.deg2rad(89.0)))
-            return tan_theta[:, None] * np.stack(
-                [np.ones_like(phi), np.abs(np.sin(phi)), np.abs(np.cos(phi))], axis=1
-            )
+            across = np.abs(np.sin(phi[:, None] - np.deg2rad(_CHANNEL_DEGREES)))
+            return tan_theta[:, None] * np.concatenate([np.ones_like(phi)[:, None], across], 1)
 
         # Shadowing (light) times masking (view): exp(-a_l) exp(-a_v) = exp(-(a_l + a_v)).
         features = occlusion_features(theta_light, directions[:, 1]) + occlusion_features(
@@ -315,9 +297,79 @@ class SyntheticBTF:
         facing = np.clip(n_dot_v / 0.2, 0.0, 1.0)
         facing = facing * facing * (3 - 2 * facing)
         above = ((np.cos(theta_light) > 0) & (np.cos(theta_view) > 0))[:, None]
-        weight = np.where(above, _EXPOSURE * np.maximum(n_dot_l, 0) * occlusion * facing, 0.0)
+        exposure = self.preset.exposure
+        weight = np.where(above, exposure * np.maximum(n_dot_l, 0) * occlusion * facing, 0.0)
         values = weight[..., None] * (maps["albedo_over_pi"] + specular[..., None])
         return np.clip(values, 0.0, 1.0).astype(np.float32)
+
+
+def channel_weights(fibre: np.ndarray, across: np.ndarray) -> np.ndarray:
+    """Weights of the channel features for fibres at any azimuth.
+
+    Parameters
+    ----------
+    fibre : ndarray of shape (P, 2)
+        In-plane fibre directions (x, y), any length but zero.
+    across : ndarray of shape (P,)
+        How strongly each texel shadows light crossing its fibre.
+
+    Returns
+    -------
+    ndarray of shape (len(_CHANNEL_DEGREES), P)
+        ``across`` shared between the two channels nearest the fibre's azimuth, linearly
+        in angle; all of it on one channel when the fibre runs along one.
+    """
+    azimuth = np.mod(np.degrees(np.arctan2(fibre[:, 1], fibre[:, 0])), 180.0)
+    position = azimuth / _CHANNEL_STEP
+    lower = np.floor(position)
+    share = position - lower
+    # The channels in order of azimuth (0°, 30°, …, 150°), as rows of the weights.
+    row_of_step = np.argsort(np.round(_CHANNEL_DEGREES / _CHANNEL_STEP))
+    below = row_of_step[lower.astype(int) % len(row_of_step)]
+    above = row_of_step[(lower.astype(int) + 1) % len(row_of_step)]
+    weights = np.zeros((len(_CHANNEL_DEGREES), len(across)))
+    texels = np.arange(len(across))
+    weights[below, texels] += across * (1 - share)
+    weights[above, texels] += across * share
+    return weights
+
+
+def material_sheet(materials: Sequence[str], size: int = 64, seed: int = 0) -> Figure:
+    """A figure of each material (rows) under three lights, viewed from overhead.
+
+    Columns: light overhead, grazing (75°, the grid's lowest) from +x, grazing from +y;
+    linear values are sRGB-encoded for display.
+
+    Parameters
+    ----------
+    materials : sequence of str
+        Preset names (:data:`pipeline.btf.materials.MATERIALS`).
+    size, seed : int
+        Passed to :class:`SyntheticBTF`.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    from matplotlib.figure import Figure  # only this function draws
+
+    if not materials:
+        raise ConfigError("material_sheet needs at least one material")
+    lights = [(0.0, 0.0, "light overhead"), (75.0, 0.0, "light from +x, 75°"),
+              (75.0, 90.0, "light from +y, 75°")]  # fmt: skip
+    directions = np.deg2rad([[theta, phi, 0.0, 0.0] for theta, phi, _ in lights])
+    fig = Figure(figsize=(2.4 * len(lights), 2.5 * len(materials)), constrained_layout=True)
+    axes = fig.subplots(len(materials), len(lights), squeeze=False)
+    for row, name in zip(axes, materials, strict=True):
+        images = SyntheticBTF(size=size, seed=seed, material=name).evaluate(directions)
+        for ax, image in zip(row, images, strict=True):
+            ax.imshow(srgb_oetf(image), interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+        row[0].set_ylabel(name)
+    for ax, (_, _, title) in zip(axes[0], lights, strict=True):
+        ax.set_title(title, fontsize=9)
+    return fig
 
 
 # --- writer in the real layouts ----------------------------------------------------------
@@ -327,9 +379,13 @@ _WRITABLE = {"ubo2003": ("jpg", "png", "exr"), "utia": ("png", "exr")}
 
 def _read_marker(root: Path) -> dict | None:
     try:
-        return json.loads((root / _MARKER_NAME).read_text())
+        marker = json.loads((root / _MARKER_NAME).read_text())
     except (OSError, ValueError):
         return None
+    # Markers written before there were presets describe the same plain weave.
+    if isinstance(marker, dict):
+        marker.setdefault("material", "plain_weave")
+    return marker
 
 
 def write_synthetic_btf(
@@ -340,6 +396,7 @@ def write_synthetic_btf(
     ext: str = "jpg",
     views=None,
     quality: int = 95,
+    material: str = "plain_weave",
 ) -> Path:
     """Write :class:`SyntheticBTF` images as a dataset in the UBO2003 or UTIA layout.
 
@@ -359,6 +416,8 @@ def write_synthetic_btf(
         Dataset folder to create.
     size, seed : int
         Passed to :class:`SyntheticBTF`.
+    material : str
+        The fabric preset, passed to :class:`SyntheticBTF` and recorded in the marker.
     format : {"ubo2003", "utia"}
     ext : str
         ``ubo2003``: ``"jpg"`` (gamma 2.2, JPEG ``quality``), ``"png"`` (gamma 2.2, 8-bit)
@@ -377,7 +436,8 @@ def write_synthetic_btf(
     Raises
     ------
     ConfigError
-        For an unknown format/extension pair, an off-grid view, or a bad quality.
+        For an unknown format/extension pair or material, an off-grid view, or a bad
+        quality.
     DataError
         If ``root`` exists, is not an empty folder, and is not this generator's output
         with these parameters.
@@ -388,7 +448,7 @@ def write_synthetic_btf(
         raise ConfigError(f"ext {ext!r} is not one of {_WRITABLE[format]} for format {format!r}")
     if not 1 <= int(quality) <= 100:
         raise ConfigError(f"JPEG quality={quality!r} must be in 1..100")
-    fabric = SyntheticBTF(size=size, seed=seed)
+    fabric = SyntheticBTF(size=size, seed=seed, material=material)
     view_list = canonical_views(views)
     root = Path(root)
     marker = {
@@ -396,6 +456,7 @@ def write_synthetic_btf(
         "version": _GENERATOR_VERSION,
         "size": fabric.size,
         "seed": int(seed),
+        "material": fabric.material,
         "n_threads": fabric.n_threads,
         "format": format,
         "ext": ext,
