@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import logging
+import tempfile
 from collections.abc import Callable
+from pathlib import Path
 
 import mlflow
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from pipeline.brdf_map import runner as brdf_runner
+from pipeline.btf import report as btf_report
 from pipeline.btf import runner as btf_runner
 from pipeline.core.memory import process_peak_mb
 from pipeline.core.stage import Context
@@ -88,7 +91,23 @@ def run_job(cfg: DictConfig) -> float | None:
             mlflow.log_metrics({f"peak_rss_mb_{s}": v for s, v in ctx.peak_rss_mb.items()})
             mlflow.log_metric("peak_rss_mb", process_peak_mb())
         mlflow.log_metrics(metrics)
+        if name in FIGURES:
+            log_job_figures(cfg, ctx.keys, FIGURES[name])
     return metrics.get("rmse")
+
+
+# Figures drawn from a finished job's cache entries (each method's own runs log theirs).
+FIGURES = {"neural_btf": btf_report.job_figures, "clustered": btf_report.job_figures}
+
+
+def log_job_figures(cfg: DictConfig, cache_keys: dict[str, str], draw) -> None:
+    """Draw the job's figures into a temporary folder and log them under ``figures/``."""
+    from pipeline.tables import default_settings
+
+    pairs = OmegaConf.to_container(default_settings().fig7.pairs)
+    with tempfile.TemporaryDirectory() as folder:
+        if draw(cfg, cache_keys, pairs, Path(folder)):
+            mlflow.log_artifacts(folder, "figures")
 
 
 class SweepRun(SweepParentRun):

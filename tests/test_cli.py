@@ -53,6 +53,7 @@ def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_templ
     paths = _artifact_paths(client, child.info.run_id)
     assert {"config/resolved.yaml", "config/overrides.yaml", "hydra/config.yaml",
             "hydra/overrides.yaml", "hydra/__main__.log"} <= paths, paths
+    assert any(p.startswith("figures/fig7_") and p.endswith(".png") for p in paths), paths
     resolved = client.download_artifacts(child.info.run_id, "config/resolved.yaml", str(tmp_path))
     assert f"k: {child.data.params['method.k']}" in Path(resolved).read_text()
 

@@ -114,6 +114,19 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
     return found
 
 
+def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path) -> list[Path]:
+    """Fig. 7 of one finished job (the reference crops and its reconstruction), drawn into
+    ``out`` (PNG and EXR); nothing for PCA, which has no decoder to query."""
+    from pipeline.btf.fig7 import draw_fig7
+    from pipeline.core.tracking import flatten
+
+    if "train" not in cache_keys:
+        return []
+    row = {f"params.{k}": str(v) for k, v in flatten(cfg).items()}
+    row.update({f"tags.cache.{stage}": key for stage, key in cache_keys.items()})
+    return draw_fig7(tables.label_runs(pd.DataFrame([row])), pairs_degrees, out)
+
+
 def plot_rmse_vs_k(runs: pd.DataFrame, out: Path) -> str:
     """``rmse_vs_k.png``: clustered RMSE (mean and std over seeds) against k, per dataset,
     with Neural BTF as a dashed line; returns its Markdown section."""

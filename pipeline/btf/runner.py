@@ -140,7 +140,8 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         "texel_scale": texel_scale,
         "sizes": plain_settings(cfg.btf.sizes),
         "interpolation": plain_settings(cfg.btf.interpolation),
-        "dataset": plain_settings(cfg.dataset) if cfg.dataset.name == "synthetic" else None,
+        "dataset": (stages.without_added_defaults(plain_settings(cfg.dataset))
+                    if cfg.dataset.name == "synthetic" else None),
     }
 
     def compute(folder: Path) -> dict:

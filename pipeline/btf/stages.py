@@ -24,6 +24,31 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------- load
 
 
+# Dataset settings added after cache entries existed, with the value every earlier entry had:
+# at that value they are left out of folder names and cache keys, so that datasets and
+# entries made before stay in use. At any value they are among the run's params.
+ADDED_DEFAULTS = {"material": "plain_weave", "linearize": None}
+
+
+def without_added_defaults(settings: dict) -> dict:
+    """``settings`` (nested) without the keys of :data:`ADDED_DEFAULTS` at their default."""
+    return {
+        key: without_added_defaults(value) if isinstance(value, dict) else value
+        for key, value in settings.items()
+        if key not in ADDED_DEFAULTS or value != ADDED_DEFAULTS[key]
+    }
+
+
+def synthetic_folder(cfg: DictConfig) -> Path:
+    """Where the built-in BTF of these settings is (or will be) written: named by a hash of
+    the generator's settings and views."""
+    ds = cfg.dataset
+    gen = plain_settings(ds.synthetic)
+    named = {"gen": without_added_defaults(gen), "views": plain_settings(ds.views)}
+    tag = hashlib.sha256(canonical_json(named).encode()).hexdigest()
+    return Path(cfg.paths.data) / f"synthetic_btf-{ds.format}-{gen['ext']}-{tag[:10]}"
+
+
 def dataset_root(cfg: DictConfig) -> Path:
     """The dataset folder; the built-in synthetic BTF is generated there on first use."""
     ds = cfg.dataset
@@ -32,8 +57,7 @@ def dataset_root(cfg: DictConfig) -> Path:
 
         gen = plain_settings(ds.synthetic)
         views = plain_settings(ds.views)
-        tag = hashlib.sha256(canonical_json({"gen": gen, "views": views}).encode()).hexdigest()
-        root = Path(cfg.paths.data) / f"synthetic_btf-{ds.format}-{gen['ext']}-{tag[:10]}"
+        root = synthetic_folder(cfg)
         if not root.is_dir():
             log.info("generating the built-in synthetic BTF into %s", root)
         return write_synthetic_btf(
