@@ -49,6 +49,7 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
     for stage in ("load", "crop", "preprocess", "pca", "kmeans", "representatives", "train"):
         assert f"cache.{stage}" in run.data.tags
     assert "git.commit" in run.data.tags and "version.torch" in run.data.tags
+    assert [a.path for a in MlflowClient(tracking_uri(cfg.paths.runs)).list_artifacts(run.info.run_id, "compressed")] == ["compressed/btf.safetensors"]
     for metric in ("rmse", "bytes_total", "compression_ratio", "rmse_mean_abrdf"):
         assert metric in run.data.metrics
     # The smoke run holds 4 lights out: the headline RMSE is over the trained directions.

@@ -20,6 +20,7 @@ import mlflow
 import numpy as np
 
 from pipeline.btf import interpolation, stages
+from pipeline.btf.compressed import export_stage, log_compressed
 from pipeline.btf.stereographic import direction_features
 from pipeline.core.cache import Entry, save_arrays, save_json
 from pipeline.core.errors import ConfigError
@@ -216,6 +217,7 @@ def run(ctx: Context) -> dict[str, float]:
         for point in trained.json("curve"):
             log_curve_point(point)
     evaluated = evaluate_stage(ctx, cropped, prep, trained)
+    exported = export_stage(ctx, cropped, prep, trained, evaluated)
     metrics = dict(evaluated.json("metrics"))
     metrics.update(extra)
     summary = trained.manifest["summary"]
@@ -228,6 +230,7 @@ def run(ctx: Context) -> dict[str, float]:
     if mlflow.active_run() is not None:
         mlflow.log_artifact(str(evaluated.file("rmse_per_direction.npy")), "evaluate")
         mlflow.log_text(json.dumps(metrics, indent=1), "metrics.json")
+        log_compressed(exported)
     return metrics
 
 

@@ -1,0 +1,689 @@
+"""The compressed BTF of method A as one file: ``btf.safetensors``.
+
+What Neural BTF and its clustered variant store after compression (PAPERS.md A: decoder
+weights, the latents, the list; the per-texel scale of the graininess fix when used) in a
+`safetensors <https://huggingface.co/docs/safetensors>`_ file, with everything needed to
+evaluate it in the file's metadata. :func:`write_compressed` writes one,
+:func:`load_compressed` reads one back as a :class:`CompressedBTF` that answers RGB
+queries; :func:`export_stage` writes the file of a run into the stage cache and
+:func:`log_compressed` logs it to MLflow, with an MLflow pyfunc model around it.
+
+Layout (format version 1)
+-------------------------
+A safetensors file: an 8-byte little-endian header length n, n bytes of JSON header
+(tensor names, dtypes, shapes, offsets, and the string-to-string ``__metadata__``, padded
+with spaces to a multiple of 8), then the tensors back to back. The tensors are exactly
+the bytes of Table 1 (``pipeline.btf.evaluate.storage_sizes``): :func:`payload_bytes` is
+``bytes_total``, :func:`header_bytes` the rest of the file.
+
+Tensors (shape, dtype: what):
+
+- ``decoder.{i}.weight`` (out, in) and ``decoder.{i}.bias`` (out,), weight_dtype: the
+  fully connected layers i = 0 .. layers of the decoder (in of layer 0 = latent + 4, out
+  of the last = 3).
+- ``latents`` (R, latent), weight_dtype: R = M texels (neural_btf) or k clusters.
+- ``latent_of_texel`` (M,), list_dtype: clustered only, the list (the latent of each
+  texel); absent for neural_btf, where texel t has latent t.
+- ``texel_scale`` (M,), extra_dtype: only with the graininess fix, a factor per texel.
+
+weight_dtype is float32 or float16, list_dtype int32 or uint16, extra_dtype float32 or
+float16 (``btf.sizes.*``). Texel t is row ``t // cols``, column ``t % cols`` of the crop
+(row-major), i.e. texel (row + crop_offset[0], col + crop_offset[1]) of the dataset's
+texture.
+
+Metadata (all values are strings; "JSON" ones are parsed with ``json.loads``):
+
+- ``format``: ``pipeline.btf.compressed``; ``format_version``: ``1``.
+- ``alpha`` (a float): multiply the decoder's normalised output by it to get linear RGB
+  in the units of the source data (eq. 5-6: targets were divided by it).
+- ``crop_size`` (JSON [rows, cols]), ``crop_offset`` (JSON [row, col]): the crop of the
+  texture the texels cover; ``texel_order``: ``row_major``.
+- ``directions``: ``theta_light,phi_light,theta_view,phi_view`` (radians).
+- ``direction_encoding``: ``stereographic`` (eq. 7-9); ``direction_features``: the 4
+  decoder inputs it makes of a direction pair, ``tan(theta_light/2)*cos(phi_light),
+  tan(theta_light/2)*sin(phi_light), tan(theta_view/2)*cos(phi_view),
+  tan(theta_view/2)*sin(phi_view)`` (what ``pipeline.btf.stereographic.direction_features``
+  computes).
+- ``decoder_latent``, ``decoder_hidden``, ``decoder_layers`` (ints): the decoder is
+  (latent + 4) -> hidden -> ... -> hidden -> 3 with ``decoder_layers`` hidden layers;
+  ``decoder_activation``: ``relu`` (after every layer but the last);
+  ``decoder_input``: ``latent,direction_features`` (the order they are concatenated in).
+- ``weight_dtype``, ``list_dtype``, ``extra_dtype``: the ``btf.sizes`` of the run.
+- ``method``: ``neural_btf`` or ``clustered``; ``k`` (JSON int, ``null`` for neural_btf);
+  ``texel_scale``: ``none``, ``lstsq`` or ``luminance`` (the graininess fix used).
+- ``dataset``: the source dataset's name (``dataset.name``).
+- ``mlflow_run_id``: the MLflow run that logged the file; absent from the copy in the
+  stage cache, which several runs share.
+
+RGB of texel t for a direction pair (what :meth:`CompressedBTF.query` computes)::
+
+    z = latents[latent_of_texel[t]]            (latents[t] when there is no list)
+    h = concat(z, direction_features(directions))
+    h = relu(W_i @ h + b_i) for i < layers;  out = W_layers @ h + b_layers
+    rgb = out * texel_scale[t] * alpha         (texel_scale[t] = 1 when absent)
+
+The output is not clamped, as in the evaluation (eq. 10): a renderer may clamp at 0.
+
+Querying from plain Python, with numpy and safetensors only (``tests/test_compressed.py``
+runs this block against :meth:`CompressedBTF.query_pairs`)::
+
+    import numpy as np
+    from safetensors import safe_open
+
+    def btf_rgb(path, texels, directions):
+        # texels (n,) ints; directions (n, 4) radians -> (n, 3) linear RGB
+        with safe_open(path, framework="numpy") as f:
+            meta = f.metadata()
+            t = {name: f.get_tensor(name) for name in f.keys()}
+        texels = np.asarray(texels)
+        d = np.asarray(directions, dtype=np.float64)
+        ids = t["latent_of_texel"][texels] if "latent_of_texel" in t else texels
+        r_l, r_v = np.tan(d[:, 0] / 2), np.tan(d[:, 2] / 2)
+        features = np.stack([r_l * np.cos(d[:, 1]), r_l * np.sin(d[:, 1]),
+                             r_v * np.cos(d[:, 3]), r_v * np.sin(d[:, 3])], axis=1)
+        h = np.concatenate([t["latents"][ids], features], axis=1).astype(np.float32)
+        layers = int(meta["decoder_layers"])
+        for i in range(layers + 1):
+            h = h @ t[f"decoder.{i}.weight"].astype(np.float32).T + t[f"decoder.{i}.bias"]
+            h = np.maximum(h, 0) if i < layers else h
+        if "texel_scale" in t:
+            h = h * t["texel_scale"][texels, None]
+        return h * np.float32(float(meta["alpha"]))
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import tempfile
+import uuid
+import warnings
+from dataclasses import dataclass, field
+from importlib import metadata as package_metadata
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import mlflow
+import mlflow.pyfunc  # the base class of the logged model (CompressedBTFModel)
+import numpy as np
+import pandas as pd  # mlflow imports it too; the pyfunc model's predict is typed with it
+
+from pipeline.btf.stereographic import direction_features
+from pipeline.core.cache import Entry
+from pipeline.core.errors import DataError
+from pipeline.core.stage import Context, plain_settings
+
+if TYPE_CHECKING:
+    from pipeline.btf.model import Decoder
+
+FORMAT = "pipeline.btf.compressed"
+FORMAT_VERSION = "1"
+FILE_NAME = "btf.safetensors"
+DIRECTIONS = "theta_light,phi_light,theta_view,phi_view"
+DIRECTION_FEATURES = (
+    "tan(theta_light/2)*cos(phi_light),tan(theta_light/2)*sin(phi_light),"
+    "tan(theta_view/2)*cos(phi_view),tan(theta_view/2)*sin(phi_view)"
+)
+METHODS = ("neural_btf", "clustered")
+TEXEL_SCALES = ("none", "lstsq", "luminance")
+WEIGHT_DTYPES = ("float32", "float16")
+LIST_DTYPES = ("int32", "uint16")
+EXTRA_DTYPES = ("float32", "float16")
+# Columns of the pyfunc model's input (one row per query) and output.
+QUERY_COLUMNS = ("texel", *DIRECTIONS.split(","))
+RGB_COLUMNS = ("R", "G", "B")
+# Rows of the first hidden layer computed at once (rows x hidden float32 values).
+_ROWS_PER_BATCH = 1 << 16
+
+
+# ----------------------------------------------------------------------------- writing
+
+
+def write_compressed(
+    path: str | os.PathLike,
+    decoder: Decoder,
+    latents: np.ndarray,
+    alpha: float,
+    *,
+    crop_size: tuple[int, int],
+    crop_offset: tuple[int, int] = (0, 0),
+    method: str,
+    k: int | None = None,
+    dataset: str,
+    latent_of_texel: np.ndarray | None = None,
+    texel_scale: np.ndarray | None = None,
+    texel_scale_mode: str = "none",
+    weight_dtype: str = "float32",
+    list_dtype: str = "int32",
+    extra_dtype: str = "float32",
+    run_id: str | None = None,
+) -> Path:
+    """Write a compressed BTF to ``path`` (the layout is in the module docstring).
+
+    The file is written next to ``path`` under a temporary name and renamed onto it, so
+    that an interrupted write never leaves a partial file at ``path``.
+
+    Parameters
+    ----------
+    decoder : the trained :class:`pipeline.btf.model.Decoder`.
+    latents : ndarray of shape (R, latent); R = M = rows x cols (neural_btf) or k (clustered).
+    alpha : the normalisation of the targets (:class:`pipeline.btf.preprocess.Normalization`).
+    crop_size, crop_offset : (rows, cols) and (row, col) of the crop the M texels cover.
+    method : ``neural_btf`` (no list: texel t has latent t) or ``clustered`` (needs
+        ``latent_of_texel``, ndarray of shape (M,), and ``k`` = R).
+    texel_scale : ndarray of shape (M,), the graininess fix's factors, with the
+        ``texel_scale_mode`` that made them (``lstsq`` or ``luminance``); None for none.
+    weight_dtype, list_dtype, extra_dtype : stored dtypes (``btf.sizes``).
+    run_id : the MLflow run the file belongs to, when there is one.
+    """
+    from safetensors.numpy import save
+
+    tensors, meta = _contents(
+        decoder, latents, alpha, crop_size, crop_offset, method, k, dataset,
+        latent_of_texel, texel_scale, texel_scale_mode, weight_dtype, list_dtype,
+        extra_dtype, run_id,
+    )
+    path = Path(path)
+    _write_atomic(path, save(tensors, metadata=meta))
+    return path
+
+
+def _contents(decoder, latents, alpha, crop_size, crop_offset, method, k, dataset,
+              latent_of_texel, texel_scale, texel_scale_mode, weight_dtype, list_dtype,
+              extra_dtype, run_id) -> tuple[dict[str, np.ndarray], dict[str, str]]:
+    """The tensors and metadata of a file, after checking that they fit together."""
+    for name, value, allowed in (("method", method, METHODS),
+                                 ("texel_scale_mode", texel_scale_mode, TEXEL_SCALES),
+                                 ("weight_dtype", weight_dtype, WEIGHT_DTYPES),
+                                 ("list_dtype", list_dtype, LIST_DTYPES),
+                                 ("extra_dtype", extra_dtype, EXTRA_DTYPES)):
+        if value not in allowed:
+            raise ValueError(f"{name}={value!r} must be one of {list(allowed)}")
+    rows, cols = (int(v) for v in crop_size)
+    m = rows * cols
+    latents = np.asarray(latents)
+    if latents.ndim != 2 or latents.shape[1] != decoder.latent:
+        raise ValueError(f"latents must have shape (R, {decoder.latent}), got {latents.shape}")
+    if not (isinstance(alpha, int | float) and math.isfinite(alpha) and alpha > 0):
+        raise ValueError(f"alpha={alpha!r} must be a positive finite number")
+    n_latents = latents.shape[0]
+    if method == "neural_btf":
+        if latent_of_texel is not None:
+            raise ValueError("method=neural_btf stores no list (texel t has latent t): "
+                             "pass latent_of_texel=None")
+        if n_latents != m:
+            raise ValueError(f"method=neural_btf needs one latent per texel: {n_latents} "
+                             f"latents for a crop of {rows}x{cols}={m} texels")
+        k = None
+    else:
+        if latent_of_texel is None:
+            raise ValueError("method=clustered needs latent_of_texel, the list")
+        latent_of_texel = np.asarray(latent_of_texel)
+        if latent_of_texel.shape != (m,):
+            raise ValueError(f"latent_of_texel must have shape ({m},) for a crop of "
+                             f"{rows}x{cols} texels, got {latent_of_texel.shape}")
+        if m and (latent_of_texel.min() < 0 or latent_of_texel.max() >= n_latents):
+            raise ValueError(f"latent_of_texel holds ids outside [0, {n_latents})")
+        if k is not None and int(k) != n_latents:
+            raise ValueError(f"k={k} but there are {n_latents} latents")
+        if list_dtype == "uint16" and n_latents > 65536:
+            raise ValueError(f"list_dtype=uint16 cannot index k={n_latents} > 65536 clusters")
+        k = n_latents
+    if (texel_scale is None) != (texel_scale_mode == "none"):
+        raise ValueError(f"texel_scale_mode={texel_scale_mode!r} but texel_scale is "
+                         f"{'absent' if texel_scale is None else 'given'}")
+
+    tensors: dict[str, np.ndarray] = {}
+    linears = [layer for layer in decoder.net if hasattr(layer, "weight")]
+    for i, layer in enumerate(linears):
+        tensors[f"decoder.{i}.weight"] = _as(layer.weight.detach().cpu().numpy(), weight_dtype)
+        tensors[f"decoder.{i}.bias"] = _as(layer.bias.detach().cpu().numpy(), weight_dtype)
+    tensors["latents"] = _as(latents, weight_dtype)
+    if latent_of_texel is not None:
+        tensors["latent_of_texel"] = _as(latent_of_texel, list_dtype)
+    if texel_scale is not None:
+        texel_scale = np.asarray(texel_scale)
+        if texel_scale.shape != (m,):
+            raise ValueError(f"texel_scale must have shape ({m},), got {texel_scale.shape}")
+        tensors["texel_scale"] = _as(texel_scale, extra_dtype)
+
+    meta = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "alpha": repr(float(alpha)),
+        "crop_size": json.dumps([rows, cols]),
+        "crop_offset": json.dumps([int(v) for v in crop_offset]),
+        "texel_order": "row_major",
+        "directions": DIRECTIONS,
+        "direction_encoding": "stereographic",
+        "direction_features": DIRECTION_FEATURES,
+        "decoder_latent": str(decoder.latent),
+        "decoder_hidden": str(linears[0].out_features),
+        "decoder_layers": str(len(linears) - 1),
+        "decoder_activation": "relu",
+        "decoder_input": "latent,direction_features",
+        "weight_dtype": weight_dtype,
+        "list_dtype": list_dtype,
+        "extra_dtype": extra_dtype,
+        "method": method,
+        "k": json.dumps(k),
+        "texel_scale": texel_scale_mode,
+        "dataset": str(dataset),
+    }
+    if run_id is not None:
+        meta["mlflow_run_id"] = str(run_id)
+    return tensors, meta
+
+
+def _as(array: np.ndarray, dtype: str) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(array).astype(dtype, copy=False))
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to a temporary file in ``path``'s folder, then rename it onto ``path``."""
+    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with open(tmp, "wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def read_header(path: str | os.PathLike) -> tuple[int, dict]:
+    """The JSON header of a safetensors file and its length n in bytes (without the 8
+    bytes that hold n), after checking that the file holds every byte the header names.
+
+    Raises :class:`pipeline.core.errors.DataError` naming ``path`` when the file is
+    missing, is not a safetensors file, or is truncated.
+    """
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            prefix = f.read(8)
+            if len(prefix) < 8:
+                raise DataError(f"{path}: not a safetensors file ({size} bytes, no header)")
+            (n,) = struct.unpack("<Q", prefix)
+            if n > size - 8:
+                raise DataError(f"{path}: truncated or not a safetensors file (header of "
+                                f"{n} bytes in a file of {size})")
+            header = json.loads(f.read(n))
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such compressed BTF file") from None
+    except OSError as error:
+        raise DataError(f"{path}: cannot read the file ({error})") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DataError(f"{path}: not a safetensors file (unreadable header: {error})") from None
+    if not isinstance(header, dict):
+        raise DataError(f"{path}: not a safetensors file (the header is not a JSON object)")
+    try:
+        end = max((int(t["data_offsets"][1]) for name, t in header.items()
+                   if name != "__metadata__"), default=0)
+    except (TypeError, KeyError, IndexError, ValueError):
+        raise DataError(f"{path}: not a safetensors file (malformed tensor entries)") from None
+    if size != 8 + n + end:
+        raise DataError(f"{path}: truncated or damaged: the header describes "
+                        f"{8 + n + end} bytes, the file has {size}")
+    return n, header
+
+
+def header_bytes(path: str | os.PathLike) -> int:
+    """Bytes of the file that are not tensors: 8 (the header's length) + the JSON header."""
+    n, _ = read_header(path)
+    return 8 + n
+
+
+def payload_bytes(path: str | os.PathLike) -> int:
+    """Bytes of the tensors: Table 1's ``bytes_total`` of the run the file holds."""
+    n, _ = read_header(path)
+    return Path(path).stat().st_size - 8 - n
+
+
+@dataclass
+class CompressedBTF:
+    """A compressed BTF read back from its file (:func:`load_compressed`).
+
+    Attributes
+    ----------
+    path : the file it was read from.
+    decoder : :class:`pipeline.btf.model.Decoder` in float32 (weights as stored, widened).
+    latents : ndarray of shape (R, latent), in the stored dtype.
+    latent_of_texel : ndarray of shape (M,), in the stored dtype; None = the identity.
+    texel_scale : ndarray of shape (M,), in the stored dtype; None when not used.
+    alpha : normalised output x alpha = linear RGB in the data's units.
+    crop_size, crop_offset : (rows, cols) and (row, col) of the crop; M = rows x cols.
+    metadata : every metadata string of the file, as stored.
+    """
+
+    path: Path
+    decoder: Decoder
+    latents: np.ndarray
+    latent_of_texel: np.ndarray | None
+    texel_scale: np.ndarray | None
+    alpha: float
+    crop_size: tuple[int, int]
+    crop_offset: tuple[int, int]
+    metadata: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def n_texels(self) -> int:
+        return self.crop_size[0] * self.crop_size[1]
+
+    @property
+    def method(self) -> str:
+        return self.metadata["method"]
+
+    @property
+    def k(self) -> int | None:
+        return json.loads(self.metadata["k"])
+
+    @property
+    def run_id(self) -> str | None:
+        return self.metadata.get("mlflow_run_id")
+
+    def texel_index(self, row, col) -> np.ndarray:
+        """Texel indices of (row, col) positions within the crop (arrays of one shape)."""
+        row, col = np.asarray(row), np.asarray(col)
+        rows, cols = self.crop_size
+        if np.any((row < 0) | (row >= rows) | (col < 0) | (col >= cols)):
+            raise ValueError(f"(row, col) outside the crop of {rows}x{cols} texels")
+        return row * cols + col
+
+    def query(self, texels, directions) -> np.ndarray:
+        """Linear RGB of every given texel at every given direction pair.
+
+        Parameters
+        ----------
+        texels : array_like of ints of shape (T,), indices in [0, M) (:meth:`texel_index`).
+        directions : array_like of shape (D, 4), (theta_light, phi_light, theta_view,
+            phi_view) in radians.
+
+        Returns
+        -------
+        ndarray of shape (T, D, 3), float32.
+        """
+        texels = self._texels(texels)
+        features = direction_features(self._directions(directions))
+        ids = texels if self.latent_of_texel is None else self.latent_of_texel[texels]
+        # Each latent is decoded once, however many texels share it (clustered).
+        unique, inverse = np.unique(ids, return_inverse=True)
+        decoded = self._decode_grid(unique, features)
+        out = decoded if np.array_equal(inverse, np.arange(len(ids))) else decoded[inverse]
+        if self.texel_scale is not None:
+            out *= self.texel_scale[texels].astype(np.float32)[:, None, None]
+        out *= np.float32(self.alpha)
+        return out
+
+    def query_pairs(self, texels, directions) -> np.ndarray:
+        """Linear RGB of texel ``texels[i]`` at direction pair ``directions[i]``.
+
+        texels : array_like of ints of shape (n,); directions : array_like of shape (n, 4)
+        in radians -> ndarray of shape (n, 3), float32.
+        """
+        import torch
+
+        texels = self._texels(texels)
+        directions = self._directions(directions)
+        if len(directions) != len(texels):
+            raise ValueError(f"{len(texels)} texels but {len(directions)} direction pairs")
+        ids = texels if self.latent_of_texel is None else self.latent_of_texel[texels]
+        latents = np.asarray(self.latents, dtype=np.float32)
+        features = direction_features(directions)
+        out = np.empty((len(texels), 3), dtype=np.float32)
+        with torch.no_grad():
+            for start in range(0, len(texels), _ROWS_PER_BATCH):
+                stop = start + _ROWS_PER_BATCH
+                z = torch.from_numpy(latents[ids[start:stop]])
+                out[start:stop] = self.decoder(z, torch.from_numpy(features[start:stop])).numpy()
+        if self.texel_scale is not None:
+            out *= self.texel_scale[texels].astype(np.float32)[:, None]
+        out *= np.float32(self.alpha)
+        return out
+
+    def reconstruct(self, directions) -> np.ndarray:
+        """Every texel at every direction pair: (D, 4) radians -> (M, D, 3) float32."""
+        return self.query(np.arange(self.n_texels), directions)
+
+    def _texels(self, texels) -> np.ndarray:
+        texels = np.asarray(texels)
+        if texels.ndim != 1 or not (texels.size == 0 or np.issubdtype(texels.dtype, np.integer)):
+            raise ValueError(f"texels must be a 1-D array of ints, got shape {texels.shape} "
+                             f"of {texels.dtype}")
+        if texels.size and (texels.min() < 0 or texels.max() >= self.n_texels):
+            bad = texels[(texels < 0) | (texels >= self.n_texels)][0]
+            raise ValueError(f"texel {bad} is outside [0, {self.n_texels}) ({self.path})")
+        return texels.astype(np.int64)
+
+    @staticmethod
+    def _directions(directions) -> np.ndarray:
+        directions = np.asarray(directions, dtype=np.float64)
+        if directions.ndim != 2 or directions.shape[1] != 4:
+            raise ValueError("directions must have shape (n, 4) = (theta_light, phi_light, "
+                             f"theta_view, phi_view), got {directions.shape}")
+        return directions
+
+    def _decode_grid(self, ids: np.ndarray, features: np.ndarray) -> np.ndarray:
+        """Decode latents ``ids`` at every direction: (U,) x (D, 4) -> (U, D, 3) float32."""
+        import torch
+
+        latents = np.asarray(self.latents[ids], dtype=np.float32)
+        out = np.empty((len(ids), len(features), 3), dtype=np.float32)
+        chunk = max(1, _ROWS_PER_BATCH // max(len(features), 1))
+        features = torch.from_numpy(features)
+        with torch.no_grad():
+            for start in range(0, len(ids), chunk):
+                z = torch.from_numpy(latents[start : start + chunk])
+                out[start : start + len(z)] = self.decoder.decode_grid(z, features).numpy()
+        return out
+
+
+def load_compressed(path: str | os.PathLike) -> CompressedBTF:
+    """Read a file written by :func:`write_compressed`.
+
+    Raises :class:`pipeline.core.errors.DataError` naming ``path`` when the file is
+    missing, truncated or damaged, of another format or format version, or lacks a
+    tensor or metadata key of the format.
+    """
+    import torch
+    from safetensors import SafetensorError, safe_open
+
+    from pipeline.btf.model import Decoder
+
+    path = Path(path)
+    read_header(path)
+    try:
+        with safe_open(path, framework="numpy") as f:
+            meta = dict(f.metadata() or {})
+            tensors = {name: f.get_tensor(name) for name in f.keys()}
+    except (SafetensorError, OSError, ValueError) as error:
+        raise DataError(f"{path}: not a readable safetensors file ({error})") from None
+    if meta.get("format") != FORMAT:
+        raise DataError(f"{path}: not a compressed BTF (metadata format="
+                        f"{meta.get('format')!r}, expected {FORMAT!r})")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise DataError(f"{path}: compressed BTF format version "
+                        f"{meta.get('format_version')!r}; this code reads version "
+                        f"{FORMAT_VERSION!r}")
+    try:
+        latent, hidden, layers = (int(meta[f"decoder_{key}"])
+                                  for key in ("latent", "hidden", "layers"))
+        alpha = float(meta["alpha"])
+        crop_size = tuple(int(v) for v in json.loads(meta["crop_size"]))
+        crop_offset = tuple(int(v) for v in json.loads(meta["crop_offset"]))
+        decoder = Decoder(latent=latent, hidden=hidden, layers=layers)
+        state = {f"net.{2 * i}.{part}": torch.from_numpy(
+                     tensors[f"decoder.{i}.{part}"].astype(np.float32))
+                 for i in range(layers + 1) for part in ("weight", "bias")}
+        decoder.load_state_dict(state)
+        latents = tensors["latents"]
+    except KeyError as error:
+        raise DataError(f"{path}: a compressed BTF without {error.args[0]!r}") from None
+    except (ValueError, TypeError, RuntimeError) as error:
+        raise DataError(f"{path}: inconsistent compressed BTF ({error})") from None
+    btf = CompressedBTF(
+        path=path,
+        decoder=decoder.eval(),
+        latents=latents,
+        latent_of_texel=tensors.get("latent_of_texel"),
+        texel_scale=tensors.get("texel_scale"),
+        alpha=alpha,
+        crop_size=crop_size,
+        crop_offset=crop_offset,
+        metadata=meta,
+    )
+    m = btf.n_texels
+    expected = m if btf.latent_of_texel is None else None
+    if (expected is not None and latents.shape[0] != expected) or (
+            btf.latent_of_texel is not None and btf.latent_of_texel.shape != (m,)) or (
+            btf.texel_scale is not None and btf.texel_scale.shape != (m,)):
+        raise DataError(f"{path}: the tensors do not fit a crop of {crop_size} texels")
+    return btf
+
+
+# ---------------------------------------------------------------------- stage and MLflow
+
+
+def export_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry,
+                 evaluated: Entry) -> Entry:
+    """Write the run's compressed BTF, ``btf.safetensors``, into a cache entry.
+
+    Its tensors are Table 1's bytes exactly (checked against the evaluate stage's
+    ``bytes_total``); the per-texel scale is the one the evaluate stage fitted.
+    """
+    cfg = ctx.cfg
+    method = cfg.method
+    clustered = method.name == "clustered"
+    settings = {
+        "sizes": plain_settings(cfg.btf.sizes),
+        "method": method.name,
+        "k": method.get("k") if clustered else None,
+        "crop": plain_settings(cfg.btf.crop),
+        "dataset": cfg.dataset.name,
+    }
+    inputs = {"crop": cropped, "preprocess": prep, "train": trained, "evaluate": evaluated}
+
+    def compute(folder: Path) -> dict:
+        from pipeline.btf.model import load_decoder
+
+        sizes = plain_settings(cfg.btf.sizes)
+        crop_settings = plain_settings(cfg.btf.crop)
+        has_scale = evaluated.file("texel_scale.npy").is_file()
+        path = write_compressed(
+            folder / FILE_NAME,
+            load_decoder(trained.file("decoder.pt")),
+            trained.array("latents", mmap=False),
+            prep.json("alpha"),
+            crop_size=(crop_settings["size"], crop_settings["size"]),
+            crop_offset=tuple(crop_settings["offset"]),
+            method=method.name,
+            k=method.get("k") if clustered else None,
+            dataset=cfg.dataset.name,
+            latent_of_texel=trained.array("latent_of_texel", mmap=False) if clustered else None,
+            texel_scale=evaluated.array("texel_scale", mmap=False) if has_scale else None,
+            texel_scale_mode=evaluated.manifest["settings"]["texel_scale"],
+            weight_dtype=sizes["weight_dtype"],
+            list_dtype=sizes["list_dtype"],
+            extra_dtype=sizes["extra_dtype"],
+        )
+        payload, table1 = payload_bytes(path), evaluated.json("metrics")["bytes_total"]
+        if payload != table1:
+            raise RuntimeError(f"{path} holds {payload} bytes of tensors, but Table 1 "
+                               f"counts {table1}: storage_sizes and the format disagree")
+        return {"bytes_payload": payload, "bytes_header": header_bytes(path),
+                "bytes_file": path.stat().st_size}
+
+    return ctx.run("export", settings, inputs, compute, version="1")
+
+
+def log_compressed(entry: Entry, log_model: bool = True) -> None:
+    """Log the export stage's file to the active MLflow run as ``compressed/btf.safetensors``
+    (its metadata naming the run) and, with ``log_model``, an MLflow pyfunc model
+    ``compressed_btf`` around it::
+
+        model = mlflow.pyfunc.load_model(f"runs:/{run_id}/compressed_btf")
+        rgb = model.predict(df)   # columns texel, theta_light, phi_light, theta_view,
+                                  # phi_view (one query a row) -> columns R, G, B
+
+    The model needs this package (``pipeline``) importable where it is loaded.
+    """
+    run_id = mlflow.active_run().info.run_id
+    with tempfile.TemporaryDirectory() as tmp:
+        stamped = Path(tmp) / FILE_NAME
+        _copy_with_run_id(entry.file(FILE_NAME), stamped, run_id)
+        mlflow.log_artifact(str(stamped), "compressed")
+        if log_model:
+            # "Models from code": the model is this short script, not a pickled object.
+            code = Path(tmp) / "compressed_btf_model.py"
+            code.write_text(MODEL_CODE)
+            with warnings.catch_warnings():
+                # The signature says what a query is; an example would only slow logging.
+                warnings.filterwarnings("ignore", ".*An input example was not provided")
+                mlflow.pyfunc.log_model(
+                    name="compressed_btf",
+                    python_model=str(code),
+                    artifacts={"btf": str(stamped)},
+                    signature=query_signature(),
+                    # Given, so that MLflow does not load the model in a subprocess to infer
+                    # them (it still scans the installed packages once per process: ~1-2 s).
+                    pip_requirements=[f"{name}=={package_metadata.version(name)}"
+                                      for name in ("torch", "safetensors", "numpy", "pandas")],
+                )
+
+
+MODEL_CODE = """\
+# The compressed BTF of pipeline.btf.compressed as an MLflow pyfunc model.
+import mlflow
+
+from pipeline.btf.compressed import CompressedBTFModel
+
+mlflow.models.set_model(CompressedBTFModel())
+"""
+
+
+def _copy_with_run_id(source: Path, target: Path, run_id: str) -> None:
+    """The file at ``source`` with ``mlflow_run_id`` added to its metadata."""
+    from safetensors import safe_open
+    from safetensors.numpy import save
+
+    read_header(source)
+    with safe_open(source, framework="numpy") as f:
+        meta = dict(f.metadata() or {})
+        tensors = {name: f.get_tensor(name) for name in f.keys()}
+    _write_atomic(target, save(tensors, metadata={**meta, "mlflow_run_id": run_id}))
+
+
+def query_signature():
+    """The pyfunc model's signature: one query a row in, one RGB a row out."""
+    from mlflow.models import ModelSignature
+    from mlflow.types import ColSpec, Schema
+
+    inputs = Schema([ColSpec("long", "texel")]
+                    + [ColSpec("double", name) for name in QUERY_COLUMNS[1:]])
+    return ModelSignature(inputs=inputs,
+                          outputs=Schema([ColSpec("float", name) for name in RGB_COLUMNS]))
+
+
+class CompressedBTFModel(mlflow.pyfunc.PythonModel):
+    """The MLflow pyfunc face of a compressed BTF (:func:`log_compressed`)."""
+
+    def load_context(self, context) -> None:
+        self.btf = load_compressed(context.artifacts["btf"])
+
+    def predict(self, context, model_input: pd.DataFrame, params=None) -> pd.DataFrame:
+        """DataFrame with columns texel, theta_light, phi_light, theta_view, phi_view
+        (radians) -> DataFrame with columns R, G, B (linear RGB, float32)."""
+        missing = [c for c in QUERY_COLUMNS if c not in model_input.columns]
+        if missing:
+            raise ValueError(f"the query lacks columns {missing}; it needs {list(QUERY_COLUMNS)}")
+        rgb = self.btf.query_pairs(model_input["texel"].to_numpy(),
+                                   model_input[list(QUERY_COLUMNS[1:])].to_numpy())
+        return pd.DataFrame(rgb, columns=list(RGB_COLUMNS), index=model_input.index)
