@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import logging
+import signal
 import tempfile
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import mlflow
@@ -81,7 +84,8 @@ def run_job(cfg: DictConfig) -> float | None:
         from pipeline.btf.fast.tuning import set_omp_spin_count
 
         set_omp_spin_count(cfg.train.get("omp_spin_count"))
-    with job_run(cfg, run_name=run_name, description=DESCRIPTIONS.get(name, "")):
+    description = DESCRIPTIONS.get(name, "")
+    with ends_on_sigterm(), job_run(cfg, run_name=run_name, description=description):
         ctx = Context.from_config(cfg)
         try:
             metrics = METHODS[name](ctx)
@@ -94,6 +98,26 @@ def run_job(cfg: DictConfig) -> float | None:
         if name in FIGURES:
             log_job_figures(cfg, ctx.keys, FIGURES[name])
     return metrics.get("rmse")
+
+
+@contextmanager
+def ends_on_sigterm() -> Iterator[None]:
+    """Turn SIGTERM (what ``timeout``, systemd and SLURM send) into ``SystemExit`` while the
+    job runs, so that its MLflow run ends FAILED and the cache removes its temporary folder,
+    as they do for any error. Only the main thread can install a handler; elsewhere a no-op."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        log.error("stopped by signal %d (SIGTERM): the run ends FAILED", signum)
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 # Figures drawn from a finished job's cache entries (each method's own runs log theirs).

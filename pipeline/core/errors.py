@@ -11,3 +11,7 @@ class DataError(PipelineError, ValueError):
 
 class ConfigError(PipelineError, ValueError):
     """A setting is out of range or inconsistent with the data."""
+
+
+class StoreError(PipelineError, RuntimeError):
+    """The MLflow store cannot be opened or written (a damaged database, say)."""

@@ -13,6 +13,7 @@ import atexit
 import fcntl
 import logging
 import os
+import socket
 import subprocess
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -24,12 +25,14 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from pipeline.core.errors import StoreError
 from pipeline.core.recipe import recipe_id
 
 log = logging.getLogger(__name__)
 
 _OWN_URI = "PIPELINE_TRACKING_URI_SET_BY_PIPELINE"
 PARENT_RUN_FILE = "mlflow_parent_run_id"
+DB_NAME = "mlflow.db"
 PACKAGES = ("torch", "numpy", "scikit-learn", "mlflow", "hydra-core", "OpenEXR", "pandas")
 # MLflow 3's UI opens an experiment of this kind on its runs view (not the GenAI overview).
 EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
@@ -44,7 +47,7 @@ def tracking_uri(runs: str | os.PathLike) -> str:
     # set ourselves is not the user's choice of server and must not outlive paths.runs.
     if env and env != os.environ.get(_OWN_URI):
         return env
-    return f"sqlite:///{Path(runs).resolve() / 'mlflow.db'}"
+    return f"sqlite:///{Path(runs).resolve() / DB_NAME}"
 
 
 def use_store(runs: str | os.PathLike) -> str:
@@ -58,7 +61,18 @@ def use_store(runs: str | os.PathLike) -> str:
 
 
 def init_store(runs: str | os.PathLike, experiment: str) -> str:
-    """Create (or upgrade) the store and the experiment once; return the experiment id."""
+    """Create (or upgrade) the store and the experiment once; return the experiment id.
+
+    A new SQLite store is built under another name and renamed into place, so a process
+    killed while MLflow creates its tables never leaves a half-made ``mlflow.db``. Runs of
+    this experiment left RUNNING by a process of this machine that no longer exists (killed
+    with ``kill -9``, or the machine went down) are marked FAILED.
+
+    Raises
+    ------
+    StoreError
+        Naming the store, when it cannot be opened (a damaged database, say).
+    """
     from mlflow.tracking import MlflowClient
 
     runs = Path(runs).resolve()
@@ -68,11 +82,21 @@ def init_store(runs: str | os.PathLike, experiment: str) -> str:
     with open(runs / ".mlflow.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            client = MlflowClient(uri)
-            found = client.get_experiment_by_name(experiment)
+            if uri == f"sqlite:///{runs / DB_NAME}" and not (runs / DB_NAME).exists():
+                _create_sqlite_store(runs / DB_NAME)
+            try:
+                client = MlflowClient(uri)
+                found = client.get_experiment_by_name(experiment)
+            except Exception as error:  # SQLAlchemy's and MLflow's errors alike
+                raise StoreError(
+                    f"the MLflow store {uri} cannot be opened ({type(error).__name__}: "
+                    f"{error}); move it aside to start a new one (artifacts stay in "
+                    f"{runs / 'artifacts'})"
+                ) from error
             if found is not None:
                 if EXPERIMENT_KIND_TAG not in found.tags:
                     client.set_experiment_tag(found.experiment_id, *EXPERIMENT_KIND)
+                fail_orphaned_runs(client, found.experiment_id)
                 return found.experiment_id
             location = None
             if uri.startswith("sqlite:"):
@@ -82,6 +106,47 @@ def init_store(runs: str | os.PathLike, experiment: str) -> str:
             )
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def _create_sqlite_store(db: Path) -> None:
+    """Let MLflow create its tables in a temporary file, then rename it to ``db``."""
+    from mlflow.tracking import MlflowClient
+
+    partial = db.with_name(f".{db.name}.partial-{os.getpid()}")
+    partial.unlink(missing_ok=True)
+    try:
+        MlflowClient(f"sqlite:///{partial}").search_experiments(max_results=1)
+        os.replace(partial, db)
+    finally:
+        partial.unlink(missing_ok=True)
+
+
+def fail_orphaned_runs(client, experiment_id: str) -> list[str]:
+    """Mark FAILED the RUNNING runs whose process (tags ``host``, ``pid``) is gone from
+    this machine; returns their ids. Runs of other machines are left alone."""
+    ended = []
+    host = socket.gethostname()
+    for run in client.search_runs([experiment_id], "attributes.status = 'RUNNING'"):
+        tags = run.data.tags
+        if tags.get("host") != host or not tags.get("pid", "").isdigit():
+            continue
+        if _process_alive(int(tags["pid"])):
+            continue
+        client.set_tag(run.info.run_id, "ended_by", "its process was gone at a later start")
+        client.set_terminated(run.info.run_id, status="FAILED")
+        log.warning("marked run %s FAILED: its process %s is gone", run.info.run_id, tags["pid"])
+        ended.append(run.info.run_id)
+    return ended
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True  # another user's process
+    return True
 
 
 def flatten(config: Mapping | DictConfig, prefix: str = "") -> dict[str, Any]:
@@ -163,6 +228,8 @@ def job_run(
     tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
     params = flatten(cfg)
     tags["recipe"] = recipe_id(params)  # equal for seeds of one model (pipeline.core.recipe)
+    # Who runs it: a later start marks it FAILED if this process dies without ending it.
+    tags.update(host=socket.gethostname(), pid=str(os.getpid()))
     overrides = _task_overrides()
     tags["overrides"] = " ".join(overrides)
     if description:
