@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.brdf_map import runner as brdf_runner
 from pipeline.btf import report as btf_report
 from pipeline.btf import runner as btf_runner
+from pipeline.core.errors import ConfigError
 from pipeline.core.memory import process_peak_mb
 from pipeline.core.stage import Context
 from pipeline.core.tracking import SweepParentRun, job_run
@@ -76,7 +77,9 @@ def run_job(cfg: DictConfig) -> float | None:
     """Run one job; returns the headline error (for Hydra sweepers) when there is one."""
     name = cfg.method.name
     if name not in METHODS:
-        raise KeyError(f"method.name={name!r} is not one of {sorted(METHODS)}")
+        raise ConfigError(f"method.name={name!r} is not one of {sorted(METHODS)}")
+    if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool) or cfg.seed < 0:
+        raise ConfigError(f"seed={cfg.seed!r} must be an integer >= 0")
     k = f" k={cfg.method.k}" if name == "clustered" else ""
     run_name = f"{name}{k} s{cfg.seed}"
     if "train" in cfg:

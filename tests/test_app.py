@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import pytest
@@ -143,3 +144,12 @@ def test_tables_draw_fig7_from_the_cached_models(smoke_cfg):
     assert pngs == ["fig7_synthetic_plain_weave_12__729.png"]
     # One EXR per pair and panel: reference + the one model, two direction pairs.
     assert len(list(out.glob("fig7_*.exr"))) == 4
+
+
+@pytest.mark.parametrize("override, named", [("seed=-1", "seed=-1"),
+                                             ("method.name=nope", "method.name='nope'")])
+def test_bad_job_settings_are_refused_naming_the_setting(override, named):
+    from helpers import compose_config
+
+    with pytest.raises(ConfigError, match=re.escape(named)):
+        run_job(compose_config("experiment=smoke", override))

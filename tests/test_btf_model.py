@@ -327,3 +327,14 @@ def test_epoch_texels_fixes_the_steps_whatever_the_crop(m, epoch_texels, expecte
 def test_epoch_texels_below_the_batch_is_refused():
     with pytest.raises(ConfigError, match="train.epoch_texels=3"):
         TrainSettings(epoch_texels=3, batch_size=5)
+
+
+@pytest.mark.parametrize("bad, named", [
+    ({"lr": float("nan")}, "train.lr=nan"), ({"lr": 0.0}, "train.lr=0.0"),
+    ({"queries_per_abrdf": 0}, "train.queries_per_abrdf=0"),
+    ({"max_steps": 0}, "train.max_steps=0"), ({"momentum": 1.5}, "train.momentum=1.5"),
+    ({"lr_half_life": float("nan")}, "train.lr_half_life=nan"),
+])
+def test_bad_training_settings_are_refused_naming_the_setting(bad, named):
+    with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
+        TrainSettings(**bad)

@@ -74,11 +74,18 @@ class TrainSettings:
         if self.batch_size < 2:
             # Batch-norm in training mode needs at least two samples.
             raise ConfigError(f"train.batch_size={self.batch_size} must be >= 2")
-        if self.lr <= 0:
-            raise ConfigError(f"train.lr={self.lr} must be > 0")
+        if not self.lr > 0 or self.lr == float("inf"):  # also NaN
+            raise ConfigError(f"train.lr={self.lr} must be a finite number > 0")
+        if self.queries_per_abrdf != -1 and self.queries_per_abrdf < 1:
+            raise ConfigError(f"train.queries_per_abrdf={self.queries_per_abrdf} must be "
+                              f">= 1, or -1 for every training direction")
+        if self.max_steps != -1 and self.max_steps < 1:
+            raise ConfigError(f"train.max_steps={self.max_steps} must be >= 1, or -1 for none")
+        if not 0 <= self.momentum < 1:  # also NaN
+            raise ConfigError(f"train.momentum={self.momentum} must be in [0, 1)")
         if self.optimizer not in ("sgd", "adam"):
             raise ConfigError(f"train.optimizer={self.optimizer!r} must be sgd or adam")
-        if self.lr_half_life < 0:
+        if not self.lr_half_life >= 0:  # also NaN
             raise ConfigError(f"train.lr_half_life={self.lr_half_life} must be >= 0")
         if self.curve_every < 0 or self.curve_texels < 1:
             raise ConfigError("train.curve_every must be >= 0 and train.curve_texels >= 1")
