@@ -17,6 +17,7 @@ from omegaconf import DictConfig
 from pipeline.btf.preprocess import Normalization, encoder_inputs, fit_normalization
 from pipeline.core.cache import Entry, canonical_json, save_arrays, save_json
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.files import reserved_memmap
 from pipeline.core.stage import Context, folder_fingerprint, plain_settings
 
 log = logging.getLogger(__name__)
@@ -107,9 +108,7 @@ def load(ctx: Context) -> Entry:
 
     def compute(folder: Path) -> dict:
         n, height, width = count_btf_images(root, format=ds.format, views=views)
-        images = np.lib.format.open_memmap(
-            folder / "images.npy", mode="w+", dtype=np.float32, shape=(n, height, width, 3)
-        )
+        images = reserved_memmap(folder / "images.npy", (n, height, width, 3), np.float32)
         btf = load_btf(root, format=ds.format, views=views, out=images, linearize=linearize)
         images.flush()
         del images
@@ -136,9 +135,7 @@ def crop(ctx: Context, loaded: Entry) -> Entry:
         )
 
     def compute(folder: Path) -> dict:
-        abrdf = np.lib.format.open_memmap(
-            folder / "abrdf.npy", mode="w+", dtype=np.float32, shape=(size * size, n, 3)
-        )
+        abrdf = reserved_memmap(folder / "abrdf.npy", (size * size, n, 3), np.float32)
         # Image by image: the crop of one image is one column of the ABRDF matrix.
         for i in range(n):
             abrdf[:, i, :] = images[i, y0 : y0 + size, x0 : x0 + size, :].reshape(-1, 3)
