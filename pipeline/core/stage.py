@@ -7,6 +7,7 @@ code change alters its output.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +30,10 @@ class Context:
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> Context:
-        return cls(cfg, StageCache(cfg.paths.cache))
+        """The context of a job; opening its cache removes what killed jobs left there."""
+        cache = StageCache(cfg.paths.cache)
+        cache.remove_stale_temporaries()
+        return cls(cfg, cache)
 
     def run(self, stage: str, settings, inputs: dict[str, Entry], compute, *,
             version: str) -> Entry:
@@ -54,14 +58,19 @@ def plain_settings(node):
 
 
 def folder_fingerprint(root: Path) -> dict:
-    """Count, total size and newest mtime of the files under ``root``.
+    """Count, total size, newest mtime and a hash of the names of the files under ``root``.
 
     Cheap (one stat per file) and part of the load key, so that editing a dataset in
-    place invalidates the cached decode.
+    place invalidates the cached decode, renaming files included (a rename keeps sizes
+    and mtimes, but the angles are read from the names).
     """
-    count, size, newest = 0, 0, 0
+    count, size, newest, names = 0, 0, 0, []
     for folder, _dirs, files in os.walk(root):
+        relative = os.path.relpath(folder, root)
         for name in files:
             st = os.stat(os.path.join(folder, name))
             count, size, newest = count + 1, size + st.st_size, max(newest, st.st_mtime_ns)
-    return {"files": count, "bytes": size, "mtime_ns": newest}
+            names.append(name if relative == "." else f"{relative}/{name}")
+    listing = "\n".join(sorted(names)).encode()
+    return {"files": count, "bytes": size, "mtime_ns": newest,
+            "names": hashlib.sha256(listing).hexdigest()[:16]}

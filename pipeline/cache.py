@@ -1,0 +1,276 @@
+"""``python -m pipeline.cache``: list, verify and clean up the stage cache.
+
+    python -m pipeline.cache ls [--entries]   # entries and size per stage (--entries: each)
+    python -m pipeline.cache verify [--fix]   # every file's hash; exit status 1 if any damaged
+    python -m pipeline.cache gc [--dry-run]   # remove what no finished run uses
+
+``--runs`` (default ``runs``) says where the MLflow store is (``MLFLOW_TRACKING_URI`` wins,
+as for the jobs), ``--cache`` (default ``<runs>/cache``) where the cache is.
+
+``gc`` keeps every entry whose key a FINISHED run records (its tags ``cache.<stage>``,
+:func:`pipeline.app.run_job`), the entries those were computed from (each manifest lists
+its inputs' keys), and anything used since the oldest RUNNING run started (a job records
+its keys when it ends; :class:`~pipeline.core.cache.StageCache` marks each hit on the
+manifest's mtime). Keys are matched whatever the stage. It removes nothing when the store
+cannot be read, nor when the store knows none of the entries (the wrong ``--runs``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+from pipeline.core.cache import HASH, StageCache, folder_bytes, last_used, listed_files
+from pipeline.core.tracking import tracking_uri
+
+# Hosts of a shared cache may disagree on the time by this much (seconds).
+CLOCK_SKEW_S = 600
+IN_PROGRESS = ("RUNNING", "SCHEDULED")
+
+
+class StoreUnreadable(Exception):
+    """The MLflow store cannot be read: nothing may be deleted."""
+
+
+@dataclass
+class Usage:
+    """What the MLflow store says about cache keys."""
+
+    uri: str
+    finished: set[str] = field(default_factory=set)  # keys recorded by FINISHED runs
+    n_finished: int = 0
+    running_since: float | None = None  # start (time.time()) of the oldest RUNNING run
+
+
+@dataclass
+class Row:
+    """One folder under a stage of the cache."""
+
+    stage: str
+    key: str
+    path: Path
+    bytes: int
+    created: float | None  # None: no readable manifest
+    used: float  # published or last hit (time.time())
+    inputs: list[str]
+
+
+def read_usage(runs: Path) -> Usage:
+    """The keys that FINISHED runs of the store of ``runs`` record, over all experiments."""
+    uri = tracking_uri(runs)
+    if uri.startswith("sqlite:"):
+        db = Path(uri.split(":///", 1)[-1])
+        if not db.is_file():  # MLflow would create an empty store, which uses nothing
+            raise StoreUnreadable(f"there is no MLflow store at {db} (see --runs)")
+    try:
+        from mlflow.entities import ViewType
+        from mlflow.tracking import MlflowClient
+
+        client = MlflowClient(uri)
+        experiments = [e.experiment_id for e in _all_pages(
+            client.search_experiments, view_type=ViewType.ACTIVE_ONLY)]
+        usage = Usage(uri)
+        starts = []
+        runs_found = _all_pages(client.search_runs, experiment_ids=experiments,
+                                run_view_type=ViewType.ACTIVE_ONLY) if experiments else []
+        for run in runs_found:
+            if run.info.status == "FINISHED":
+                usage.n_finished += 1
+                usage.finished |= {value for name, value in run.data.tags.items()
+                                   if name.startswith("cache.")}
+            elif run.info.status in IN_PROGRESS:
+                starts.append(run.info.start_time / 1000)
+    except Exception as err:  # any failure of the store or its client: delete nothing
+        raise StoreUnreadable(
+            f"cannot read the MLflow store {uri} ({type(err).__name__}: {err})") from err
+    usage.running_since = min(starts, default=None)
+    return usage
+
+
+def _all_pages(search, **kwargs) -> list:
+    found, token = [], None
+    while True:
+        page = search(**kwargs, page_token=token)
+        found += list(page)
+        token = page.token
+        if not token:
+            return found
+
+
+def scan(cache: StageCache) -> list[Row]:
+    """Every folder under a stage of ``cache``, with its size and manifest's facts."""
+    rows = []
+    for stage in cache.stages():
+        for key in cache.keys(stage):
+            entry, _ = cache.check(stage, key, hashes=False)
+            manifest = entry.manifest if entry is not None else {}
+            path = cache.entry_path(stage, key)
+            rows.append(Row(stage, key, path, folder_bytes(path),
+                            manifest.get("created") if entry is not None else None,
+                            last_used(path), list(manifest.get("inputs", {}).values())))
+    return rows
+
+
+def kept(rows: list[Row], usage: Usage) -> dict[str, str]:
+    """``{key: why it is kept}`` for the entries gc keeps (see the module's docstring)."""
+    by_key = {row.key: row for row in rows}
+    todo = deque((key, "used by a finished run") for key in sorted(usage.finished & set(by_key)))
+    if usage.running_since is not None:
+        since = usage.running_since - CLOCK_SKEW_S
+        todo += [(row.key, "used since a RUNNING run started") for row in rows if row.used >= since]
+    why: dict[str, str] = {}
+    while todo:
+        key, reason = todo.popleft()
+        if key in why:
+            continue
+        why[key] = reason
+        row = by_key[key]
+        todo += [(k, f"input of {row.stage} {key}") for k in row.inputs if k in by_key]
+    return why
+
+
+def human(n: float) -> str:
+    """A size in bytes for people.
+
+    >>> human(1536), human(3 << 30)
+    ('1.5 KiB', '3.0 GiB')
+    """
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024:
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} TiB"
+
+
+def _when(seconds: float | None) -> str:
+    if seconds is None:
+        return "no manifest    "
+    return time.strftime("%Y-%m-%d %H:%M", time.localtime(seconds))
+
+
+def ls(cache: StageCache, runs: Path, entries: bool) -> int:
+    rows = scan(cache)
+    why: dict[str, str] | None = None
+    if entries and rows:
+        try:
+            why = kept(rows, read_usage(runs))
+        except StoreUnreadable as err:
+            print(f"ls: {err}; whether runs use the entries is unknown (?)", file=sys.stderr)
+    print(f"{'stage':<24} {'entries':>7} {'size':>10}   cache {cache.root}")
+    for stage in sorted({row.stage for row in rows}):
+        mine = [row for row in rows if row.stage == stage]
+        print(f"{stage:<24} {len(mine):>7} {human(sum(r.bytes for r in mine)):>10}")
+        for row in mine if entries else ():
+            used = "?" if why is None else why.get(row.key, "no finished run uses it")
+            print(f"  {row.key}  {human(row.bytes):>10}  {_when(row.created)}  {used}")
+    print(f"{'total':<24} {len(rows):>7} {human(sum(r.bytes for r in rows)):>10}")
+    temporaries = cache.temporaries()
+    if temporaries:
+        size = human(sum(folder_bytes(t) for t in temporaries))
+        print(f"{'temporary folders':<24} {len(temporaries):>7} {size:>10}   (computing, or "
+              f"left by killed jobs: gc removes those)")
+    return 0
+
+
+def verify(cache: StageCache, fix: bool) -> int:
+    started = time.time()
+    folders = [(stage, key) for stage in cache.stages() for key in cache.keys(stage)]
+    total = sum(folder_bytes(cache.entry_path(*f)) for f in folders)
+    damaged, unhashed = [], 0
+    with tqdm(total=total, unit="B", unit_scale=True, unit_divisor=1024, desc="verify",
+              file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
+        for stage, key in folders:
+            entry, problem = cache.check(stage, key, hashes=True, progress=bar.update)
+            if problem is not None:
+                damaged.append((stage, key, problem))
+            elif entry is not None and not all(
+                    HASH in record for record in listed_files(entry.manifest).values()):
+                unhashed += 1
+    for stage, key, problem in damaged:
+        print(f"damaged {cache.entry_path(stage, key)}: {problem}")
+        if fix:
+            removed = cache.remove(stage, key, unless_used_since=started)
+            print("  removed" if removed else "  kept: a job is computing it again")
+    print(f"verified {len(folders)} entries ({human(total)}) in {time.time() - started:.1f} s: "
+          f"{len(damaged)} damaged" + (" (removed)" if fix and damaged else ""))
+    if unhashed:
+        print(f"{unhashed} entries were written before hashes were recorded: only their files' "
+              f"presence was checked")
+    return 1 if damaged else 0
+
+
+def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
+    started = time.time()
+    try:
+        usage = read_usage(runs)
+    except StoreUnreadable as err:
+        print(f"gc: {err}; nothing removed", file=sys.stderr)
+        return 2
+    rows = scan(cache)
+    why = kept(rows, usage)
+    if rows and not why:
+        print(f"gc: no finished run in {usage.uri} ({usage.n_finished} finished) uses any of "
+              f"the {len(rows)} entries under {cache.root}; nothing removed (is --runs right? "
+              f"to empty the cache, delete the folder)", file=sys.stderr)
+        return 2
+    verb = "would remove" if dry_run else "removed"
+    freed, n_removed = 0, 0
+    for row in rows:
+        if row.key in why:
+            continue
+        if dry_run or cache.remove(row.stage, row.key, unless_used_since=started):
+            print(f"{verb} {row.path} ({human(row.bytes)})")
+            freed, n_removed = freed + row.bytes, n_removed + 1
+        else:
+            print(f"kept {row.path}: used or locked by a job meanwhile")
+    sizes = {folder: folder_bytes(folder) for folder in cache.temporaries()}
+    stale = cache.remove_stale_temporaries(dry_run=dry_run)
+    for folder, reason in stale:
+        print(f"{verb} {folder} ({human(sizes.get(folder, 0))}; {reason})")
+        freed += sizes.get(folder, 0)
+    running = "" if usage.running_since is None else (
+        f", and what was used since {_when(usage.running_since)} (a run is still RUNNING)")
+    print(f"kept {len(why)} entries ({human(sum(r.bytes for r in rows if r.key in why))}): those "
+          f"of {usage.n_finished} finished runs and their inputs{running}")
+    print(f"{verb} {n_removed} entries and {len(stale)} temporary folders: "
+          f"{human(freed)} {'would be ' if dry_run else ''}freed")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    # --runs/--cache are accepted before or after the command.
+    where = argparse.ArgumentParser(add_help=False)
+    where.add_argument("--runs", type=Path, default=argparse.SUPPRESS,
+                       help="the runs folder (MLflow store: <runs>/mlflow.db); default runs")
+    where.add_argument("--cache", type=Path, default=argparse.SUPPRESS,
+                       help="the cache folder; default <runs>/cache")
+    parser = argparse.ArgumentParser(prog="python -m pipeline.cache", parents=[where],
+                                     description=__doc__.split("\n\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    listing = commands.add_parser("ls", parents=[where], help="entries and size per stage")
+    listing.add_argument("--entries", action="store_true",
+                         help="one line per entry: key, size, created, whether a run uses it")
+    checking = commands.add_parser("verify", parents=[where], help="check every file's hash")
+    checking.add_argument("--fix", action="store_true", help="remove the damaged entries")
+    collecting = commands.add_parser("gc", parents=[where],
+                                     help="remove entries no finished run uses")
+    collecting.add_argument("--dry-run", action="store_true",
+                            help="list what would be removed, remove nothing")
+    args = parser.parse_args(argv)
+    runs = getattr(args, "runs", Path("runs"))
+    cache = StageCache(getattr(args, "cache", runs / "cache"))
+    if args.command == "ls":
+        return ls(cache, runs, args.entries)
+    if args.command == "verify":
+        return verify(cache, args.fix)
+    return gc(cache, runs, args.dry_run)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,292 @@
+"""A damaged cache entry is found and computed again; ``python -m pipeline.cache`` lists,
+verifies and collects the cache; stale temporary folders go; dataset renames count."""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import logging
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import ROOT
+from omegaconf import OmegaConf
+
+from pipeline import cache as command
+from pipeline.core import cache as cache_module
+from pipeline.core.cache import MANIFEST, StageCache, save_arrays, save_json, temporary_name
+from pipeline.core.errors import DataError
+from pipeline.core.stage import Context, folder_fingerprint
+
+
+class Counting:
+    """A stage's compute that writes fixed arrays and counts its calls."""
+
+    def __init__(self, **arrays: np.ndarray):
+        self.arrays = arrays
+        self.calls = 0
+
+    def __call__(self, folder: Path):
+        self.calls += 1
+        save_arrays(folder, **self.arrays)
+        save_json(folder, "meta", {"n": 3})
+
+
+def _entry(cache: StageCache, stage: str = "s", inputs: dict | None = None, value: float = 1.0):
+    compute = Counting(x=np.full(16, value), y=np.arange(4))
+    return cache.run(stage, "1", {"value": value}, inputs or {}, compute), compute
+
+
+def _change_a_value(path: Path) -> None:
+    """Same size, one value different (what a bad disk or a stray write does)."""
+    array = np.load(path, mmap_mode="r+")
+    array[3] += 1
+    array.flush()
+    del array
+
+
+# ------------------------------------------------------------------------- damaged entries
+
+
+def test_changed_values_of_a_small_entry_are_found_on_hit_and_recomputed(tmp_path, caplog):
+    cache = StageCache(tmp_path)
+    first, _ = _entry(cache)
+    assert first.manifest["files"]["x.npy"]["bytes"] == (first.path / "x.npy").stat().st_size
+    _change_a_value(first.path / "x.npy")
+    compute = Counting(x=np.full(16, 1.0), y=np.arange(4))
+    with caplog.at_level(logging.WARNING, logger="pipeline.core.cache"):
+        again = cache.run("s", "1", {"value": 1.0}, {}, compute)
+    assert compute.calls == 1 and not again.hit and again.key == first.key
+    np.testing.assert_array_equal(again.array("x"), np.full(16, 1.0))
+    assert str(first.path / "x.npy") in caplog.text and "sha256" in caplog.text
+    assert cache.run("s", "1", {"value": 1.0}, {}, compute).hit
+
+
+def test_verify_finds_changed_values_of_a_large_entry(tmp_path, monkeypatch, capsys):
+    """Above HASH_ON_HIT_BYTES a hit checks sizes only; verify checks the hashes, and
+    --fix removes the entry, which the next run computes again."""
+    monkeypatch.setattr(cache_module, "HASH_ON_HIT_BYTES", 0)
+    cache = StageCache(tmp_path)
+    first, _ = _entry(cache)
+    _entry(cache, value=2.0)
+    _change_a_value(first.path / "x.npy")
+    assert _entry(cache)[0].hit  # not hashed on a hit: read as it is
+    assert command.main(["verify", "--cache", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    assert f"damaged {first.path}: {first.path / 'x.npy'} has changed" in out
+    assert "verified 2 entries" in out and "1 damaged" in out
+    assert first.path.is_dir()  # without --fix nothing is removed
+    assert command.main(["verify", "--fix", "--cache", str(tmp_path)]) == 1
+    assert not first.path.exists()
+    assert command.main(["verify", "--cache", str(tmp_path)]) == 0
+    again, compute = _entry(cache)
+    assert compute.calls == 1 and not again.hit
+
+
+def test_missing_or_truncated_file_is_recomputed(tmp_path, caplog):
+    cache = StageCache(tmp_path)
+    first, _ = _entry(cache)
+    (first.path / "y.npy").unlink()
+    with caplog.at_level(logging.WARNING, logger="pipeline.core.cache"):
+        again, compute = _entry(cache)
+    assert compute.calls == 1 and not again.hit
+    assert f"{first.path / 'y.npy'} is missing" in caplog.text
+    with open(first.path / "x.npy", "r+b") as f:
+        f.truncate(100)
+    again, compute = _entry(cache)
+    assert compute.calls == 1 and not again.hit
+    np.testing.assert_array_equal(again.array("x"), np.full(16, 1.0))
+
+
+@pytest.mark.parametrize("mmap", [True, False])
+def test_a_truncated_array_is_a_data_error_naming_its_path(tmp_path, mmap):
+    entry, _ = _entry(StageCache(tmp_path))
+    path = entry.path / "x.npy"
+    with open(path, "r+b") as f:
+        f.truncate(path.stat().st_size - 8)
+    with pytest.raises(DataError, match=re.escape(str(path))):
+        entry.array("x", mmap=mmap)
+
+
+def test_a_corrupt_json_is_a_data_error_naming_its_path(tmp_path):
+    entry, _ = _entry(StageCache(tmp_path))
+    path = entry.path / "meta.json"
+    path.write_text('{"n": ')
+    with pytest.raises(DataError, match=re.escape(str(path))):
+        entry.json("meta")
+
+
+def test_lookup_of_a_damaged_entry_is_none_with_a_warning(tmp_path, caplog):
+    cache = StageCache(tmp_path)
+    entry, _ = _entry(cache)
+    (entry.path / MANIFEST).write_text('{"files": ')
+    with caplog.at_level(logging.WARNING, logger="pipeline.core.cache"):
+        assert cache.lookup("s", entry.key) is None
+    assert str(entry.path) in caplog.text and MANIFEST in caplog.text
+    assert entry.path.is_dir()  # lookup leaves it; the next run replaces it
+
+
+def test_entries_written_before_hashes_are_still_hits(tmp_path, capsys):
+    """An old manifest lists file names only: the entry is used, its key unchanged."""
+    cache = StageCache(tmp_path)
+    entry, _ = _entry(cache)
+    manifest = json.loads((entry.path / MANIFEST).read_text())
+    manifest["files"] = sorted(manifest["files"])
+    (entry.path / MANIFEST).write_text(json.dumps(manifest))
+    again, compute = _entry(cache)
+    assert again.hit and compute.calls == 0 and again.key == entry.key
+    assert command.main(["verify", "--cache", str(tmp_path)]) == 0
+    assert "1 entries were written before hashes" in capsys.readouterr().out
+    (entry.path / "y.npy").unlink()  # a listed name that is gone is still found
+    assert not _entry(cache)[0].hit
+
+
+# ---------------------------------------------------------------------- dataset fingerprint
+
+
+def test_renaming_a_dataset_file_changes_the_fingerprint(tmp_path):
+    folder = tmp_path / "tv000_pv000"
+    folder.mkdir()
+    for name in ("tl000_pl000.png", "tl015_pl000.png"):
+        (folder / name).write_bytes(b"0123456789")
+    before = folder_fingerprint(tmp_path)
+    assert folder_fingerprint(tmp_path) == before
+    os.rename(folder / "tl015_pl000.png", folder / "tl015_pl060.png")  # same size and mtime
+    after = folder_fingerprint(tmp_path)
+    assert {k: after[k] for k in ("files", "bytes", "mtime_ns")} == {
+        k: before[k] for k in ("files", "bytes", "mtime_ns")}
+    assert after["names"] != before["names"]
+
+
+# --------------------------------------------------------------------- stale temporaries
+
+
+def _dead_pid() -> int:
+    child = subprocess.Popen(["true"])
+    child.wait()
+    return child.pid
+
+
+def test_temporary_of_a_dead_process_is_removed_a_live_ones_kept(tmp_path):
+    stage = tmp_path / "s"
+    stage.mkdir()
+    live = stage / temporary_name("k1")
+    dead = stage / live.name.replace(f"-{os.getpid()}@", f"-{_dead_pid()}@").replace("k1", "k2", 1)
+    elsewhere = stage / ".tmp-k3-0000abcd-12@another-host"
+    old_unknown = stage / ".tmp-k4-0000abcd"
+    old_locked = stage / ".tmp-k5-0000abcd"
+    for folder in (live, dead, elsewhere, old_unknown, old_locked):
+        folder.mkdir()
+        save_arrays(folder, x=np.arange(2))
+    day_ago = time.time() - cache_module.STALE_AFTER_S - 60
+    for folder in (old_unknown, old_locked):
+        for path in (folder / "x.npy", folder):
+            os.utime(path, (day_ago, day_ago))
+    with open(stage / ".lock-k5", "w") as lock:  # a job computing k5 holds its lock
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        Context.from_config(OmegaConf.create({"paths": {"cache": str(tmp_path)}}))
+    left = sorted(p.name for p in stage.iterdir() if not p.name.startswith(".lock-"))
+    assert left == sorted([live.name, elsewhere.name, old_locked.name])
+
+
+# ------------------------------------------------------------------------------ the command
+
+
+@pytest.fixture
+def store(tmp_path, mlflow_template, monkeypatch):
+    """A runs folder with an empty MLflow store; returns (runs, client, experiment id)."""
+    from mlflow.tracking import MlflowClient
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    runs = tmp_path / "runs"
+    mlflow_template(runs)
+    client = MlflowClient(f"sqlite:///{runs / 'mlflow.db'}")
+    return runs, client, client.get_experiment_by_name("Default").experiment_id
+
+
+def _chain(cache: StageCache) -> dict[str, Path]:
+    """a -> b (used by a finished run); c -> d (used by no finished run)."""
+    a, _ = _entry(cache, "a")
+    b, _ = _entry(cache, "b", {"a": a.key})
+    c, _ = _entry(cache, "c", value=3.0)
+    d, _ = _entry(cache, "d", {"c": c.key})
+    return {"a": a, "b": b, "c": c, "d": d}
+
+
+def _finish(client, experiment: str, status: str, **tags: str) -> None:
+    run = client.create_run(experiment, tags={f"cache.{s}": k for s, k in tags.items()})
+    client.set_terminated(run.info.run_id, status)
+
+
+def test_gc_keeps_what_finished_runs_use_and_their_inputs(store, capsys):
+    runs, client, experiment = store
+    cache = StageCache(runs / "cache")
+    entries = _chain(cache)
+    _finish(client, experiment, "FINISHED", b=entries["b"].key)
+    _finish(client, experiment, "FAILED", d=entries["d"].key)
+    stale = runs / "cache" / "c" / ".tmp-k9-0000abcd-1@x"
+    stale.mkdir()
+    old = time.time() - 2 * cache_module.STALE_AFTER_S
+    os.utime(stale, (old, old))
+
+    assert command.main(["gc", "--dry-run", "--runs", str(runs)]) == 0
+    out = capsys.readouterr().out
+    for name in "cd":
+        assert f"would remove {entries[name].path}" in out
+    assert f"would remove {stale}" in out and "would be freed" in out
+    assert all(e.path.is_dir() for e in entries.values()) and stale.is_dir()
+
+    assert command.main(["gc", "--runs", str(runs)]) == 0
+    out = capsys.readouterr().out
+    assert "removed 2 entries and 1 temporary folders" in out
+    assert [name for name, e in entries.items() if e.path.is_dir()] == ["a", "b"]
+    assert not stale.exists()
+
+    assert command.main(["ls", "--entries", "--runs", str(runs)]) == 0
+    out = capsys.readouterr().out
+    assert f"{entries['b'].key}" in out and "used by a finished run" in out
+    assert f"input of b {entries['b'].key}" in out
+
+
+def test_gc_keeps_what_was_used_since_a_running_run_started(store, capsys):
+    runs, client, experiment = store
+    cache = StageCache(runs / "cache")
+    entries = _chain(cache)
+    _finish(client, experiment, "FINISHED", b=entries["b"].key)
+    client.create_run(experiment)  # a job in progress records its keys when it ends
+    assert command.main(["gc", "--runs", str(runs)]) == 0
+    assert all(e.path.is_dir() for e in entries.values())
+    assert "a run is still RUNNING" in capsys.readouterr().out
+
+
+def test_gc_refuses_without_a_store_or_when_it_knows_no_entry(tmp_path, store, capsys):
+    runs, _, _ = store
+    lone = tmp_path / "elsewhere"
+    entries = _chain(StageCache(lone / "cache"))
+    assert command.main(["gc", "--runs", str(lone)]) == 2
+    assert "no MLflow store" in capsys.readouterr().err
+    assert command.main(["gc", "--runs", str(runs), "--cache", str(lone / "cache")]) == 2
+    assert "nothing removed" in capsys.readouterr().err
+    assert all(e.path.is_dir() for e in entries.values())
+
+
+def test_ls_prints_each_stage(tmp_path, capsys):
+    _chain(StageCache(tmp_path / "runs" / "cache"))
+    assert command.main(["--runs", str(tmp_path / "runs"), "ls"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[:2] for line in lines[1:]] == [
+        ["a", "1"], ["b", "1"], ["c", "1"], ["d", "1"], ["total", "4"]]
+
+
+def test_command_runs_as_a_module(tmp_path):
+    _entry(StageCache(tmp_path / "cache"), "load")
+    done = subprocess.run([sys.executable, "-m", "pipeline.cache", "ls", "--runs", str(tmp_path)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert re.search(r"^load\s+1\s", done.stdout, re.MULTILINE)
