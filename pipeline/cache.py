@@ -27,15 +27,12 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pipeline.core.cache import HASH, StageCache, folder_bytes, last_used, listed_files
+from pipeline.core.errors import StoreError
 from pipeline.core.tracking import tracking_uri
 
 # Hosts of a shared cache may disagree on the time by this much (seconds).
 CLOCK_SKEW_S = 600
 IN_PROGRESS = ("RUNNING", "SCHEDULED")
-
-
-class StoreUnreadable(Exception):
-    """The MLflow store cannot be read: nothing may be deleted."""
 
 
 @dataclass
@@ -67,7 +64,7 @@ def read_usage(runs: Path) -> Usage:
     if uri.startswith("sqlite:"):
         db = Path(uri.split(":///", 1)[-1])
         if not db.is_file():  # MLflow would create an empty store, which uses nothing
-            raise StoreUnreadable(f"there is no MLflow store at {db} (see --runs)")
+            raise StoreError(f"there is no MLflow store at {db} (see --runs)")
     try:
         from mlflow.entities import ViewType
         from mlflow.tracking import MlflowClient
@@ -87,7 +84,7 @@ def read_usage(runs: Path) -> Usage:
             elif run.info.status in IN_PROGRESS:
                 starts.append(run.info.start_time / 1000)
     except Exception as err:  # any failure of the store or its client: delete nothing
-        raise StoreUnreadable(
+        raise StoreError(
             f"cannot read the MLflow store {uri} ({type(err).__name__}: {err})") from err
     usage.running_since = min(starts, default=None)
     return usage
@@ -160,7 +157,7 @@ def ls(cache: StageCache, runs: Path, entries: bool) -> int:
     if entries and rows:
         try:
             why = kept(rows, read_usage(runs))
-        except StoreUnreadable as err:
+        except StoreError as err:
             print(f"ls: {err}; whether runs use the entries is unknown (?)", file=sys.stderr)
     print(f"{'stage':<24} {'entries':>7} {'size':>10}   cache {cache.root}")
     for stage in sorted({row.stage for row in rows}):
@@ -209,7 +206,7 @@ def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
     started = time.time()
     try:
         usage = read_usage(runs)
-    except StoreUnreadable as err:
+    except StoreError as err:
         print(f"gc: {err}; nothing removed", file=sys.stderr)
         return 2
     rows = scan(cache)
