@@ -92,6 +92,21 @@ def test_table_rmse_pools_seeds(runs):
     assert cell == "0.1200 ± 0.0141 (n=2)"
 
 
+def test_table_rmse_never_pools_runs_of_different_recipes(runs):
+    b = runs[runs["params.method.name"] == "brdf_map"].copy()
+    b["params.method.em_iterations"] = "50"
+    other = b[b["params.dataset.missing_above_deg"] == "60"].assign(
+        **{"params.method.em_iterations": "5", "metrics.rmse_missing": 0.5, "params.seed": "2"})
+    table = table_rmse(pd.concat([b, other], ignore_index=True))
+    setup = "synthetic_brdf (beckmann), missing above 60°"
+    assert table.loc[(f"{setup} [method.em_iterations=50]", "2"), "MAP, missing"] == (
+        "0.1200 ± 0.0141 (n=2)")
+    assert table.loc[(f"{setup} [method.em_iterations=5]", "2"), "MAP, missing"] == (
+        "0.5000 ± 0.0000 (n=2)")
+    # Where every run shares its recipe, the row keeps its plain name.
+    assert ("synthetic_brdf (separable), missing above 30°", "0.5") in table.index
+
+
 def test_sections_write_the_tables_and_the_figure(runs, tmp_path):
     text = "\n".join(sections(runs, tmp_path))
     assert "Method B prior study: RMSE on all missing samples" in text

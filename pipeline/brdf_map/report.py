@@ -22,6 +22,7 @@ import pandas as pd
 
 from pipeline.brdf_map.runner import NEAR_MIRROR_DEG
 from pipeline.core.report import param, runs_of, write_table
+from pipeline.core.recipe import recipe_suffixes
 
 MODELS = (("MAP", ""), ("no prior", "_noprior"), ("Ashikhmin-Shirley", "_as"))
 # The missing-region RMSE and its split at theta_h = NEAR_MIRROR_DEG (runner.py).
@@ -64,8 +65,11 @@ def _metric(runs: pd.DataFrame, name: str) -> pd.Series:
 
 def table_rmse(runs: pd.DataFrame) -> pd.DataFrame:
     """Rows (setup, w_u); columns '<model>, measured' and '<model>, missing' as
-    'mean ± std (n=…)' over seeds."""
+    'mean ± std (n=…)' over seeds (runs whose recipes differ are never pooled)."""
     runs = runs.assign(setup=_setup(runs), w_u=param(runs, "method.prior_strength"))
+    # Runs are seeds of one fit only when their recipes match: others get their own row,
+    # labelled by the settings in which they differ.
+    runs = runs.assign(setup=runs["setup"] + recipe_suffixes(runs, ["setup", "w_u"]))
     rows = {}
     for (setup, w_u), group in runs.groupby(["setup", "w_u"], sort=True):
         row = {}

@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.btf.k_verdict import blocked_verdict, describe
-from pipeline.core.recipe import recipe_settings
+from pipeline.core.recipe import recipe_suffixes
 
 SIZE_ROWS = [
     ("bytes_decoder", "decoder"),
@@ -94,35 +94,10 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     # in anything else (optimizer, learning rate, held-out lights, ...) is split, each part
     # labelled by what differs.
     runs["model"] = label
-    runs["model"] = runs["model"] + recipe_suffixes(runs)
+    runs["model"] = runs["model"] + recipe_suffixes(runs, ["dataset", "model"])
     runs["order"] = np.where(method == "neural_btf", -1.0,
                              np.where(method == "pca", 1e9 + components.fillna(0), runs["k"]))
     return runs
-
-
-def recipe_suffixes(runs: pd.DataFrame, most: int = 3) -> pd.Series:
-    """For each run, ``" [key=value, ...]"`` naming the recipe settings in which it differs
-    from other runs of the same dataset and model label; ``""`` where they all agree.
-
-    Settings are compared where every run of the group has them (a setting added to the
-    code later does not split older runs from newer ones); the seed and settings of speed
-    or location are not part of a recipe (:mod:`pipeline.core.recipe`).
-    """
-    params = [c for c in runs.columns if c.startswith("params.")]
-    suffix = pd.Series("", index=runs.index)
-    for _, group in runs.groupby(["dataset", "model"], sort=False):
-        settings = pd.DataFrame(
-            [recipe_settings({c[len("params."):]: v for c, v in row.items() if pd.notna(v)})
-             for _, row in group[params].iterrows()], index=group.index)
-        shared = settings.dropna(axis=1)
-        varying = [c for c in shared.columns if shared[c].nunique() > 1]
-        if not varying:
-            continue
-        for index, row in shared[varying].iterrows():
-            parts = [f"{key}={row[key]}" for key in varying[:most]]
-            more = f", +{len(varying) - most} more" if len(varying) > most else ""
-            suffix[index] = " [" + ", ".join(parts) + more + "]"
-    return suffix
 
 
 def drop_repeats(runs: pd.DataFrame) -> pd.DataFrame:
