@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.btf import compressed
+from pipeline.btf import compressed, export
 from pipeline.btf.compressed import (
     FILE_NAME,
     header_bytes,
@@ -288,7 +288,7 @@ def test_the_logged_pyfunc_model_answers_like_query(tmp_path, mlflow_template, m
     write_compressed(folder / FILE_NAME, **_model("clustered_scaled"))
     with mlflow.start_run(experiment_id=experiment) as run:
         start = time.perf_counter()
-        compressed.log_compressed(Entry("export", "key", folder))
+        export.log_compressed(Entry("export", "key", folder))
         seconds = time.perf_counter() - start
     print(f"log_compressed took {seconds:.2f} s")
     run_id = run.info.run_id

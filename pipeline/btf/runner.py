@@ -20,7 +20,7 @@ import mlflow
 import numpy as np
 
 from pipeline.btf import interpolation, stages
-from pipeline.btf.compressed import export_stage, log_compressed
+from pipeline.btf.export import export_stage, log_compressed
 from pipeline.btf.stereographic import direction_features
 from pipeline.core.cache import Entry, save_arrays, save_json
 from pipeline.core.errors import ConfigError
