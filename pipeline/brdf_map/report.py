@@ -21,8 +21,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.brdf_map.runner import NEAR_MIRROR_DEG
-from pipeline.core.report import param, runs_of, write_table
 from pipeline.core.recipe import recipe_suffixes
+from pipeline.core.report import param, runs_of, write_table
 
 MODELS = (("MAP", ""), ("no prior", "_noprior"), ("Ashikhmin-Shirley", "_as"))
 # The missing-region RMSE and its split at theta_h = NEAR_MIRROR_DEG (runner.py).
