@@ -108,7 +108,7 @@ def log_compressed(entry: Entry, log_model: bool = True) -> None:
                     artifacts={"btf": str(stamped)},
                     signature=query_signature(),
                     # Given, so that MLflow does not load the model in a subprocess to infer
-                    # them (it still scans the installed packages once per process: ~1-2 s).
+                    # them (it still scans the installed packages once per process).
                     pip_requirements=[f"{name}=={package_metadata.version(name)}"
                                       for name in ("torch", "safetensors", "numpy", "pandas")],
                 )
