@@ -164,6 +164,17 @@ def round_thread(centre_line, across, half_width, radius):
     return np.where(inside, centre_line + radius * bulge, -np.inf)
 
 
+def woven_surfaces(x, y, warp_centre, weft_centre, half_width, radius, floor):
+    """Heights of the warp (along +y), the weft (along +x) and the floor, stacked
+    (3, S, S): the top one is what a texel shows. Threads sit at whole periods of x (warp)
+    and y (weft), their centre lines at ``warp_centre`` and ``weft_centre``."""
+    return np.stack([
+        round_thread(warp_centre, x - np.floor(x) - 0.5, half_width, radius),
+        round_thread(weft_centre, y - np.floor(y) - 0.5, half_width, radius),
+        np.full_like(x, floor),
+    ])  # fmt: skip
+
+
 # --- the presets ------------------------------------------------------------------------
 
 
@@ -197,13 +208,8 @@ class PlainWeave(Material):
         warp_index, weft_index = np.floor(x), np.floor(y)
         warp_centre = self.undulation * np.cos(np.pi * (y - 0.5) + np.pi * warp_index)
         weft_centre = -self.undulation * np.cos(np.pi * (x - 0.5) + np.pi * weft_index)
-        surfaces = np.stack([
-            round_thread(warp_centre, x - warp_index - 0.5, self.thread_half_width,
-                         self.thread_radius),
-            round_thread(weft_centre, y - weft_index - 0.5, self.thread_half_width,
-                         self.thread_radius),
-            np.full_like(x, -self.undulation - self.thread_radius),
-        ])  # fmt: skip
+        surfaces = woven_surfaces(x, y, warp_centre, weft_centre, self.thread_half_width,
+                                  self.thread_radius, floor=-self.undulation - self.thread_radius)
         labels = np.argmax(surfaces, axis=0)
         return Surface(
             labels=labels,
@@ -401,13 +407,8 @@ class Satin(Material):
         warp_centre = self.undulation * (1 - 2 * dip(from_binding))
         warp_centre += self.arch * (1 - np.cos(2 * np.pi * from_binding / 5)) / 2
         weft_centre = self.undulation * (2 * dip(x - np.mod(2 * weft_index, 5) - 0.5) - 1)
-        surfaces = np.stack([
-            round_thread(warp_centre, x - warp_index - 0.5, self.thread_half_width,
-                         self.thread_radius),
-            round_thread(weft_centre, y - weft_index - 0.5, self.thread_half_width,
-                         self.thread_radius),
-            np.full_like(x, -self.undulation - self.thread_radius),
-        ])  # fmt: skip
+        surfaces = woven_surfaces(x, y, warp_centre, weft_centre, self.thread_half_width,
+                                  self.thread_radius, floor=-self.undulation - self.thread_radius)
         labels = np.argmax(surfaces, axis=0)
         return Surface(
             labels=labels,
