@@ -60,6 +60,15 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
         metrics["rmse"] / metrics["rmse_mean_abrdf"])
     # The recipe tag is the same for another seed, not for another learning rate.
     assert len(run.data.tags["recipe"]) == 12
+    # Unset settings are not logged as the string "None".
+    assert "dataset.root" not in run.data.params
+    # The loss is keyed by training step, as logged live (first run) and as replayed from
+    # the cached model (second run), ending at the run's last step.
+    client = MlflowClient(tracking_uri(cfg.paths.runs))
+    histories = [[(m.step, m.value) for m in client.get_metric_history(r.info.run_id, "loss")]
+                 for r in runs]
+    assert histories[0] == histories[1]
+    assert histories[0][-1][0] == metrics["train_steps"] > len(histories[0]) - 1
 
 
 def test_the_recipe_tag_ignores_the_seed_and_speed_settings_only(smoke_cfg):

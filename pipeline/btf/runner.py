@@ -87,9 +87,11 @@ def train_stage(
             source_of_texel = clusters.array("labels", mmap=False).astype(np.int64)
         train_dirs = interpolation.training_directions(directions, heldout)
 
-        def on_epoch(epoch: int, loss: float) -> None:
+        def on_epoch(epoch: int, loss: float, step: int) -> None:
             if mlflow.active_run() is not None:
-                mlflow.log_metric("loss", loss, step=epoch)
+                # Keyed by training step, like the curve_* metrics, so that the UI's "Step"
+                # axis means one thing; the epoch is the point's index.
+                mlflow.log_metric("loss", loss, step=step)
 
         def on_curve(point: dict) -> None:
             if mlflow.active_run() is not None:
@@ -211,9 +213,12 @@ def run(ctx: Context) -> dict[str, float]:
         extra["kmeans_inertia"] = clusters.manifest["summary"]["inertia"]
     trained = train_stage(ctx, cropped, prep, clusters, reps)
     if trained.hit and mlflow.active_run() is not None:
-        # A cached model: replay its loss curve so every run shows one.
+        # A cached model: replay its loss curve so every run shows one, at the steps where
+        # train() logged it (the end of each pass over the texels; the last may be cut).
+        per_pass = cropped.manifest["summary"]["M"] // cfg.train.batch_size
         for epoch, loss in enumerate(trained.json("losses")):
-            mlflow.log_metric("loss", loss, step=epoch)
+            step = min((epoch + 1) * per_pass, trained.manifest["summary"]["steps"])
+            mlflow.log_metric("loss", loss, step=step)
         for point in trained.json("curve"):
             log_curve_point(point)
     evaluated = evaluate_stage(ctx, cropped, prep, trained)

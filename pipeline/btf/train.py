@@ -92,7 +92,7 @@ def train(
     seed: int,
     encoder_channels: tuple[int, ...] = (16, 32, 64),
     target_from_source: bool = False,
-    on_epoch: Callable[[int, float], None] | None = None,
+    on_epoch: Callable[[int, float, int], None] | None = None,
     on_curve: Callable[[dict], None] | None = None,
 ) -> TrainResult:
     """Train encoder and decoder jointly.
@@ -231,7 +231,7 @@ def train(
                     losses.append(running / count)
                     bar.set_postfix(epoch=epoch, loss=f"{losses[-1]:.3g}")
                     if on_epoch is not None:
-                        on_epoch(epoch, losses[-1])
+                        on_epoch(epoch, losses[-1], step)
                 if step >= total:
                     break
             if curve is not None and step % settings.curve_every:

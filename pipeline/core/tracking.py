@@ -240,7 +240,9 @@ def job_run(
         parent_run_id=_parent_run_id(),
         tags=tags,
     ) as run:
-        mlflow.log_params({k: _param_value(v) for k, v in params.items()})
+        # Unset settings (None: method.k of Neural BTF, dataset.root of built-in data) are
+        # left out rather than shown as the string "None"; config/resolved.yaml has them all.
+        mlflow.log_params({k: _param_value(v) for k, v in params.items() if v is not None})
         mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
         mlflow.log_text(OmegaConf.to_yaml(overrides), "config/overrides.yaml")
         log.info("MLflow run %s in %s", run.info.run_id, tracking_uri(cfg.paths.runs))
