@@ -319,6 +319,8 @@ class SweepParentRun(Callback):
         tags["sweep.dir"] = str(sweep_dir)
         swept = swept_settings(config)
         tags["sweep.overrides"] = " ".join(f"{k}={v}" for k, v in swept.items())
+        # As for a job's run: a later start marks the parent FAILED if this process dies.
+        tags.update(host=socket.gethostname(), pid=str(os.getpid()))
         run = client.create_run(experiment_id, run_name=f"sweep {sweep_dir.name}", tags=tags)
         self.run_id = run.info.run_id
         # What the sweep varies (each job's value is among its own params) and what it fixes.
