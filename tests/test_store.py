@@ -72,3 +72,22 @@ def test_sigterm_ends_the_run_failed_and_leaves_no_temporary_folder(tmp_path, ml
     assert [r.info.status for r in found] == ["FAILED"]
     assert not list((runs / "cache").glob("*/.tmp-*"))
     assert not list((runs / "data").glob(".*partial*"))
+
+
+def test_a_tracking_server_chosen_by_the_user_stays_chosen(tmp_path, monkeypatch):
+    """MLFLOW_TRACKING_URI (an `mlflow server`) wins over paths.runs, also after this
+    process pointed MLflow at it (the sweep parent asks twice), and in its subprocesses;
+    a SQLite store the pipeline chose itself never outlives its paths.runs."""
+    from pipeline.core.tracking import use_store
+
+    server = "http://127.0.0.1:5055"
+    monkeypatch.delenv("PIPELINE_TRACKING_URI_SET_BY_PIPELINE", raising=False)  # restored after
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", server)
+    assert use_store(tmp_path / "a") == server
+    assert tracking_uri(tmp_path / "a") == server
+    assert use_store(tmp_path / "b") == server
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI")
+    first = use_store(tmp_path / "a")
+    assert first == f"sqlite:///{(tmp_path / 'a').resolve() / 'mlflow.db'}"
+    assert tracking_uri(tmp_path / "b") == f"sqlite:///{(tmp_path / 'b').resolve() / 'mlflow.db'}"

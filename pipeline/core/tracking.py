@@ -47,6 +47,10 @@ def tracking_uri(runs: str | os.PathLike) -> str:
     # set ourselves is not the user's choice of server and must not outlive paths.runs.
     if env and env != os.environ.get(_OWN_URI):
         return env
+    return _sqlite_uri(runs)
+
+
+def _sqlite_uri(runs: str | os.PathLike) -> str:
     return f"sqlite:///{Path(runs).resolve() / DB_NAME}"
 
 
@@ -56,7 +60,10 @@ def use_store(runs: str | os.PathLike) -> str:
 
     uri = tracking_uri(runs)
     mlflow.set_tracking_uri(uri)
-    os.environ[_OWN_URI] = uri
+    if uri == _sqlite_uri(runs):
+        os.environ[_OWN_URI] = uri
+    else:  # the user's server: it stays the choice for every later call and subprocess
+        os.environ.pop(_OWN_URI, None)
     return uri
 
 
