@@ -26,6 +26,9 @@ from pipeline.fourier import runner as fourier_runner
 log = logging.getLogger(__name__)
 
 
+# Method A's models with a decoder, rendered after training when btf.render.enabled.
+RENDERED = ("neural_btf", "clustered")
+
 METHODS: dict[str, Callable[[Context], dict[str, float]]] = {
     "neural_btf": btf_runner.run,
     "clustered": btf_runner.run,
@@ -92,6 +95,10 @@ def run_job(cfg: DictConfig) -> float | None:
         ctx = Context.from_config(cfg)
         try:
             metrics = METHODS[name](ctx)
+            if name in RENDERED and cfg.btf.render.enabled:
+                from pipeline.render import stage as render_stage
+
+                metrics.update(render_stage.run(ctx))
         finally:
             mlflow.set_tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
             mlflow.log_metrics({f"seconds_{s}": t for s, t in ctx.seconds.items()})

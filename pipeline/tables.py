@@ -22,10 +22,11 @@ from pipeline.btf import report as btf_report
 from pipeline.core.report import TABLES_EXPERIMENT, fetch_runs
 from pipeline.core.tracking import NOTE_TAG, environment_tags, init_store, tracking_uri
 from pipeline.fourier import report as fourier_report
+from pipeline.render import report as render_report
 
 log = logging.getLogger(__name__)
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
-REPORTS = (btf_report, brdf_map_report, fourier_report)  # methods A, B, C
+REPORTS = (btf_report, render_report, brdf_map_report, fourier_report)  # A, A's renders, B, C
 
 
 def default_settings() -> DictConfig:

@@ -483,6 +483,7 @@ ALLOWED = {
     "core": {"core"},
     "data": {"core", "data"},
     "btf": {"core", "data", "btf"},
+    "render": {"core", "data", "btf", "render"},  # renders method A's compressed BTFs
     "brdf_map": {"core", "data", "brdf_map"},
     "fourier": {"core", "data", "fourier"},
 }

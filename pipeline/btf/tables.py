@@ -114,7 +114,8 @@ def _fmt_k(k: float) -> str:
     return "?" if pd.isna(k) else str(int(k))
 
 
-def _columns(runs: pd.DataFrame) -> list[str]:
+def model_columns(runs: pd.DataFrame) -> list[str]:
+    """The model labels of labelled runs in the paper's column order (Neural BTF, k, PCA)."""
     return list(runs.sort_values(["order", "model"]).drop_duplicates("model")["model"])
 
 
@@ -146,13 +147,14 @@ def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
     table = pd.DataFrame(rows)
     if table.empty:
         return table
-    order = {m: i for i, m in enumerate(_columns(runs))}
+    order = {m: i for i, m in enumerate(model_columns(runs))}
     table = table.sort_values(["dataset", "model"], key=lambda s: s.map(order) if s.name ==
                               "model" else s)
     return table.reset_index(drop=True)
 
 
-def _mean_std(values: pd.Series) -> str:
+def mean_std(values: pd.Series) -> str:
+    """``"mean ± std (n=…)"`` of the values (sample std), or the value with n=1, or "–"."""
     values = values.dropna()
     if values.empty:
         return "–"
@@ -163,9 +165,9 @@ def _mean_std(values: pd.Series) -> str:
 
 def table_rmse(runs: pd.DataFrame, metric: str = "rmse") -> pd.DataFrame:
     """Table 2: RMSE per dataset (rows) x model (columns), mean ± std over seeds (n)."""
-    columns = _columns(runs)
+    columns = model_columns(runs)
     table = runs.pivot_table(
-        index="dataset", columns="model", values=f"metrics.{metric}", aggfunc=_mean_std
+        index="dataset", columns="model", values=f"metrics.{metric}", aggfunc=mean_std
     )
     table = table.reindex(columns=[c for c in columns if c in table.columns])
     return table.fillna("–")  # no run of that model on that dataset
@@ -211,7 +213,7 @@ def table_interpolation(runs: pd.DataFrame) -> pd.DataFrame:
     for (dataset, model), group in ordered.groupby(["dataset", "model"], sort=False):
         row = {"dataset": dataset, "model": model}
         for metric, name in present:
-            row[name] = _mean_std(_num(group[f"metrics.{metric}"]))
+            row[name] = mean_std(_num(group[f"metrics.{metric}"]))
         rows.append(row)
     return pd.DataFrame(rows)
 

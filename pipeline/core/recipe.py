@@ -1,8 +1,9 @@
 """A run's recipe: everything in its resolved config that can change its result, but the seed.
 
-Runs are seeds of one model only when their recipes match. Left out: the seed, and settings
+Runs are seeds of one model only when their recipes match. Left out: the seed, settings
 that only change speed or where things go (threads, device, chunk size, machine tuning,
-paths, tracking). Method A's settings moved under ``btf.``; older runs' spellings are read
+paths, tracking), and how the model is rendered (``btf.render``: a view of the model, not
+the model). Method A's settings moved under ``btf.``; older runs' spellings are read
 as the new ones, so that a store holding both still pools them.
 
 >>> recipe_id({"seed": 0, "train.lr": 0.1, "train.threads": 1}) == recipe_id(
@@ -22,7 +23,7 @@ from pipeline.core.cache import canonical_json
 
 # Settings that do not change what a run computes (up to the order of floating-point sums).
 NOT_RECIPE = re.compile(
-    r"^(seed|paths\..*|tracking\..*|hydra\..*|variant"
+    r"^(seed|paths\..*|tracking\..*|hydra\..*|variant|btf\.render\..*"
     r"|train\.(threads|device|chunk|keep_awake|omp_spin_count|reuse_freed_memory))$"
 )
 _MOVED = re.compile(r"^(crop|pca|kmeans|model|sizes|interpolation)\.")

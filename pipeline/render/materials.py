@@ -1,0 +1,290 @@
+"""What a surface point reflects: RGB of a texel for a (light, view) direction pair.
+
+A :class:`Material` answers batches of queries, ``evaluate(texels, directions)``, with
+texels indices ``row * cols + col`` into its crop of ``crop_size = (rows, cols)`` texels
+and directions ``(theta_light, phi_light, theta_view, phi_view)`` in radians in the
+texel's tangent frame (theta from the normal, phi from the tangent towards the
+bitangent). The value is a BTF value: reflected radiance per unit irradiance on a surface
+perpendicular to the light, i.e. it already contains the cosine foreshortening
+(:mod:`pipeline.render.engine`).
+
+- :class:`LambertianTexture`: ``albedo / pi * cos(theta_light)``, a closed form for tests.
+- :class:`MeasuredMaterial`: the measured 81 x 81 directions, interpolated (the reference).
+- :class:`CompressedMaterial`: a compressed BTF file (``pipeline.btf.compressed``).
+
+Examples
+--------
+>>> albedo = np.full((2, 2, 3), 0.5)
+>>> LambertianTexture(albedo).evaluate(np.array([3]), np.zeros((1, 4))).round(4)
+array([[0.1592, 0.1592, 0.1592]], dtype=float32)
+"""
+
+from __future__ import annotations
+
+import os
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from pipeline.btf.interpolation import ProductInterpolator
+from pipeline.btf.stereographic import stereographic
+from pipeline.data.directions import RINGS_DEGREES, btf_directions, unit_vectors
+
+# Queries interpolated at once by MeasuredMaterial (bounds its temporary arrays).
+_MEASURED_CHUNK = 1 << 16
+# A barycentric weight this close to 1 is a query on a grid direction: snap it to 1.
+_SNAP = 1e-7
+
+
+class Material(ABC):
+    """Batched RGB queries of a BTF-like material over a crop of ``crop_size`` texels.
+
+    Subclasses set ``crop_size`` and implement :meth:`_evaluate`; :meth:`evaluate`
+    checks the queries first.
+    """
+
+    crop_size: tuple[int, int]
+
+    @property
+    def n_texels(self) -> int:
+        return self.crop_size[0] * self.crop_size[1]
+
+    def evaluate(self, texels, directions) -> np.ndarray:
+        """RGB of texel ``texels[i]`` at direction pair ``directions[i]``.
+
+        Parameters
+        ----------
+        texels : array_like of ints of shape (n,), in [0, rows * cols).
+        directions : array_like of shape (n, 4), (theta_light, phi_light, theta_view,
+            phi_view) in radians.
+
+        Returns
+        -------
+        ndarray of shape (n, 3), float32, linear RGB.
+        """
+        texels = np.asarray(texels)
+        if texels.ndim != 1 or not (texels.size == 0 or np.issubdtype(texels.dtype, np.integer)):
+            raise ValueError(
+                f"texels must be a 1-D array of ints, got shape {texels.shape} of {texels.dtype}"
+            )
+        if texels.size and (texels.min() < 0 or texels.max() >= self.n_texels):
+            bad = texels[(texels < 0) | (texels >= self.n_texels)][0]
+            raise ValueError(f"texel {bad} is outside [0, {self.n_texels})")
+        directions = np.asarray(directions, dtype=np.float64)
+        if directions.shape != (len(texels), 4):
+            raise ValueError(
+                f"directions must have shape ({len(texels)}, 4), got {directions.shape}"
+            )
+        if len(texels) == 0:
+            return np.zeros((0, 3), dtype=np.float32)
+        return self._evaluate(texels.astype(np.int64), directions)
+
+    @abstractmethod
+    def _evaluate(self, texels: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Checked queries: texels (n,) int64, directions (n, 4) float64 -> (n, 3) float32."""
+
+
+def _crop_size(crop_size) -> tuple[int, int]:
+    try:
+        rows, cols = (int(v) for v in crop_size)
+    except (TypeError, ValueError):
+        raise ValueError(f"crop_size={crop_size!r} must be (rows, cols)") from None
+    if rows < 1 or cols < 1 or (rows, cols) != tuple(crop_size):
+        raise ValueError(f"crop_size={tuple(crop_size)!r} must be two integers >= 1")
+    return rows, cols
+
+
+class LambertianTexture(Material):
+    """A diffuse texture: value ``albedo[texel] / pi * max(cos(theta_light), 0)``.
+
+    Parameters
+    ----------
+    albedo : ndarray of shape (rows, cols, 3), in [0, 1]
+        Texel (row, col) has index ``row * cols + col``.
+    """
+
+    def __init__(self, albedo: np.ndarray):
+        albedo = np.asarray(albedo, dtype=np.float64)
+        if albedo.ndim != 3 or albedo.shape[2] != 3 or 0 in albedo.shape:
+            raise ValueError(f"albedo must have shape (rows, cols, 3), got {albedo.shape}")
+        if not np.all((albedo >= 0) & (albedo <= 1)):
+            raise ValueError(
+                f"albedo must lie in [0, 1], got values in "
+                f"[{np.nanmin(albedo):g}, {np.nanmax(albedo):g}]"
+            )
+        self.crop_size = albedo.shape[:2]
+        self.albedo = albedo.reshape(-1, 3)
+
+    def _evaluate(self, texels, directions):
+        cosine = np.maximum(np.cos(directions[:, 0]), 0.0)
+        return (self.albedo[texels] * (cosine / np.pi)[:, None]).astype(np.float32)
+
+
+class CompressedMaterial(Material):
+    """A compressed BTF (:func:`pipeline.btf.compressed.load_compressed`), queried as is.
+
+    Parameters
+    ----------
+    compressed : :class:`pipeline.btf.compressed.CompressedBTF`, or anything with
+        ``crop_size`` (rows, cols) and ``query_pairs(texels (n,), directions (n, 4)) ->
+        (n, 3)``.
+
+    Notes
+    -----
+    The decoder's output is not clamped here (it may be slightly negative); the renderer
+    clamps radiance at 0.
+    """
+
+    def __init__(self, compressed):
+        if not callable(getattr(compressed, "query_pairs", None)):
+            raise ValueError(f"{compressed!r} has no query_pairs(texels, directions) method")
+        self.crop_size = _crop_size(compressed.crop_size)
+        self.compressed = compressed
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike) -> CompressedMaterial:
+        """Load a ``btf.safetensors`` file (imports torch)."""
+        from pipeline.btf.compressed import load_compressed
+
+        return cls(load_compressed(path))
+
+    def _evaluate(self, texels, directions):
+        return np.asarray(self.compressed.query_pairs(texels, directions), dtype=np.float32)
+
+
+class MeasuredMaterial(Material):
+    """The measured BTF, interpolated piecewise-linearly between its 81 x 81 directions.
+
+    The interpolant is the "linear" one of :class:`pipeline.btf.interpolation.
+    ProductInterpolator` (whose table of columns it uses): barycentric weights in a
+    Delaunay triangulation of the 81 light directions (stereographic coordinates) times
+    those of the 81 view directions, 9 measured values per query. At a grid direction pair
+    it returns the measured value exactly.
+
+    Directions beyond the grid's outermost ring (theta = 75 degrees) are clamped onto it:
+    theta is lowered, phi kept, to the edge of the triangulation (the polygon of the 24
+    directions of the 75-degree ring, which lies at most 75 degrees from the normal). Grazing
+    light and view are therefore rendered as if they came from the 75-degree ring.
+
+    Parameters
+    ----------
+    values : ndarray of shape (M, N, 3)
+        Linear RGB of M = rows x cols texels (row-major) at N direction pairs; any float
+        dtype, or a memory map.
+    crop_size : (rows, cols)
+    directions : ndarray of shape (N, 4), radians, or None
+        The direction pair of each column of ``values``; None means
+        :func:`pipeline.data.directions.btf_directions` (N = 6561). They must be the
+        full 81 x 81 product grid.
+    """
+
+    def __init__(self, values: np.ndarray, crop_size, directions: np.ndarray | None = None):
+        self.crop_size = _crop_size(crop_size)
+        directions = btf_directions() if directions is None else np.asarray(directions)
+        if not isinstance(values, np.ndarray):
+            values = np.asarray(values)
+        if values.ndim != 3 or values.shape[2] != 3:
+            raise ValueError(f"values must have shape (M, N, 3), got {values.shape}")
+        if values.shape[0] != self.n_texels:
+            raise ValueError(
+                f"values has {values.shape[0]} texels but crop_size={self.crop_size} "
+                f"has {self.n_texels}"
+            )
+        if directions.shape != (values.shape[1], 4):
+            raise ValueError(
+                f"directions must have shape ({values.shape[1]}, 4), got {directions.shape}"
+            )
+        self.values = values
+        try:
+            self._interpolator = ProductInterpolator(directions, np.arange(len(directions)))
+        except KeyError as error:
+            raise ValueError(f"directions hold a pair off the 81-direction grid: {error}") from None
+        if len(self._interpolator.lights) != 81 or len(self._interpolator.views) != 81:
+            raise ValueError("directions must hold all 81 x 81 light and view grid directions")
+        self._light_weights = _Barycentric(self._interpolator.light_dirs)
+        self._view_weights = _Barycentric(self._interpolator.view_dirs)
+
+    def _evaluate(self, texels, directions):
+        out = np.empty((len(texels), 3), dtype=np.float32)
+        for start in range(0, len(texels), _MEASURED_CHUNK):
+            stop = start + _MEASURED_CHUNK
+            out[start:stop] = self._interpolate(texels[start:stop], directions[start:stop])
+        return out
+
+    def _interpolate(self, texels: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        interp = self._interpolator
+        light_ids, light_w = self._light_weights(clamp_to_grid(directions[:, :2]))
+        view_ids, view_w = self._view_weights(clamp_to_grid(directions[:, 2:]))
+        # Each query gathers its own texel's 9 values (ProductInterpolator.predict would
+        # interpolate every texel at every query).
+        out = np.zeros((len(texels), 3), dtype=np.float32)
+        for a in range(3):
+            for b in range(3):
+                weight = light_w[:, a] * view_w[:, b]
+                used = weight != 0.0
+                columns = interp.table[
+                    interp.lights[light_ids[used, a]], interp.views[view_ids[used, b]]
+                ]
+                value = np.asarray(self.values[texels[used], columns], dtype=np.float32)
+                out[used] += weight[used, None].astype(np.float32) * value
+        return out
+
+
+class _Barycentric:
+    """Barycentric weights in the Delaunay triangulation of directions (stereographic).
+
+    The same weights as ``ProductInterpolator._weights``, with the triangulation built once
+    and a brute-force simplex search, which scipy does about 20 times faster than its
+    default walk for queries scattered over the hemisphere (as a render's are).
+    """
+
+    def __init__(self, grid_angles: np.ndarray):
+        from scipy.spatial import Delaunay
+
+        self.triangulation = Delaunay(stereographic(*grid_angles.T))
+        self.unit = unit_vectors(*grid_angles.T)
+
+    def __call__(self, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(theta, phi) (n, 2) -> grid indices (n, 3) and weights (n, 3) summing to 1."""
+        tri = self.triangulation
+        points = stereographic(*angles.T)
+        simplex = tri.find_simplex(points, bruteforce=True)
+        inside = simplex >= 0
+        transform = tri.transform[simplex[inside]]
+        b = np.einsum("qij,qj->qi", transform[:, :2], points[inside] - transform[:, 2])
+        ids = np.zeros((len(angles), 3), dtype=np.int64)
+        weights = np.zeros((len(angles), 3))
+        ids[inside] = tri.simplices[simplex[inside]]
+        weights[inside] = np.column_stack([b, 1.0 - b.sum(1)])
+        if not inside.all():  # outside the hull (clamp_to_grid prevents it): the nearest
+            nearest = np.argmax(unit_vectors(*angles[~inside].T) @ self.unit.T, axis=1)
+            ids[~inside, 0], weights[~inside, 0] = nearest, 1.0
+        # A weight within _SNAP of 1 is a query on a grid direction: make it exact.
+        corner = weights > 1.0 - _SNAP
+        weights = np.where(corner.any(axis=1, keepdims=True), corner.astype(np.float64), weights)
+        return ids, weights
+
+
+_OUTER_THETA, _OUTER_COUNT = np.radians(RINGS_DEGREES[-1][0]), RINGS_DEGREES[-1][1]
+
+
+def clamp_to_grid(angles: np.ndarray) -> np.ndarray:
+    """Lower theta onto the grid's outer polygon where a direction lies beyond it.
+
+    The 24 directions of the 75-degree ring span, in stereographic coordinates (radius
+    tan(theta / 2)), a regular polygon; outside it the triangulation has no triangle.
+
+    Parameters
+    ----------
+    angles : ndarray of shape (n, 2), (theta, phi) in radians.
+
+    Returns
+    -------
+    ndarray of shape (n, 2): theta clamped to the polygon (slightly inside it), phi kept.
+    """
+    theta, phi = angles[:, 0], angles[:, 1]
+    step = 2.0 * np.pi / _OUTER_COUNT
+    offset = np.mod(phi, step) - step / 2.0  # azimuth from the middle of the polygon's edge
+    edge_radius = np.tan(_OUTER_THETA / 2.0) * np.cos(step / 2.0) / np.cos(offset)
+    theta_max = 2.0 * np.arctan(edge_radius * (1.0 - 1e-9))
+    return np.column_stack([np.where(theta > theta_max, theta_max, theta), phi])

@@ -1,0 +1,280 @@
+"""Method A's render stages: Fig. 8 and Tables 3-4 of the clustering paper.
+
+    crop   -> render_reference   the measured BTF, interpolated between its 81 x 81 directions
+    export -> render             the run's compressed BTF (Neural BTF or clustered), compared
+                                 with the reference: same scene, same samples, same seed
+
+Both render :func:`pipeline.render.scene.default_scene` with the crop tiled over the sheet,
+once per entry of ``btf.render.spp`` (say 1, 16 and 128 samples per pixel), so that the
+graininess of a reconstruction can be followed as the samples average over each pixel.
+
+Two crops of the rendered frame, a dark and a bright region, are compared with the
+reference at every spp (Tables 3 and 4 at the largest): the RMSE of linear radiance, and
+the ratio of high-frequency energy (the image minus its Gaussian blur, sigma 1 pixel) of the
+model's crop to the reference's, which is above 1 where the model adds grain. Unless
+given (``btf.render.crops``), the crops are chosen on the reference at the largest spp: of
+the windows wholly on lit cloth (no background, no shadow), the darkest and the brightest
+by mean luminance.
+
+Units: the key light gives irradiance 1 at the sheet's centre, so radiance is in the BTF's
+own units (the data's linear RGB), and the RMSE is comparable with eq. 10's un-normalised.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.cache import Entry, save_arrays, save_json
+from pipeline.core.errors import ConfigError
+from pipeline.core.stage import Context, plain_settings
+
+log = logging.getLogger(__name__)
+
+REGIONS = ("dark", "bright")
+_HF_SIGMA = 1.0  # pixels: what a blur of this width removes is "high frequency"
+
+
+def render_settings(cfg) -> dict:
+    """``btf.render`` without its switch, checked; the render stages' settings."""
+    settings = plain_settings(cfg.btf.render)
+    settings.pop("enabled", None)
+    for name in ("width", "height", "crop_size"):
+        value = settings[name]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ConfigError(f"btf.render.{name}={value!r} must be an integer >= 1")
+    spp = settings["spp"]
+    if isinstance(spp, int):
+        spp = [spp]
+    if not spp or any(isinstance(s, bool) or not isinstance(s, int) or s < 1 for s in spp):
+        raise ConfigError(f"btf.render.spp={settings['spp']!r} must be a list of integers >= 1")
+    settings["spp"] = sorted(set(spp))
+    if settings["crop_size"] > min(settings["width"], settings["height"]):
+        raise ConfigError(
+            f"btf.render.crop_size={settings['crop_size']} is larger than the "
+            f"{settings['width']}x{settings['height']} frame"
+        )
+    for region in REGIONS:
+        corner = (settings.get("crops") or {}).get(region)
+        if corner is not None and (
+            len(corner) != 2
+            or min(corner) < 0
+            or corner[0] + settings["crop_size"] > settings["height"]
+            or corner[1] + settings["crop_size"] > settings["width"]
+        ):
+            raise ConfigError(
+                f"btf.render.crops.{region}={corner!r} must be [row, col] of a "
+                f"{settings['crop_size']}-pixel window inside the frame"
+            )
+    return settings
+
+
+def _scene(settings: dict):
+    from pipeline.render.scene import default_scene
+
+    return default_scene(
+        settings["width"],
+        settings["height"],
+        settings["lights"],
+        floor=settings["floor"],
+        tiles=settings["tiles"],
+        resolution=settings["mesh_resolution"],
+    )
+
+
+def _render_every_spp(scene, material, settings: dict, folder: Path, what: str) -> dict:
+    """Render at each spp into ``folder`` (``image_spp<N>.npy``, .exr, .png); returns
+    per-spp seconds and ray counts."""
+    from tqdm import tqdm
+
+    from pipeline.render.engine import render_with_stats
+
+    stats = {}
+    for spp in tqdm(settings["spp"], desc=f"render {what}", unit="frame", leave=False):
+        image, cost = render_with_stats(scene, material, spp, settings["seed"])
+        save_arrays(folder, **{f"image_spp{spp}": image})
+        write_images(folder / f"image_spp{spp}", image, settings["exposure"])
+        stats[str(spp)] = {
+            "seconds": cost.seconds,
+            "rays": cost.rays,
+            "material_queries": cost.material_queries,
+        }
+        log.info(
+            "rendered %s at %d spp in %.1f s (%.2f M rays/s)",
+            what,
+            spp,
+            cost.seconds,
+            cost.rays_per_second / 1e6,
+        )
+    return stats
+
+
+def write_images(stem: Path, image: np.ndarray, exposure: float) -> None:
+    """``stem.exr`` (linear, half float) and ``stem.png`` (exposure, then gamma 2.2)."""
+    from PIL import Image
+
+    from pipeline.data.images import gamma_encode, quantize_8bit, write_exr
+
+    write_exr(stem.with_suffix(".exr"), image)
+    encoded = quantize_8bit(gamma_encode(image * np.float32(exposure)))
+    Image.fromarray(encoded).save(stem.with_suffix(".png"))
+
+
+def choose_crops(reference: np.ndarray, size: int, given: dict | None = None) -> dict:
+    """Top-left [row, col] of the dark and bright crops of ``reference`` (H, W, 3).
+
+    A crop given in ``given`` is kept; the others are, among the windows of ``size`` pixels
+    (on a grid of step size / 4) whose every pixel is lit (> 0), the one with the lowest and
+    the highest mean luminance.
+    """
+    given = given or {}
+    luminance = reference @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    lit = (luminance > 0).astype(np.int64)
+    # Summed-area tables: the lit count and the luminance sum of every window at once.
+    count = window_sums(lit, size)
+    total = window_sums(luminance.astype(np.float64), size)
+    step = max(1, size // 4)
+    rows = np.arange(0, count.shape[0], step)
+    cols = np.arange(0, count.shape[1], step)
+    full = count[np.ix_(rows, cols)] == size * size
+    chosen = {}
+    for region, pick in (("dark", np.argmin), ("bright", np.argmax)):
+        if given.get(region) is not None:
+            chosen[region] = [int(v) for v in given[region]]
+            continue
+        if not full.any():
+            raise ValueError(
+                f"no {size}x{size} window of the reference render is wholly on "
+                "lit cloth: lower btf.render.crop_size or give btf.render.crops"
+            )
+        means = np.where(full, total[np.ix_(rows, cols)], np.nan)
+        flat = pick(np.where(full, means, np.inf if region == "dark" else -np.inf))
+        r, c = np.unravel_index(flat, full.shape)
+        chosen[region] = [int(rows[r]), int(cols[c])]
+    return chosen
+
+
+def window_sums(values: np.ndarray, size: int) -> np.ndarray:
+    """Sum of every size x size window: (H, W) -> (H - size + 1, W - size + 1)."""
+    table = np.pad(values.cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    return table[size:, size:] - table[:-size, size:] - table[size:, :-size] + table[:-size, :-size]
+
+
+def high_frequency_energy(image: np.ndarray) -> float:
+    """Mean squared difference between ``image`` (h, w, 3) and its Gaussian blur."""
+    from scipy.ndimage import gaussian_filter
+
+    image = np.asarray(image, dtype=np.float64)
+    blurred = gaussian_filter(image, sigma=(_HF_SIGMA, _HF_SIGMA, 0), mode="reflect")
+    return float(np.mean(np.square(image - blurred)))
+
+
+def compare(model: np.ndarray, reference: np.ndarray, crops: dict, size: int) -> dict:
+    """RMSE and high-frequency energy ratio of ``model`` against ``reference`` in each crop,
+    and the RMSE over every pixel lit in the reference (``cloth``)."""
+    found = {}
+    for region in REGIONS:
+        r, c = crops[region]
+        a, b = model[r : r + size, c : c + size], reference[r : r + size, c : c + size]
+        found[f"rmse_{region}"] = float(np.sqrt(np.mean(np.square(a - b, dtype=np.float64))))
+        reference_hf = high_frequency_energy(b)
+        found[f"hf_ratio_{region}"] = (
+            high_frequency_energy(a) / reference_hf if reference_hf > 0 else math.nan
+        )
+    lit = reference.max(axis=2) > 0
+    found["rmse_cloth"] = float(
+        np.sqrt(np.mean(np.square(model[lit] - reference[lit], dtype=np.float64)))
+    )
+    return found
+
+
+def reference_stage(ctx: Context, cropped: Entry) -> Entry:
+    """Render the measured crop (the reference) at every spp and choose the crops."""
+    settings = render_settings(ctx.cfg)
+
+    def compute(folder: Path) -> dict:
+        from pipeline.render.materials import MeasuredMaterial
+
+        values = cropped.array("abrdf")
+        directions = cropped.array("directions", mmap=False)
+        side = math.isqrt(values.shape[0])
+        if len(directions) != 81 * 81:
+            raise ConfigError(
+                f"the render's reference interpolates all 81 x 81 measured directions, but the "
+                f"crop has {len(directions)}: render a dataset with every view (dataset.views=null)"
+            )
+        material = MeasuredMaterial(values, (side, values.shape[0] // side), directions)
+        stats = _render_every_spp(_scene(settings), material, settings, folder, "reference")
+        top = np.load(folder / f"image_spp{settings['spp'][-1]}.npy")
+        crops = choose_crops(top, settings["crop_size"], settings.get("crops"))
+        save_json(folder, "crops", crops)
+        return {"spp": stats, "crops": crops}
+
+    return ctx.run("render_reference", settings, {"crop": cropped}, compute, version="1")
+
+
+def model_stage(ctx: Context, exported: Entry, reference: Entry) -> Entry:
+    """Render the run's compressed BTF at every spp and compare it with the reference."""
+    from pipeline.btf.compressed import FILE_NAME
+
+    settings = render_settings(ctx.cfg)
+
+    def compute(folder: Path) -> dict:
+        from pipeline.render.materials import CompressedMaterial
+
+        material = CompressedMaterial.from_file(exported.file(FILE_NAME))
+        stats = _render_every_spp(_scene(settings), material, settings, folder, "model")
+        crops = reference.json("crops")
+        metrics = {}
+        for spp in settings["spp"]:
+            found = compare(
+                np.load(folder / f"image_spp{spp}.npy"),
+                reference.array(f"image_spp{spp}", mmap=False),
+                crops,
+                settings["crop_size"],
+            )
+            metrics.update({f"render_{name}_spp{spp}": value for name, value in found.items()})
+            if spp == settings["spp"][-1]:  # the headline: Tables 3 and 4
+                metrics.update({f"render_{name}": value for name, value in found.items()})
+        top = stats[str(settings["spp"][-1])]
+        metrics["render_seconds"] = sum(s["seconds"] for s in stats.values())
+        metrics["render_rays_per_second"] = top["rays"] / top["seconds"]
+        save_json(folder, "metrics", metrics)
+        return {"spp": stats}
+
+    inputs = {"export": exported, "render_reference": reference}
+    return ctx.run("render", settings, inputs, compute, version="1")
+
+
+def run(ctx: Context) -> dict[str, float]:
+    """Both stages for a method A job that has just run (its ``crop`` and ``export`` stages
+    are in ``ctx.keys``); logs the images and crops under ``render/`` of the active MLflow
+    run and returns the ``render_*`` metrics."""
+    import mlflow
+
+    cropped, exported = (ctx.cache.lookup(stage, ctx.keys[stage]) for stage in ("crop", "export"))
+    if cropped is None or exported is None:
+        raise RuntimeError("the render stages need the job's crop and export entries, "
+                           f"which are gone from the cache {ctx.cache.root}")
+    reference = reference_stage(ctx, cropped)
+    rendered = model_stage(ctx, exported, reference)
+    metrics = rendered.json("metrics")
+    if mlflow.active_run() is not None:
+        top = render_settings(ctx.cfg)["spp"][-1]
+        with tempfile.TemporaryDirectory() as tmp:
+            for name, entry in (("model", rendered), ("reference", reference)):
+                for suffix in (".png", ".exr"):
+                    source = entry.file(f"image_spp{top}{suffix}")
+                    (Path(tmp) / f"{name}_spp{top}{suffix}").write_bytes(source.read_bytes())
+            for path in rendered.path.glob("image_spp*.png"):
+                (Path(tmp) / f"model_{path.stem[len('image_') :]}.png").write_bytes(
+                    path.read_bytes()
+                )
+            (Path(tmp) / "crops.json").write_text(json.dumps(reference.json("crops")))
+            mlflow.log_artifacts(tmp, "render")
+    return metrics
