@@ -432,7 +432,7 @@ def default_scene(
         position=[0.0, 2.0, 3.4],
         look_at=[0.0, -0.35, 0.0],
         up=[0.0, 1.0, 0.0],
-        fov_y_degrees=38.0,
+        fov_y_degrees=35.0,
         width=width,
         height=height,
     )

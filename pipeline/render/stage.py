@@ -16,6 +16,9 @@ given (``btf.render.crops``), the crops are chosen on the reference at the large
 the windows wholly on lit cloth (no background, no shadow), the darkest and the brightest
 by mean luminance.
 
+Both stages' code version (``version=`` below) covers :mod:`pipeline.render.scene`,
+``engine`` and ``materials`` too: bump it when a change there alters the images.
+
 Units: the key light gives irradiance 1 at the sheet's centre, so radiance is in the BTF's
 own units (the data's linear RGB), and the RMSE is comparable with eq. 10's un-normalised.
 """
@@ -215,7 +218,7 @@ def reference_stage(ctx: Context, cropped: Entry) -> Entry:
         save_json(folder, "crops", crops)
         return {"spp": stats, "crops": crops}
 
-    return ctx.run("render_reference", settings, {"crop": cropped}, compute, version="1")
+    return ctx.run("render_reference", settings, {"crop": cropped}, compute, version="2")
 
 
 def model_stage(ctx: Context, exported: Entry, reference: Entry) -> Entry:
@@ -248,7 +251,7 @@ def model_stage(ctx: Context, exported: Entry, reference: Entry) -> Entry:
         return {"spp": stats}
 
     inputs = {"export": exported, "render_reference": reference}
-    return ctx.run("render", settings, inputs, compute, version="1")
+    return ctx.run("render", settings, inputs, compute, version="2")
 
 
 def run(ctx: Context) -> dict[str, float]:
