@@ -112,3 +112,12 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     figures = list(out.glob("fig8_*.png"))
     assert len(figures) == 1 and figures[0].stat().st_size > 0
     assert len(list(out.glob("fig8_*.exr"))) == 2  # the reference and the model
+
+
+def test_the_render_benchmark_runs_each_material_on_the_same_rays(capsys):
+    from pipeline.render.bench import main
+
+    found = main(["--size", "16", "--spp", "1", "--crop", "4"])
+    assert set(found) == {"lambertian", "measured", "neural"}
+    assert len({stats.material_queries for stats in found.values()}) == 1
+    assert "x lambertian" in capsys.readouterr().out
