@@ -11,7 +11,6 @@ the MLflow runs recorded (``tags.cache.render``, ``tags.cache.render_reference``
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -118,7 +117,7 @@ def draw_fig8(runs: pd.DataFrame, out: Path) -> list[Path]:
             continue
         crops = reference.json("crops")
         spp = max(int(s) for s in reference.manifest["summary"]["spp"])
-        size = int(json.loads(str(group["params.btf.render.crop_size"].iloc[0])))
+        size = int(float(group["params.btf.render.crop_size"].iloc[0]))
         panels = [("reference", reference.array(f"image_spp{spp}", mmap=False))]
         for _, run in group.iterrows():
             entry = cache.lookup("render", str(run.get("tags.cache.render")))
