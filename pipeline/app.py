@@ -22,12 +22,10 @@ from pipeline.core.stage import Context
 from pipeline.core.tracking import SweepParentRun, job_run
 from pipeline.fourier import pattern_runner
 from pipeline.fourier import runner as fourier_runner
+from pipeline.render import RENDERED
 
 log = logging.getLogger(__name__)
 
-
-# Method A's models with a decoder, rendered after training when btf.render.enabled.
-RENDERED = ("neural_btf", "clustered")
 
 METHODS: dict[str, Callable[[Context], dict[str, float]]] = {
     "neural_btf": btf_runner.run,

@@ -7,7 +7,7 @@ import pytest
 from pipeline.btf.interpolation import ProductInterpolator, offgrid_directions
 from pipeline.data.directions import btf_directions
 from pipeline.render.engine import render, render_with_stats
-from pipeline.render.materials import LambertianTexture, MeasuredMaterial
+from pipeline.render.materials import LambertianTexture, LinearMaterial, MeasuredMaterial
 from pipeline.render.scene import (
     Camera,
     DirectionalLight,
@@ -225,6 +225,42 @@ def test_measured_material_clamps_grazing_directions_to_the_outer_ring():
     grazing[:, [0, 2]] = np.radians([85.0, 89.0])
     texels = np.arange(50) % 4
     np.testing.assert_array_equal(material.evaluate(texels, grazing), values[texels, columns])
+
+
+def _pca(texels: int = 6, components: int = 3, seed: int = 4):
+    """A stored float16 PCA and, two ways, the measured values it stands for."""
+    rng = np.random.default_rng(seed)
+    mean = rng.random(3 * 6561).astype(np.float16)
+    basis = (rng.standard_normal((components, 3 * 6561)) * 0.1).astype(np.float16)
+    coefficients = rng.standard_normal((texels, components)).astype(np.float16)
+    scale = 2.5
+    dense = scale * (coefficients.astype(np.float64) @ basis.astype(np.float64)
+                     + mean.astype(np.float64))
+    linear = LinearMaterial(mean, basis, coefficients, (2, texels // 2), scale)
+    measured = MeasuredMaterial(dense.reshape(texels, 6561, 3).astype(np.float32),
+                                (2, texels // 2))
+    return linear, measured, dense.reshape(texels, 6561, 3)
+
+
+def test_pca_material_is_the_measured_interpolation_of_its_reconstruction():
+    linear, measured, dense = _pca()
+    rng = np.random.default_rng(5)
+    texels, columns = rng.integers(0, 6, 400), rng.integers(0, 6561, 400)
+    at_grid = linear.evaluate(texels, btf_directions()[columns])
+    np.testing.assert_allclose(at_grid, dense[texels, columns], rtol=1e-5, atol=1e-5)
+    queries = offgrid_directions(200, seed=6)
+    texels = rng.integers(0, 6, 200)
+    np.testing.assert_allclose(linear.evaluate(texels, queries),
+                               measured.evaluate(texels, queries), rtol=1e-5, atol=1e-5)
+
+
+def test_pca_material_rejects_arrays_that_do_not_fit():
+    rng = np.random.default_rng(0)
+    mean, basis = rng.random(3 * 6561), rng.random((2, 3 * 6561))
+    with pytest.raises(ValueError, match="coefficients have shape"):
+        LinearMaterial(mean, basis, rng.random((5, 2)), (2, 3), 1.0)
+    with pytest.raises(ValueError, match="N = 6561"):
+        LinearMaterial(mean[:-3], basis, rng.random((6, 2)), (2, 3), 1.0)
 
 
 def test_lambertian_texture_value_is_albedo_over_pi_times_cosine():

@@ -89,10 +89,15 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     mlflow_template(runs_dir)
     cfg = compose_config("experiment=render_smoke", f"paths.runs={runs_dir}")
     run_job(cfg)
+    run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}", "method=pca",
+                           "method.n_components=2"))
 
     client = MlflowClient(tracking_uri(runs_dir))
     experiment = client.get_experiment_by_name("render_smoke")
-    (run,) = client.search_runs([experiment.experiment_id])
+    pca, run = client.search_runs([experiment.experiment_id], order_by=["start_time DESC"])
+    assert pca.data.params["method.name"] == "pca"
+    assert pca.data.tags["cache.render_reference"] == run.data.tags["cache.render_reference"]
+    assert np.isfinite(pca.data.metrics["render_rmse_bright"])
     metrics = run.data.metrics
     for name in ("render_rmse_dark", "render_rmse_bright", "render_rmse_dark_spp1",
                  "render_hf_ratio_bright_spp4", "render_seconds"):
@@ -108,10 +113,11 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     out = build_tables(runs_dir, settings)
     for name in ("table3_render_dark.md", "table4_render_bright.md", "render_graininess.md"):
         assert (out / name).is_file(), name
-    assert "k = 8" in (out / "table3_render_dark.md").read_text()
+    table3 = (out / "table3_render_dark.md").read_text()
+    assert "k = 8" in table3 and "PCA c = 2" in table3
     figures = list(out.glob("fig8_*.png"))
     assert len(figures) == 1 and figures[0].stat().st_size > 0
-    assert len(list(out.glob("fig8_*.exr"))) == 2  # the reference and the model
+    assert len(list(out.glob("fig8_*.exr"))) == 3  # the reference and the two models
 
 
 def test_the_render_benchmark_runs_each_material_on_the_same_rays(capsys):

@@ -10,6 +10,7 @@ perpendicular to the light, i.e. it already contains the cosine foreshortening
 
 - :class:`LambertianTexture`: ``albedo / pi * cos(theta_light)``, a closed form for tests.
 - :class:`MeasuredMaterial`: the measured 81 x 81 directions, interpolated (the reference).
+- :class:`LinearMaterial`: the PCA baseline's reconstruction, interpolated the same way.
 - :class:`CompressedMaterial`: a compressed BTF file (``pipeline.btf.compressed``).
 
 Examples
@@ -195,6 +196,10 @@ class MeasuredMaterial(Material):
                 f"directions must have shape ({values.shape[1]}, 4), got {directions.shape}"
             )
         self.values = values
+        self._set_grid(directions)
+
+    def _set_grid(self, directions: np.ndarray) -> None:
+        """The interpolation over ``directions`` (N, 4), the full 81 x 81 product grid."""
         try:
             self._interpolator = ProductInterpolator(directions, np.arange(len(directions)))
         except KeyError as error:
@@ -203,6 +208,10 @@ class MeasuredMaterial(Material):
             raise ValueError("directions must hold all 81 x 81 light and view grid directions")
         self._light_weights = _Barycentric(self._interpolator.light_dirs)
         self._view_weights = _Barycentric(self._interpolator.view_dirs)
+
+    def _gather(self, texels: np.ndarray, columns: np.ndarray) -> np.ndarray:
+        """Stored RGB of texel ``texels[i]`` at direction pair ``columns[i]``: (n, 3)."""
+        return np.asarray(self.values[texels, columns], dtype=np.float32)
 
     def _evaluate(self, texels, directions):
         out = np.empty((len(texels), 3), dtype=np.float32)
@@ -225,9 +234,65 @@ class MeasuredMaterial(Material):
                 columns = interp.table[
                     interp.lights[light_ids[used, a]], interp.views[view_ids[used, b]]
                 ]
-                value = np.asarray(self.values[texels[used], columns], dtype=np.float32)
+                value = self._gather(texels[used], columns)
                 out[used] += weight[used, None].astype(np.float32) * value
         return out
+
+
+class LinearMaterial(MeasuredMaterial):
+    """The PCA baseline (:mod:`pipeline.btf.linear`), interpolated like the measured BTF.
+
+    PCA stores the BTF at the measured direction pairs only, so a render interpolates its
+    reconstruction between them exactly as :class:`MeasuredMaterial` does the measurement;
+    each of the 9 values a query needs is reconstructed on the fly,
+    ``scale * (mean + coefficients[texel] @ basis)`` at that direction pair (the 3N x M
+    matrix is never formed).
+
+    Parameters
+    ----------
+    mean : ndarray of shape (3N,)
+    basis : ndarray of shape (c, 3N)
+    coefficients : ndarray of shape (M, c)
+        As stored by the linear stage (normalized units, any float dtype).
+    crop_size : (rows, cols), M = rows x cols
+    scale : float
+        Back to linear RGB: the normalization's ``alpha``.
+    directions : ndarray of shape (N, 4), radians, or None (:func:`btf_directions`)
+
+    Notes
+    -----
+    A PCA value may be slightly negative; the renderer clamps radiance at 0.
+    """
+
+    def __init__(self, mean, basis, coefficients, crop_size, scale: float,
+                 directions: np.ndarray | None = None):
+        self.crop_size = _crop_size(crop_size)
+        directions = btf_directions() if directions is None else np.asarray(directions)
+        n = len(directions)
+        mean, basis = np.asarray(mean, np.float32), np.asarray(basis, np.float32)
+        coefficients = np.asarray(coefficients, np.float32)
+        if mean.shape != (3 * n,) or basis.ndim != 2 or basis.shape[1] != 3 * n:
+            raise ValueError(
+                f"mean {mean.shape} and basis {basis.shape} must be (3N,) and (c, 3N) "
+                f"with N = {n} directions"
+            )
+        if coefficients.shape != (self.n_texels, basis.shape[0]):
+            raise ValueError(
+                f"coefficients have shape {coefficients.shape}, expected "
+                f"({self.n_texels}, {basis.shape[0]}) for crop_size={self.crop_size}"
+            )
+        scale = np.float32(scale)
+        # Scaled once here, and the basis laid out (N, 3, c) so that a query's column
+        # gathers its (3, c) block contiguously.
+        self._mean = scale * mean.reshape(n, 3)
+        self._basis = np.ascontiguousarray((scale * basis).reshape(-1, n, 3).transpose(1, 2, 0))
+        self._coefficients = coefficients
+        self._set_grid(directions)
+
+    def _gather(self, texels, columns):
+        return self._mean[columns] + np.einsum(
+            "nkc,nc->nk", self._basis[columns], self._coefficients[texels]
+        )
 
 
 class _Barycentric:

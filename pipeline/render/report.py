@@ -4,7 +4,7 @@ Tables 3 and 4 are the RMSE of the dark and the bright crop of each model's rend
 the reference render (the measured BTF), mean ± std over seeds, at the largest samples per
 pixel; the graininess table follows both crops through every spp, with the ratio of
 high-frequency energy to the reference's (above 1: the model adds grain). Fig. 8 is the
-grid of renders (reference, Neural BTF, each k) of one seed with both crops marked, and
+grid of renders (reference, Neural BTF, each k, PCA) of one seed with both crops marked, and
 the crops enlarged below. Images are read back from the stage cache through the cache keys
 the MLflow runs recorded (``tags.cache.render``, ``tags.cache.render_reference``).
 """
@@ -23,6 +23,7 @@ from pipeline.btf import tables
 from pipeline.core.cache import StageCache
 from pipeline.core.report import runs_of, write_table
 from pipeline.data.images import gamma_encode, write_exr
+from pipeline.render import RENDERED
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +71,7 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
 def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
     """Tables 3-4, the graininess per spp and Fig. 8 (when the cache is at hand), from
     MLflow's runs of every method; nothing when no run rendered."""
-    runs = runs_of(runs, ("neural_btf", "clustered"))
+    runs = runs_of(runs, RENDERED)
     if runs.empty or "metrics.render_rmse_dark" not in runs:
         return []
     runs = rendered_runs(tables.label_runs(runs[runs["metrics.render_rmse_dark"].notna()]))

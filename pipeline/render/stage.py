@@ -3,6 +3,7 @@
     crop   -> render_reference   the measured BTF, interpolated between its 81 x 81 directions
     export -> render             the run's compressed BTF (Neural BTF or clustered), compared
                                  with the reference: same scene, same samples, same seed
+    linear -> render             or the PCA baseline, interpolated like the measured BTF
 
 Both render :func:`pipeline.render.scene.default_scene` with the crop tiled over the sheet,
 once per entry of ``btf.render.spp`` (say 1, 16 and 128 samples per pixel), so that the
@@ -221,17 +222,41 @@ def reference_stage(ctx: Context, cropped: Entry) -> Entry:
     return ctx.run("render_reference", settings, {"crop": cropped}, compute, version="2")
 
 
-def model_stage(ctx: Context, exported: Entry, reference: Entry) -> Entry:
-    """Render the run's compressed BTF at every spp and compare it with the reference."""
+def compressed_material(exported: Entry):
+    """The export stage's compressed BTF file (Neural BTF or clustered) as a material."""
     from pipeline.btf.compressed import FILE_NAME
+    from pipeline.render.materials import CompressedMaterial
 
+    return CompressedMaterial.from_file(exported.file(FILE_NAME))
+
+
+def linear_material(fitted: Entry, cropped: Entry, prep: Entry):
+    """The linear stage's PCA, as stored, back in linear RGB, as a material."""
+    from pipeline.btf.stages import normalization
+    from pipeline.render.materials import LinearMaterial
+
+    side = math.isqrt(cropped.manifest["summary"]["M"])  # the crop stage cuts squares
+    return LinearMaterial(
+        fitted.array("mean", mmap=False),
+        fitted.array("basis", mmap=False),
+        fitted.array("coefficients", mmap=False),
+        (side, side),
+        normalization(prep).alpha,
+        cropped.array("directions", mmap=False),
+    )
+
+
+def model_stage(ctx: Context, inputs: dict[str, Entry], material, reference: Entry) -> Entry:
+    """Render a model at every spp and compare it with the reference.
+
+    ``inputs`` are the entries the model comes from (they key the stage) and ``material()``
+    builds it from them, called only when the render is not in the cache.
+    """
     settings = render_settings(ctx.cfg)
 
     def compute(folder: Path) -> dict:
-        from pipeline.render.materials import CompressedMaterial
-
-        material = CompressedMaterial.from_file(exported.file(FILE_NAME))
-        stats = _render_every_spp(_scene(settings), material, settings, folder, "model")
+        material_ = material()
+        stats = _render_every_spp(_scene(settings), material_, settings, folder, "model")
         crops = reference.json("crops")
         metrics = {}
         for spp in settings["spp"]:
@@ -250,22 +275,36 @@ def model_stage(ctx: Context, exported: Entry, reference: Entry) -> Entry:
         save_json(folder, "metrics", metrics)
         return {"spp": stats}
 
-    inputs = {"export": exported, "render_reference": reference}
+    inputs = {**inputs, "render_reference": reference}
     return ctx.run("render", settings, inputs, compute, version="2")
 
 
+def _entries(ctx: Context, *names: str) -> list[Entry]:
+    found = [ctx.cache.lookup(name, ctx.keys[name]) if name in ctx.keys else None
+             for name in names]
+    if any(entry is None for entry in found):
+        raise RuntimeError(f"the render stages need the job's {', '.join(names)} entries, "
+                           f"which are not all in the cache {ctx.cache.root}")
+    return found
+
+
 def run(ctx: Context) -> dict[str, float]:
-    """Both stages for a method A job that has just run (its ``crop`` and ``export`` stages
-    are in ``ctx.keys``); logs the images and crops under ``render/`` of the active MLflow
-    run and returns the ``render_*`` metrics."""
+    """Both stages for a method A job that has just run: a compressed model (its ``crop``
+    and ``export`` stages are in ``ctx.keys``) or the PCA baseline (``crop``,
+    ``preprocess``, ``linear``); logs the images and crops under ``render/`` of the active
+    MLflow run and returns the ``render_*`` metrics."""
     import mlflow
 
-    cropped, exported = (ctx.cache.lookup(stage, ctx.keys[stage]) for stage in ("crop", "export"))
-    if cropped is None or exported is None:
-        raise RuntimeError("the render stages need the job's crop and export entries, "
-                           f"which are gone from the cache {ctx.cache.root}")
-    reference = reference_stage(ctx, cropped)
-    rendered = model_stage(ctx, exported, reference)
+    if ctx.cfg.method.name == "pca":
+        cropped, prep, fitted = _entries(ctx, "crop", "preprocess", "linear")
+        reference = reference_stage(ctx, cropped)
+        rendered = model_stage(ctx, {"linear": fitted, "preprocess": prep},
+                               lambda: linear_material(fitted, cropped, prep), reference)
+    else:
+        cropped, exported = _entries(ctx, "crop", "export")
+        reference = reference_stage(ctx, cropped)
+        rendered = model_stage(ctx, {"export": exported},
+                               lambda: compressed_material(exported), reference)
     metrics = rendered.json("metrics")
     if mlflow.active_run() is not None:
         top = render_settings(ctx.cfg)["spp"][-1]
