@@ -98,6 +98,10 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     assert pca.data.params["method.name"] == "pca"
     assert pca.data.tags["cache.render_reference"] == run.data.tags["cache.render_reference"]
     assert np.isfinite(pca.data.metrics["render_rmse_bright"])
+    for artifacts in (pca, run):  # every model's run keeps the same evaluation files
+        logged = {a.path for a in client.list_artifacts(artifacts.info.run_id)}
+        logged |= {a.path for a in client.list_artifacts(artifacts.info.run_id, "evaluate")}
+        assert {"metrics.json", "evaluate/rmse_per_direction.npy"} <= logged
     metrics = run.data.metrics
     for name in ("render_rmse_dark", "render_rmse_bright", "render_rmse_dark_spp1",
                  "render_hf_ratio_bright_spp4", "render_seconds"):

@@ -232,11 +232,17 @@ def run(ctx: Context) -> dict[str, float]:
         n_texels=cropped.manifest["summary"]["M"], n_directions=cropped.manifest["summary"]["N"],
     )
     check_against_baseline(metrics)
+    log_evaluation(evaluated, metrics)
     if mlflow.active_run() is not None:
-        mlflow.log_artifact(str(evaluated.file("rmse_per_direction.npy")), "evaluate")
-        mlflow.log_text(json.dumps(metrics, indent=1), "metrics.json")
         log_compressed(exported)
     return metrics
+
+
+def log_evaluation(entry: Entry, metrics: dict) -> None:
+    """The per-direction RMSE (``evaluate/``) and ``metrics.json`` on the active run."""
+    if mlflow.active_run() is not None:
+        mlflow.log_artifact(str(entry.file("rmse_per_direction.npy")), "evaluate")
+        mlflow.log_text(json.dumps(metrics, indent=1), "metrics.json")
 
 
 # A model whose error is within this fraction of the mean-ABRDF baseline, or above it, has
@@ -306,4 +312,5 @@ def run_linear(ctx: Context) -> dict[str, float]:
     metrics = {**fitted.json("metrics"), "n_texels": cropped.manifest["summary"]["M"],
                "n_directions": cropped.manifest["summary"]["N"]}
     check_against_baseline(metrics)
+    log_evaluation(fitted, metrics)
     return metrics
