@@ -6,7 +6,7 @@ import pytest
 
 from pipeline.btf.interpolation import ProductInterpolator, offgrid_directions
 from pipeline.data.directions import btf_directions
-from pipeline.render.engine import render, render_with_stats
+from pipeline.render.engine import _subpixel, render, render_with_stats, strata
 from pipeline.render.materials import LambertianTexture, LinearMaterial, MeasuredMaterial
 from pipeline.render.scene import (
     Camera,
@@ -138,6 +138,38 @@ def test_an_occluder_between_light_and_quad_casts_a_shadow():
     np.testing.assert_allclose(image[lit], expected, rtol=1e-4)
 
 
+def test_coverage_is_one_on_lit_cloth_zero_in_shadow_and_partial_at_edges():
+    camera = _camera()
+    wall = quad([-1.6, 0.0, 3.0], [0.0, 0.0, -6.0], [0.0, 1.0, 0.0])
+    light = DirectionalLight([-1.0, 1.0, 0.0], [1.0, 1.0, 1.0])
+    scene = Scene(merge_meshes(_floor_quad(), wall), camera, [light])
+    _, stats = render_with_stats(scene, LambertianTexture(_checkerboard()), spp=16, seed=0)
+    coverage = stats.lit_cloth
+    assert coverage.shape == (16, 16) and coverage.dtype == np.float32
+
+    points = _footprints(camera)
+    _, inside = _texel_of(points)
+    lit = inside.all(-1) & (points[..., 0] > -0.6 + 1e-3).all(-1)
+    dark = ~inside.any(-1) | (inside.all(-1) & (points[..., 0] < -0.6 - 1e-3).all(-1))
+    assert lit.sum() >= 25 and dark.sum() >= 15
+    np.testing.assert_array_equal(coverage[lit], 1.0)
+    np.testing.assert_array_equal(coverage[dark], 0.0)
+    # The quad's edge crosses pixels: some samples on it, some off it (16 per pixel).
+    edge = inside.any(-1) & ~inside.all(-1) & (points[..., 0] > -0.6 + 1e-3).all(-1)
+    assert edge.any()
+    assert np.all((coverage[edge] > 0) & (coverage[edge] < 1))
+    np.testing.assert_array_equal(coverage * 16, np.round(coverage * 16))
+
+
+@pytest.mark.parametrize("spp, grid", [(1, (1, 1)), (16, (4, 4)), (128, (16, 8)), (7, (7, 1)),
+                                       (12, (4, 3))])
+def test_every_spp_is_stratified_one_sample_per_stratum(spp, grid):
+    assert strata(spp) == grid
+    offsets = _subpixel(np.arange(spp), spp, np.random.default_rng(0).random((spp, 2)))
+    cells = np.floor(offsets * np.array(grid)).astype(int)
+    assert len({tuple(c) for c in cells}) == spp  # each stratum holds exactly one sample
+
+
 # ------------------------------------------------------------------ seeds and batches
 
 
@@ -147,7 +179,7 @@ def _fine_checker_scene(size: int = 16) -> tuple[Scene, LambertianTexture]:
     return scene, LambertianTexture(_checkerboard(16))
 
 
-@pytest.mark.parametrize("spp", [3, 4])  # random and stratified
+@pytest.mark.parametrize("spp", [3, 4])  # strata 3 x 1 and 2 x 2
 def test_same_seed_same_image_other_seed_other_image(spp):
     scene, material = _fine_checker_scene()
     first = render(scene, material, spp=spp, seed=7)

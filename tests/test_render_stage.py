@@ -28,37 +28,47 @@ def test_window_sums_match_a_loop():
 
 def test_crops_are_the_darkest_and_brightest_wholly_lit_windows():
     # Brightness grows to the right; the left columns are unlit (background or shadow), so
-    # the darkest window must start right of them, not straddle them.
+    # the darkest window must start right of them, not straddle them. Column 6 is a
+    # silhouette: half its samples on cloth, and not darker than its right neighbours.
     image = np.tile(np.linspace(0.1, 1.0, 32, dtype=np.float32)[None, :, None], (24, 1, 3))
     image[:, :6] = 0
     image[20:, 28:] = 0  # a shadowed corner at the bright end
-    crops = choose_crops(image, size=8)
+    coverage = (image[..., 0] > 0).astype(np.float32)
+    coverage[:, 6] = 0.5
+    crops = choose_crops(image, coverage, size=8)
     luminance = image[..., 0]
     windows = [(r, c) for r in range(0, 17, 2) for c in range(0, 25, 2)
-               if luminance[r : r + 8, c : c + 8].min() > 0]
+               if coverage[r : r + 8, c : c + 8].min() == 1]
     means = {w: luminance[w[0] : w[0] + 8, w[1] : w[1] + 8].mean() for w in windows}
     assert crops["dark"] == list(min(means, key=means.get))
     assert crops["bright"] == list(max(means, key=means.get))
-    assert crops["dark"][1] >= 6
+    assert crops["dark"][1] >= 7
     # A crop given in the settings is kept as given.
-    assert choose_crops(image, 8, {"dark": [0, 10], "bright": None})["dark"] == [0, 10]
+    given = choose_crops(image, coverage, 8, {"dark": [0, 10], "bright": None})
+    assert given["dark"] == [0, 10]
 
 
 def test_a_frame_without_lit_windows_is_refused_clearly():
     with pytest.raises(ValueError, match="crop_size"):
-        choose_crops(np.zeros((16, 16, 3), np.float32), size=4)
+        choose_crops(np.ones((16, 16, 3), np.float32), np.full((16, 16), 0.9), size=4)
 
 
 def test_comparison_of_a_render_with_itself_and_with_grain():
     rng = np.random.default_rng(1)
     reference = rng.random((32, 32, 3)).astype(np.float32) * 0.1 + 0.5
     crops = {"dark": [0, 0], "bright": [16, 16]}
-    same = compare(reference, reference, crops, 16)
+    coverage = np.ones((32, 32), np.float32)
+    same = compare(reference, reference, coverage, crops, 16)
     assert same["rmse_dark"] == same["rmse_bright"] == same["rmse_cloth"] == 0
     assert same["hf_ratio_dark"] == pytest.approx(1.0)
     grainy = reference + np.where(np.indices((32, 32)).sum(0) % 2, 0.05, -0.05)[..., None]
-    found = compare(grainy.astype(np.float32), reference, crops, 16)
+    found = compare(grainy.astype(np.float32), reference, coverage, crops, 16)
     assert found["rmse_dark"] == pytest.approx(0.05, rel=1e-4)
+    # The cloth RMSE counts only pixels wholly on lit cloth.
+    coverage[:, 16:] = 0.5
+    grainy[:, 16:] += 1.0
+    assert compare(grainy.astype(np.float32), reference, coverage, crops, 16)[
+        "rmse_cloth"] == pytest.approx(0.05, rel=1e-4)
     assert found["hf_ratio_dark"] > 1.5
     # Smooth images have less high-frequency energy than grainy ones.
     assert high_frequency_energy(np.full((8, 8, 3), 0.3)) == pytest.approx(0.0, abs=1e-12)

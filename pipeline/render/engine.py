@@ -41,9 +41,15 @@ Batching
     neural decoder for which many small calls are slow.
 Randomness
     Sub-pixel positions come from ``numpy.random.default_rng(seed)``, drawn chunk by chunk
-    in sample order, so the image depends on ``seed`` and not on ``batch_rays``. When
-    ``spp`` is a square k x k, sample s of a pixel is jittered inside the stratum
-    (s mod k, s div k) of a k x k grid; otherwise it is uniform over the pixel.
+    in sample order, so the image depends on ``seed`` and not on ``batch_rays``. The
+    samples of a pixel are stratified on a grid of a x b strata, a x b = spp with b the
+    largest divisor of spp not above its square root (4 x 4 at 16 spp, 16 x 8 at 128, 1 x 1
+    at 1): sample s is jittered inside stratum (s mod a, s div a).
+Coverage
+    :class:`RenderStats` also gives, per pixel, the fraction of its camera samples that
+    landed on front-facing cloth seen by at least one light (``lit_cloth``): 1 where the
+    pixel is wholly on lit cloth, below 1 at silhouettes, shadow edges and the floor. It
+    depends on the scene, spp and seed only, not on the material.
 
 What this module relies on in ``embreex`` (checked with embreex 4.4.0.post1):
 ``EmbreeScene()``; ``TriangleMesh(scene, vertices (V, 3) float32, triangles (F, 3))``;
@@ -79,6 +85,8 @@ class RenderStats:
     material_queries : (texel, direction pair) queries answered by the material.
     material_calls : calls of ``material.evaluate``.
     seconds : wall-clock time of the render.
+    lit_cloth : ndarray (height, width), float32: the fraction of each pixel's camera
+        samples on front-facing cloth lit by at least one light (module docstring).
     """
 
     primary_rays: int
@@ -86,6 +94,7 @@ class RenderStats:
     material_queries: int
     material_calls: int
     seconds: float
+    lit_cloth: np.ndarray
 
     @property
     def rays(self) -> int:
@@ -172,6 +181,7 @@ def render_with_stats(
     n_pixels = width * height
     total = n_pixels * int(spp)
     sums = np.zeros((n_pixels, 3), dtype=np.float64)
+    lit_cloth = np.zeros(n_pixels, dtype=np.int64)
     rng = np.random.default_rng(int(seed))
     shadow_rays = 0
     for start in range(0, total, int(batch_rays)):
@@ -180,8 +190,9 @@ def render_with_stats(
         offset = _subpixel(sample // n_pixels, int(spp), rng.random((len(sample), 2)))
         x = pixel % width + offset[:, 0]
         y = pixel // width + offset[:, 1]
-        radiance, traced = _shade(tracer, counted, x, y, background)
+        radiance, on_lit_cloth, traced = _shade(tracer, counted, x, y, background)
         shadow_rays += traced
+        lit_cloth += np.bincount(pixel[on_lit_cloth], minlength=n_pixels)
         for channel in range(3):
             sums[:, channel] += np.bincount(pixel, radiance[:, channel], minlength=n_pixels)
     image = (sums / int(spp)).reshape(height, width, 3).astype(np.float32)
@@ -191,17 +202,22 @@ def render_with_stats(
         material_queries=counted.queries,
         material_calls=counted.calls,
         seconds=time.perf_counter() - started,
+        lit_cloth=(lit_cloth / int(spp)).reshape(height, width).astype(np.float32),
     )
     return image, stats
 
 
+def strata(spp: int) -> tuple[int, int]:
+    """(a, b), a x b = spp strata across x and y, b the largest divisor <= sqrt(spp)."""
+    b = next(d for d in range(math.isqrt(spp), 0, -1) if spp % d == 0)
+    return spp // b, b
+
+
 def _subpixel(sample_index: np.ndarray, spp: int, uniform: np.ndarray) -> np.ndarray:
     """Offsets (n, 2) in [0, 1) of samples ``sample_index`` (n,) from uniforms (n, 2)."""
-    k = math.isqrt(spp)
-    if k * k != spp:
-        return uniform
-    stratum = np.column_stack([sample_index % k, sample_index // k])
-    return (stratum + uniform) / k
+    a, b = strata(spp)
+    stratum = np.column_stack([sample_index % a, sample_index // a])
+    return (stratum + uniform) / np.array([a, b])
 
 
 class _CountingMaterial:
@@ -279,8 +295,9 @@ def _shade(
     x: np.ndarray,
     y: np.ndarray,
     background: np.ndarray,
-) -> tuple[np.ndarray, int]:
-    """Radiance (n, 3) of the camera rays through pixel points (x, y), and shadow rays traced."""
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Radiance (n, 3) of the camera rays through pixel points (x, y), the indices of the
+    rays that hit cloth lit by some light, and the number of shadow rays traced."""
     scene, mesh = tracer.scene, tracer.scene.mesh
     origins, directions = scene.camera.rays(x, y)
     prim, bary_u, bary_v = tracer.intersect(origins, directions)
@@ -355,4 +372,5 @@ def _shade(
         stop = start + len(hits_of_light)
         radiance[hit[hits_of_light]] += contribution[start:stop]
         start = stop
-    return radiance, shadow_rays
+    on_lit_cloth = np.unique(hit[pair_hit[cloth]])
+    return radiance, on_lit_cloth, shadow_rays

@@ -14,8 +14,9 @@ reference at every spp (Tables 3 and 4 at the largest): the RMSE of linear radia
 the ratio of high-frequency energy (the image minus its Gaussian blur, sigma 1 pixel) of the
 model's crop to the reference's, which is above 1 where the model adds grain. Unless
 given (``btf.render.crops``), the crops are chosen on the reference at the largest spp: of
-the windows wholly on lit cloth (no background, no shadow), the darkest and the brightest
-by mean luminance.
+the windows wholly on lit cloth (every camera sample of every pixel on cloth that a light
+sees: no background, floor, shadow or silhouette), the darkest and the brightest by mean
+luminance.
 
 Both stages' code version (``version=`` below) covers :mod:`pipeline.render.scene`,
 ``engine`` and ``materials`` too: bump it when a change there alters the images.
@@ -92,8 +93,8 @@ def _scene(settings: dict):
 
 
 def _render_every_spp(scene, material, settings: dict, folder: Path, what: str) -> dict:
-    """Render at each spp into ``folder`` (``image_spp<N>.npy``, .exr, .png); returns
-    per-spp seconds and ray counts."""
+    """Render at each spp into ``folder`` (``image_spp<N>.npy``, .exr, .png, and the lit
+    cloth coverage ``lit_cloth_spp<N>.npy``); returns per-spp seconds and ray counts."""
     from tqdm import tqdm
 
     from pipeline.render.engine import render_with_stats
@@ -101,7 +102,7 @@ def _render_every_spp(scene, material, settings: dict, folder: Path, what: str) 
     stats = {}
     for spp in tqdm(settings["spp"], desc=f"render {what}", unit="frame", leave=False):
         image, cost = render_with_stats(scene, material, spp, settings["seed"])
-        save_arrays(folder, **{f"image_spp{spp}": image})
+        save_arrays(folder, **{f"image_spp{spp}": image, f"lit_cloth_spp{spp}": cost.lit_cloth})
         write_images(folder / f"image_spp{spp}", image, settings["exposure"])
         stats[str(spp)] = {
             "seconds": cost.seconds,
@@ -129,16 +130,18 @@ def write_images(stem: Path, image: np.ndarray, exposure: float) -> None:
     Image.fromarray(encoded).save(stem.with_suffix(".png"))
 
 
-def choose_crops(reference: np.ndarray, size: int, given: dict | None = None) -> dict:
+def choose_crops(reference: np.ndarray, lit_cloth: np.ndarray, size: int,
+                 given: dict | None = None) -> dict:
     """Top-left [row, col] of the dark and bright crops of ``reference`` (H, W, 3).
 
     A crop given in ``given`` is kept; the others are, among the windows of ``size`` pixels
-    (on a grid of step size / 4) whose every pixel is lit (> 0), the one with the lowest and
-    the highest mean luminance.
+    (on a grid of step size / 4) whose every pixel is wholly on lit cloth (``lit_cloth``
+    (H, W), the render's coverage, is 1), the one with the lowest and the highest mean
+    luminance.
     """
     given = given or {}
     luminance = reference @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
-    lit = (luminance > 0).astype(np.int64)
+    lit = (lit_cloth >= 1).astype(np.int64)
     # Summed-area tables: the lit count and the luminance sum of every window at once.
     count = window_sums(lit, size)
     total = window_sums(luminance.astype(np.float64), size)
@@ -156,8 +159,8 @@ def choose_crops(reference: np.ndarray, size: int, given: dict | None = None) ->
                 f"no {size}x{size} window of the reference render is wholly on "
                 "lit cloth: lower btf.render.crop_size or give btf.render.crops"
             )
-        means = np.where(full, total[np.ix_(rows, cols)], np.nan)
-        flat = pick(np.where(full, means, np.inf if region == "dark" else -np.inf))
+        flat = pick(np.where(full, total[np.ix_(rows, cols)],
+                             np.inf if region == "dark" else -np.inf))
         r, c = np.unravel_index(flat, full.shape)
         chosen[region] = [int(rows[r]), int(cols[c])]
     return chosen
@@ -178,9 +181,10 @@ def high_frequency_energy(image: np.ndarray) -> float:
     return float(np.mean(np.square(image - blurred)))
 
 
-def compare(model: np.ndarray, reference: np.ndarray, crops: dict, size: int) -> dict:
+def compare(model: np.ndarray, reference: np.ndarray, lit_cloth: np.ndarray, crops: dict,
+            size: int) -> dict:
     """RMSE and high-frequency energy ratio of ``model`` against ``reference`` in each crop,
-    and the RMSE over every pixel lit in the reference (``cloth``)."""
+    and the RMSE over every pixel wholly on lit cloth (``lit_cloth`` (H, W) is 1)."""
     found = {}
     for region in REGIONS:
         r, c = crops[region]
@@ -190,7 +194,7 @@ def compare(model: np.ndarray, reference: np.ndarray, crops: dict, size: int) ->
         found[f"hf_ratio_{region}"] = (
             high_frequency_energy(a) / reference_hf if reference_hf > 0 else math.nan
         )
-    lit = reference.max(axis=2) > 0
+    lit = lit_cloth >= 1
     found["rmse_cloth"] = float(
         np.sqrt(np.mean(np.square(model[lit] - reference[lit], dtype=np.float64)))
     )
@@ -214,12 +218,14 @@ def reference_stage(ctx: Context, cropped: Entry) -> Entry:
             )
         material = MeasuredMaterial(values, (side, values.shape[0] // side), directions)
         stats = _render_every_spp(_scene(settings), material, settings, folder, "reference")
-        top = np.load(folder / f"image_spp{settings['spp'][-1]}.npy")
-        crops = choose_crops(top, settings["crop_size"], settings.get("crops"))
+        top = settings["spp"][-1]
+        crops = choose_crops(np.load(folder / f"image_spp{top}.npy"),
+                             np.load(folder / f"lit_cloth_spp{top}.npy"),
+                             settings["crop_size"], settings.get("crops"))
         save_json(folder, "crops", crops)
         return {"spp": stats, "crops": crops}
 
-    return ctx.run("render_reference", settings, {"crop": cropped}, compute, version="2")
+    return ctx.run("render_reference", settings, {"crop": cropped}, compute, version="3")
 
 
 def compressed_material(exported: Entry):
@@ -263,6 +269,7 @@ def model_stage(ctx: Context, inputs: dict[str, Entry], material, reference: Ent
             found = compare(
                 np.load(folder / f"image_spp{spp}.npy"),
                 reference.array(f"image_spp{spp}", mmap=False),
+                reference.array(f"lit_cloth_spp{spp}", mmap=False),
                 crops,
                 settings["crop_size"],
             )
@@ -276,7 +283,7 @@ def model_stage(ctx: Context, inputs: dict[str, Entry], material, reference: Ent
         return {"spp": stats}
 
     inputs = {**inputs, "render_reference": reference}
-    return ctx.run("render", settings, inputs, compute, version="2")
+    return ctx.run("render", settings, inputs, compute, version="3")
 
 
 def _entries(ctx: Context, *names: str) -> list[Entry]:
