@@ -6,7 +6,7 @@ import pytest
 
 from pipeline.btf.interpolation import ProductInterpolator, offgrid_directions
 from pipeline.data.directions import btf_directions
-from pipeline.render.engine import _subpixel, render, render_with_stats, strata
+from pipeline.render.engine import render, render_with_stats, strata, subpixel_offsets
 from pipeline.render.materials import LambertianTexture, LinearMaterial, MeasuredMaterial
 from pipeline.render.scene import (
     Camera,
@@ -165,7 +165,7 @@ def test_coverage_is_one_on_lit_cloth_zero_in_shadow_and_partial_at_edges():
                                        (12, (4, 3))])
 def test_every_spp_is_stratified_one_sample_per_stratum(spp, grid):
     assert strata(spp) == grid
-    offsets = _subpixel(np.arange(spp), spp, np.random.default_rng(0).random((spp, 2)))
+    offsets = subpixel_offsets(np.arange(spp), spp, np.random.default_rng(0).random((spp, 2)))
     cells = np.floor(offsets * np.array(grid)).astype(int)
     assert len({tuple(c) for c in cells}) == spp  # each stratum holds exactly one sample
 

@@ -187,7 +187,7 @@ def render_with_stats(
     for start in range(0, total, int(batch_rays)):
         sample = np.arange(start, min(start + int(batch_rays), total))
         pixel = sample % n_pixels
-        offset = _subpixel(sample // n_pixels, int(spp), rng.random((len(sample), 2)))
+        offset = subpixel_offsets(sample // n_pixels, int(spp), rng.random((len(sample), 2)))
         x = pixel % width + offset[:, 0]
         y = pixel // width + offset[:, 1]
         radiance, on_lit_cloth, traced = _shade(tracer, counted, x, y, background)
@@ -213,7 +213,7 @@ def strata(spp: int) -> tuple[int, int]:
     return spp // b, b
 
 
-def _subpixel(sample_index: np.ndarray, spp: int, uniform: np.ndarray) -> np.ndarray:
+def subpixel_offsets(sample_index: np.ndarray, spp: int, uniform: np.ndarray) -> np.ndarray:
     """Offsets (n, 2) in [0, 1) of samples ``sample_index`` (n,) from uniforms (n, 2)."""
     a, b = strata(spp)
     stratum = np.column_stack([sample_index % a, sample_index // a])
