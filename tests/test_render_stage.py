@@ -129,8 +129,9 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
         assert (out / name).is_file(), name
     table3 = (out / "table3_render_dark.md").read_text()
     assert "k = 8" in table3 and "PCA c = 2" in table3
-    figures = list(out.glob("fig8_*.png"))
-    assert len(figures) == 1 and figures[0].stat().st_size > 0
+    figures = sorted(out.glob("fig8_*.png"))
+    assert [p.name.endswith("_crops_per_spp.png") for p in figures] == [False, True]
+    assert all(p.stat().st_size > 0 for p in figures)
     assert len(list(out.glob("fig8_*.exr"))) == 3  # the reference and the two models
 
 

@@ -19,6 +19,7 @@ from pipeline.btf.evaluate import decode_all  # noqa: E402
 from pipeline.btf.model import load_decoder  # noqa: E402
 from pipeline.btf.stereographic import direction_features  # noqa: E402
 from pipeline.core.cache import StageCache  # noqa: E402
+from pipeline.core.report import safe_stem  # noqa: E402
 from pipeline.data.directions import unit_vectors  # noqa: E402
 from pipeline.data.images import gamma_encode, write_exr  # noqa: E402
 
@@ -82,20 +83,15 @@ def draw_fig7(runs: pd.DataFrame, pairs_degrees: list, out_dir: Path) -> list[Pa
                 if image is not None:
                     row.append((run["model"], image))
             panels.append(row)
-        safe = _file_name(dataset)
+        safe = safe_stem(dataset)
         written.append(_plot(panels, out_dir / f"fig7_{safe}.png", dataset))
         for i, row in enumerate(panels):
             for label, image in row:
-                name = _file_name(label.split("\n")[0])
+                name = safe_stem(label.split("\n")[0])
                 path = out_dir / f"fig7_{safe}_pair{i}_{name}.exr"
                 write_exr(path, (image * alpha).astype(np.float32))
                 written.append(path)
     return written
-
-
-def _file_name(text: str) -> str:
-    """ASCII letters and digits only (a label like "synthetic 48²×6561" is not a file name)."""
-    return "".join(c if c.isascii() and c.isalnum() else "_" for c in text)
 
 
 def _plot(panels, path: Path, title: str) -> Path:

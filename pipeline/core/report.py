@@ -35,6 +35,12 @@ def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> 
     return runs[runs["status"] == "FINISHED"]
 
 
+def safe_stem(text: str) -> str:
+    """ASCII letters and digits only, the rest "_" (a label like "synthetic 48²×6561" is
+    not a file name)."""
+    return "".join(c if c.isascii() and c.isalnum() else "_" for c in text)
+
+
 def write_table(table: pd.DataFrame, out: Path, stem: str, title: str, note: str = "") -> str:
     """Write ``stem``.md/.csv/.tex into ``out``; return the Markdown section."""
     index = table.index.name is not None

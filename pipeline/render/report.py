@@ -21,9 +21,10 @@ from matplotlib.patches import Rectangle
 
 from pipeline.btf import tables
 from pipeline.core.cache import StageCache
-from pipeline.core.report import runs_of, write_table
+from pipeline.core.report import runs_of, safe_stem, write_table
 from pipeline.data.images import gamma_encode, write_exr
 from pipeline.render import RENDERED
+from pipeline.render.stage import REGIONS
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +53,7 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
     for spp in spp_levels(runs):
         for (dataset, model), group in runs.groupby(["dataset", "model"], sort=False):
             row = {"dataset": dataset, "model": model, "spp": spp}
-            for region in ("dark", "bright"):
+            for region in REGIONS:
                 rmse = group.get(f"metrics.render_rmse_{region}_spp{spp}")
                 hf = group.get(f"metrics.render_hf_ratio_{region}_spp{spp}")
                 if rmse is None or hf is None:
@@ -117,19 +118,26 @@ def draw_fig8(runs: pd.DataFrame, out: Path) -> list[Path]:
             log.warning("Fig. 8 of %s: its reference render is not in the cache", dataset)
             continue
         crops = reference.json("crops")
-        spp = max(int(s) for s in reference.manifest["summary"]["spp"])
+        levels = sorted(int(s) for s in reference.manifest["summary"]["spp"])
+        spp = levels[-1]
         size = int(float(group["params.btf.render.crop_size"].iloc[0]))
-        panels = [("reference", reference.array(f"image_spp{spp}", mmap=False))]
+        entries = [("reference", reference)]
         for _, run in group.iterrows():
             entry = cache.lookup("render", str(run.get("tags.cache.render")))
             if entry is not None:
-                panels.append((run["model"], entry.array(f"image_spp{spp}", mmap=False)))
-        stem = "fig8_" + "".join(c if c.isalnum() else "_" for c in dataset)
+                entries.append((run["model"], entry))
+        by_spp = {s: [(name, e.array(f"image_spp{s}", mmap=False)) for name, e in entries]
+                  for s in levels}
+        panels = by_spp[spp]
+        stem = "fig8_" + safe_stem(dataset)
         exposure = float(group["params.btf.render.exposure"].iloc[0])
-        written.append(_grid(panels, crops, size, exposure, f"{dataset}, {spp} spp, seed "
-                             f"{int(group['seed'].min())}", out / f"{stem}.png"))
+        seed = int(group["seed"].min())
+        written.append(_grid(panels, crops, size, exposure, f"{dataset}, {spp} spp, seed {seed}",
+                             out / f"{stem}.png"))
+        written.append(_crops_per_spp(by_spp, crops, size, f"{dataset}, seed {seed}",
+                                      out / f"{stem}_crops_per_spp.png"))
         for name, image in panels:
-            path = out / f"{stem}_{''.join(c if c.isalnum() else '_' for c in name)}.exr"
+            path = out / f"{stem}_{safe_stem(name)}.exr"
             write_exr(path, image)
             written.append(path)
     return written
@@ -145,7 +153,7 @@ def _grid(panels, crops: dict, size: int, exposure: float, title: str, path: Pat
         shown = gamma_encode(image * np.float32(exposure))
         axes[0, column].imshow(shown, interpolation="nearest")
         axes[0, column].set_title(name, fontsize=9)
-        for row, region in enumerate(("dark", "bright"), start=1):
+        for row, region in enumerate(REGIONS, start=1):
             r, c = crops[region]
             axes[0, column].add_patch(Rectangle((c - 0.5, r - 0.5), size, size, fill=False,
                                                 edgecolor=COLOURS[region], linewidth=1.2))
@@ -156,6 +164,37 @@ def _grid(panels, crops: dict, size: int, exposure: float, title: str, path: Pat
         axis.set_xticks([])
         axis.set_yticks([])
     fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def _crops_per_spp(by_spp: dict, crops: dict, size: int, title: str, path: Path) -> Path:
+    """Both crops of every render at every spp, side by side: one row per (region, spp),
+    one column per render, to see whether a model's grain outlives the pixel's samples.
+    Each region is exposed so that the reference's crop at the largest spp has its 99th
+    percentile at white (the dark crop would be black at the frame's exposure); a row's
+    renders share it."""
+    levels = sorted(by_spp)
+    columns = len(by_spp[levels[-1]])
+    fig = Figure(figsize=(1.6 * columns + 0.6, 1.6 * 2 * len(levels) + 0.4))
+    axes = fig.subplots(2 * len(levels), columns, squeeze=False)
+    for block, region in enumerate(REGIONS):
+        r, c = crops[region]
+        reference = by_spp[levels[-1]][0][1][r : r + size, c : c + size]
+        exposure = 1.0 / max(float(np.percentile(reference, 99)), 1e-6)
+        for offset, spp in enumerate(levels):
+            row = block * len(levels) + offset
+            for column, (name, image) in enumerate(by_spp[spp]):
+                shown = gamma_encode(image[r : r + size, c : c + size] * np.float32(exposure))
+                axes[row, column].imshow(np.clip(shown, 0, 1), interpolation="nearest")
+                if row == 0:
+                    axes[row, column].set_title(name, fontsize=8)
+            axes[row, 0].set_ylabel(f"{region}, {spp} spp", fontsize=8, color=COLOURS[region])
+    for axis in axes.ravel():
+        axis.set_xticks([])
+        axis.set_yticks([])
+    fig.suptitle(f"{title}\nthe crops at each samples-per-pixel level", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     return path
