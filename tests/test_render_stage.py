@@ -125,7 +125,8 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     settings = default_settings()
     settings.experiments = ["render_smoke"]
     out = build_tables(runs_dir, settings)
-    for name in ("table3_render_dark.md", "table4_render_bright.md", "render_graininess.md"):
+    for name in ("table3_render_dark.md", "table4_render_bright.md", "render_graininess.md",
+                 "render_cloth.md"):
         assert (out / name).is_file(), name
     table3 = (out / "table3_render_dark.md").read_text()
     assert "k = 8" in table3 and "PCA c = 2" in table3
