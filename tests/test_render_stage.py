@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 from helpers import compose_config
 from mlflow.tracking import MlflowClient
@@ -130,6 +131,10 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
         assert (out / name).is_file(), name
     table3 = (out / "table3_render_dark.md").read_text()
     assert "k = 8" in table3 and "PCA c = 2" in table3
+    cloth = pd.read_csv(out / "render_cloth.csv")
+    assert sorted(cloth["spp"]) == [1, 4]  # one row per spp level of render_smoke
+    top = cloth.loc[cloth["spp"] == 4, "k = 8"].item()
+    assert top.startswith(f"{metrics['render_rmse_cloth']:.4f}")  # the run's own metric
     figures = sorted(out.glob("fig8_*.png"))
     assert [p.name.endswith("_crops_per_spp.png") for p in figures] == [False, True]
     assert all(p.stat().st_size > 0 for p in figures)

@@ -77,13 +77,13 @@ def table_cloth(runs: pd.DataFrame) -> pd.DataFrame:
              for spp in spp_levels(runs) if f"metrics.render_rmse_cloth_spp{spp}" in runs]
     if not parts:
         return pd.DataFrame()
-    table = pd.concat(parts).reset_index()
+    table = pd.concat(parts).reset_index().fillna("–")  # a model not rendered at that spp
     return table[["dataset", "spp", *[c for c in table.columns if c not in ("dataset", "spp")]]]
 
 
 def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
-    """Tables 3-4, the graininess per spp and Fig. 8 (when the cache is at hand), from
-    MLflow's runs of every method; nothing when no run rendered."""
+    """Tables 3-4, the lit-cloth RMSE and the graininess per spp, and Fig. 8 (when the
+    cache is at hand), from MLflow's runs of every method; nothing when no run rendered."""
     runs = runs_of(runs, RENDERED)
     if runs.empty or "metrics.render_rmse_dark" not in runs:
         return []
@@ -100,7 +100,7 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
     cloth = table_cloth(runs)
     if not cloth.empty:
         found.append(write_table(
-            cloth.fillna("–"), out, "render_cloth", "RMSE of the render over the whole lit cloth",
+            cloth, out, "render_cloth", "RMSE of the render over the whole lit cloth",
             "As Tables 3-4, over every pixel whose camera samples all land on cloth that a "
             "light sees (no silhouette, shadow or floor pixels), at each samples-per-pixel level."))
     grain = table_graininess(runs)
