@@ -23,3 +23,11 @@ def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictCo
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides),
                        return_hydra_config=return_hydra_config)
+
+
+def recipe_tags(params: dict) -> dict[str, str]:
+    """The ``recipe`` and ``render_recipe`` tags a job with these flattened settings logs
+    (:func:`pipeline.core.tracking.job_run`): hand-made runs need them to be tabled."""
+    from pipeline.core.recipe import recipe_id, render_recipe_id
+
+    return {"recipe": recipe_id(params), "render_recipe": render_recipe_id(params)}

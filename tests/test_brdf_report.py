@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from helpers import recipe_tags
 
 from pipeline.brdf_map.report import prior_study_table, sections, study_runs, table_rmse
 
@@ -32,6 +33,8 @@ def _run(kind, cutoff, w_u, missing, noprior, as_, seed=0, method="brdf_map", sp
             row[f"metrics.rmse_missing_{part}_noprior"] = factor * noprior
             row[f"metrics.rmse_missing_{part}_as"] = factor * as_
         row["metrics.n_missing_near_mirror"], row["metrics.n_missing_off_mirror"] = 100, 900
+    params = {k[len("params."):]: v for k, v in row.items() if k.startswith("params.")}
+    row["tags.recipe"] = recipe_tags(params)["recipe"]  # as a job logs it
     return row
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import CONF_DIR, SHARED, compose_config
+from helpers import CONF_DIR, SHARED, compose_config, recipe_tags
 from hydra import compose, initialize_config_dir
 from hydra.types import RunMode
 from mlflow.tracking import MlflowClient
@@ -311,6 +311,9 @@ def _hand_made_runs() -> pd.DataFrame:
                         "tags.fourier_solver": "svd" if lam == 0 else "normal",
                     }
                 )
+    for row in rows:  # the recipe tag a job logs (pipeline.core.tracking.job_run)
+        params = {k[len("params."):]: v for k, v in row.items() if k.startswith("params.")}
+        row["tags.recipe"] = recipe_tags(params)["recipe"]
     runs = pd.DataFrame(rows)
     stale = runs.iloc[[0]].assign(start_time=pd.Timestamp("2025-01-01"))
     stale["metrics.rmse_validation_fourier"] = 99.0  # an older run of the same point: ignored

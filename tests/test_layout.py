@@ -524,17 +524,6 @@ def test_private_name_rules_see_every_kind_of_use(tmp_path):
 # ------------------------------------------------------------------------ command line
 
 
-def test_old_spelling_of_a_btf_setting_exits_naming_the_new_one(tmp_path):
-    """``crop.size=32`` (before method A's settings moved under ``btf.``) stops the job
-    before Hydra starts, and the message gives the new spelling; nothing is written."""
-    done = subprocess.run([sys.executable, "-m", "pipeline", "crop.size=32", "+pca.x=1"],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert done.returncode != 0
-    assert "btf.crop.size=32" in done.stderr
-    assert "+btf.pca.x=1" in done.stderr
-    assert list(tmp_path.iterdir()) == []
-
-
 def test_a_stage_runs_only_with_its_code_version(tmp_path):
     """An unknown stage (no ``version=``) is an error, not version "1"; nothing runs."""
     from pipeline.core.cache import StageCache

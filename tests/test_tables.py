@@ -3,6 +3,7 @@
 import mlflow
 import pandas as pd
 import pytest
+from helpers import recipe_tags
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
@@ -34,14 +35,15 @@ def _log_runs(runs_dir, rows, experiment="btf", failed=False, evaluate_key=None,
         m = 10_000
         latents = (k or m) * 8 * 4
         listing = m * 4 if k else 0
-        tags = {"cache.evaluate": evaluate_key or f"{method}-{k}-{seed}-{rmse}-{precision}"}
+        params = {"method.name": method, "method.k": k, "seed": seed,
+                  "dataset.name": "synthetic", "dataset.root": None,
+                  "dataset.synthetic.material": "plain_weave",
+                  "method.texel_scale": "none", "method.target": "texel",
+                  "train.epochs": epochs, "train.precision": precision or "float32"}
+        tags = {"cache.evaluate": evaluate_key or f"{method}-{k}-{seed}-{rmse}-{precision}",
+                **recipe_tags(params)}
         with mlflow.start_run(experiment_id=experiment_id, tags=tags) as run:
-            mlflow.log_params({"method.name": method, "method.k": k, "seed": seed,
-                               "dataset.name": "synthetic", "dataset.root": None,
-                               "method.texel_scale": "none", "method.target": "texel",
-                               "train.epochs": epochs})
-            if precision is not None:  # runs from before train.precision have none
-                mlflow.log_param("train.precision", precision)
+            mlflow.log_params(params)
             for step, seconds, value in curve:
                 mlflow.log_metrics({"curve_rmse": value, "curve_seconds": seconds}, step=step)
             mlflow.log_metrics({
@@ -54,6 +56,13 @@ def _log_runs(runs_dir, rows, experiment="btf", failed=False, evaluate_key=None,
             if failed:
                 mlflow.end_run(status="FAILED")
         assert run.info.run_id
+
+
+def _log_run(experiment_id, params: dict, metrics: dict, tags: dict) -> None:
+    """One finished run with these settings, as a job logs them (recipe tags included)."""
+    with mlflow.start_run(experiment_id=experiment_id, tags={**tags, **recipe_tags(params)}):
+        mlflow.log_params(params)
+        mlflow.log_metrics(metrics)
 
 
 @pytest.fixture
@@ -144,12 +153,11 @@ def test_a_rerun_of_the_same_job_is_not_another_seed(tmp_path, settings):
 
 def test_different_crops_of_one_source_are_different_datasets(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
-    # The second run spells the crop as runs logged before A's settings moved under btf.*.
-    for crop, n, rmse, key in ((12, 729, 0.16, "btf.crop.size"), (48, 6561, 0.03, "crop.size")):
-        with mlflow.start_run(experiment_id=experiment_id, tags={"cache.evaluate": str(crop)}):
-            mlflow.log_params({"method.name": "clustered", "method.k": 8, "seed": 0,
-                               "dataset.name": "synthetic", key: crop})
-            mlflow.log_metrics({"rmse": rmse, "n_directions": n})
+    for crop, n, rmse, key in ((12, 729, 0.16, "btf.crop.size"), (48, 6561, 0.03, "btf.crop.size")):
+        _log_run(experiment_id, {"method.name": "clustered", "method.k": 8, "seed": 0,
+                               "dataset.name": "synthetic", key: crop,
+                                 "dataset.synthetic.material": "plain_weave"},
+                 {"rmse": rmse, "n_directions": n}, {"cache.evaluate": str(crop)})
     rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
     assert dict(zip(rmse["dataset"], rmse["k = 8"], strict=True)) == {
         "synthetic:plain_weave 12²×729": "0.1600 (n=1)", "synthetic:plain_weave 48²×6561": "0.0300 (n=1)"}
@@ -208,10 +216,9 @@ def test_no_convergence_table_without_runs_of_different_lengths(tmp_path, settin
 def test_runs_near_the_mean_abrdf_baseline_are_flagged(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
     for seed, rmse in ((0, 0.03), (1, 0.14)):  # against a baseline of 0.15
-        with mlflow.start_run(experiment_id=experiment_id, tags={"cache.evaluate": str(seed)}):
-            mlflow.log_params({"method.name": "neural_btf", "method.k": None, "seed": seed,
-                               "dataset.name": "synthetic"})
-            mlflow.log_metrics({"rmse": rmse, "rmse_mean_abrdf": 0.15})
+        _log_run(experiment_id, {"method.name": "neural_btf", "method.k": None, "seed": seed,
+                               "dataset.name": "synthetic"},
+                 {"rmse": rmse, "rmse_mean_abrdf": 0.15}, {"cache.evaluate": str(seed)})
     out = build_tables(tmp_path, settings)
     failed = pd.read_csv(out / "failed_runs.csv")
     assert list(failed["seed"]) == [1] and failed.loc[0, "ratio"] == 0.93
@@ -235,12 +242,10 @@ def test_runs_of_two_recipes_are_never_averaged_as_seeds(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
     for seed, optimizer, threads, rmse in ((0, "sgd", 1, 0.05), (1, "sgd", 2, 0.07),
                                            (0, "adam", 1, 0.02), (1, "adam", 2, 0.04)):
-        with mlflow.start_run(experiment_id=experiment_id,
-                              tags={"cache.evaluate": f"{optimizer}{seed}"}):
-            mlflow.log_params({"method.name": "clustered", "method.k": 500, "seed": seed,
+        _log_run(experiment_id, {"method.name": "clustered", "method.k": 500, "seed": seed,
                                "dataset.name": "synthetic", "train.epochs": 16,
-                               "train.optimizer": optimizer, "train.threads": threads})
-            mlflow.log_metrics({"rmse": rmse})
+                               "train.optimizer": optimizer, "train.threads": threads},
+                 {"rmse": rmse}, {"cache.evaluate": f"{optimizer}{seed}"})
     rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
     assert rmse.loc[0, "k = 500 [train.optimizer=adam]"] == "0.0300 ± 0.0141 (n=2)"
     assert rmse.loc[0, "k = 500 [train.optimizer=sgd]"] == "0.0600 ± 0.0141 (n=2)"
@@ -251,10 +256,9 @@ def test_table2_names_each_columns_learning_rate(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
     for method, k, train_lr, method_lr in (("neural_btf", None, "None", 0.05),
                                           ("clustered", 500, 0.05, 0.08)):
-        with mlflow.start_run(experiment_id=experiment_id, tags={"cache.evaluate": method}):
-            mlflow.log_params({"method.name": method, "method.k": k, "seed": 0,
+        _log_run(experiment_id, {"method.name": method, "method.k": k, "seed": 0,
                                "dataset.name": "synthetic", "train.lr": train_lr,
-                               "method.lr": method_lr})
-            mlflow.log_metrics({"rmse": 0.03})
+                               "method.lr": method_lr},
+                 {"rmse": 0.03}, {"cache.evaluate": method})
     text = (build_tables(tmp_path, settings) / "table2_rmse.md").read_text()
     assert "Learning rates: Neural BTF: 0.05; k = 500: 0.05." in text

@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.brdf_map.runner import NEAR_MIRROR_DEG
-from pipeline.core.recipe import recipe_suffixes
+from pipeline.core.recipe import recipe_suffixes, with_recipe
 from pipeline.core.report import param, runs_of, write_table
 
 MODELS = (("MAP", ""), ("no prior", "_noprior"), ("Ashikhmin-Shirley", "_as"))
@@ -50,9 +50,13 @@ def _setup(runs: pd.DataFrame) -> pd.Series:
 
 
 def _labelled(runs: pd.DataFrame) -> pd.DataFrame:
-    """Runs with numeric columns ``cutoff`` (NaN = complete) and ``w_u``, and ``source``."""
+    """Runs with numeric columns ``cutoff`` (NaN = complete) and ``w_u``, and ``source``:
+    the BRDF, with the settings in which its runs differ beyond the study's two axes (a
+    study pools seeds of one recipe only)."""
+    runs = runs.assign(source=_source(runs))
+    axes = ["method.prior_strength", "dataset.missing_above_deg"]
     return runs.assign(
-        source=_source(runs),
+        source=runs["source"] + recipe_suffixes(runs, ["source"], ignore=axes),
         cutoff=pd.to_numeric(param(runs, "dataset.missing_above_deg"), errors="coerce"),
         w_u=pd.to_numeric(param(runs, "method.prior_strength"), errors="coerce"),
     )
@@ -197,7 +201,7 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
     if runs.empty or "metrics.rmse_measured" not in runs:
         return ["## Method B (MAP BRDF)\n\nNo finished `method=brdf_map` run found: "
                 "`python -m pipeline experiment=brdf_map`.\n"]
-    runs = runs[runs["metrics.rmse_measured"].notna()]
+    runs = with_recipe(runs[runs["metrics.rmse_measured"].notna()])
     sections = [write_table(
         table_rmse(runs).reset_index(), out, "brdf_map_rmse",
         "Method B: RMSE of the reconstructed BRDF (MAP, without the prior, Ashikhmin-Shirley)",

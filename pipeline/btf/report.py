@@ -28,6 +28,8 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
         return ["No finished Neural BTF run found (method A): `python -m pipeline`.\n"]
     runs = tables.drop_repeats(runs[runs["metrics.rmse"].notna()])
     runs = tables.label_runs(runs)
+    if runs.empty:
+        return ["No Neural BTF run with a recipe tag found (method A): `python -m pipeline`.\n"]
     found = []
     sizes = tables.table_sizes(runs)
     if not sizes.empty:
@@ -86,10 +88,12 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
             verdict, out, "k_verdict", "Does k change the error?",
             "Seeds are blocks (a seed shares its initialisation, batch order and k-means "
             "seed across k): two-way ANOVA without interaction over the seeds run at every k, "
-            "Friedman's rank test (a sign test for two k) as the check without normality, the "
-            "trend of RMSE per doubling of k within seeds, and each step's effect with its "
-            "95 % interval. Without evidence: the step these runs detect with 80 % power and "
-            "the seeds needed for a 4.4 % difference (the paper's largest). Runs pooled only "
+            "Friedman's rank test (a sign test for two k; its exact permutation p where the "
+            "blocks are few, else the chi-square) as the check without normality, the trend of "
+            "RMSE per doubling of k within seeds, and each step's effect with its Bonferroni "
+            "interval, Holm-adjusted p and size relative to the smaller k's mean. Without "
+            "evidence: the step these runs detect with 80 % power and the seeds needed for a "
+            "4.4 % difference (the paper's largest). Runs pooled only "
             "within one recipe (see the column labels)."))
     tolerance = float(settings.convergence_tolerance)
     convergence = tables.table_convergence(runs, tolerance)
@@ -118,11 +122,14 @@ def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path)
     """Fig. 7 of one finished job (the reference crops and its reconstruction), drawn into
     ``out`` (PNG and EXR); nothing for PCA, which has no decoder to query."""
     from pipeline.btf.fig7 import draw_fig7
+    from pipeline.core.recipe import recipe_id
     from pipeline.core.tracking import flatten
 
     if "train" not in cache_keys:
         return []
-    row = {f"params.{k}": str(v) for k, v in flatten(cfg).items()}
+    settings = flatten(cfg)
+    row = {f"params.{k}": str(v) for k, v in settings.items()}
+    row["tags.recipe"] = recipe_id(settings)
     row.update({f"tags.cache.{stage}": key for stage, key in cache_keys.items()})
     return draw_fig7(tables.label_runs(pd.DataFrame([row])), pairs_degrees, out)
 
@@ -134,9 +141,8 @@ def plot_rmse_vs_k(runs: pd.DataFrame, out: Path) -> str:
     ax = fig.subplots()
     for dataset, group in runs.groupby("dataset"):
         # One line per model family (one recipe but k), never runs of different recipes.
-        clustered = group[group["model"].str.match(r"^k = \d+")]
-        family = clustered["model"].str.replace(r"^k = \d+", "clustered", regex=True)
-        for name, runs_of_family in clustered.groupby(family):
+        clustered = group[group["params.method.name"] == "clustered"]
+        for name, runs_of_family in clustered.groupby("family"):
             stats = runs_of_family.groupby("k")["metrics.rmse"].agg(["mean", "std"])
             ax.errorbar(stats.index, stats["mean"], yerr=stats["std"].fillna(0), marker="o",
                         capsize=3, label=f"{dataset} {name}")

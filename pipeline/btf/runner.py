@@ -59,11 +59,7 @@ def train_stage(
     stage_settings = {
         "method": method.name,
         "target": method.get("target", "texel"),
-        "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY
-                  # float32 was the only precision before train.precision, one pass over M
-                  # the only epoch before train.epoch_texels: such runs keep their keys.
-                  and not (k == "precision" and v == "float32")
-                  and not (k == "epoch_texels" and v is None)},
+        "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY},
         "model": plain_settings(cfg.btf.model),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),
@@ -124,7 +120,7 @@ def train_stage(
             "final_loss": result.epoch_losses[-1],
         }
 
-    return ctx.run("train", stage_settings, inputs, compute, version="2")
+    return ctx.run("train", stage_settings, inputs, compute, version="3")
 
 
 def log_curve_point(point: dict) -> None:
@@ -143,8 +139,7 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         "texel_scale": texel_scale,
         "sizes": plain_settings(cfg.btf.sizes),
         "interpolation": plain_settings(cfg.btf.interpolation),
-        "dataset": (stages.without_added_defaults(plain_settings(cfg.dataset))
-                    if cfg.dataset.name == "synthetic" else None),
+        "dataset": (plain_settings(cfg.dataset) if cfg.dataset.name == "synthetic" else None),
     }
 
     def compute(folder: Path) -> dict:
@@ -192,7 +187,7 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         return {"rmse": recon.rmse}
 
     inputs = {"crop": cropped, "preprocess": prep, "train": trained}
-    return ctx.run("evaluate", settings, inputs, compute, version="3")
+    return ctx.run("evaluate", settings, inputs, compute, version="4")
 
 
 def run(ctx: Context) -> dict[str, float]:

@@ -25,27 +25,12 @@ log = logging.getLogger(__name__)
 # --------------------------------------------------------------------------- load
 
 
-# Dataset settings added after cache entries existed, with the value every earlier entry had:
-# at that value they are left out of folder names and cache keys, so that datasets and
-# entries made before stay in use. At any value they are among the run's params.
-ADDED_DEFAULTS = {"material": "plain_weave", "linearize": None}
-
-
-def without_added_defaults(settings: dict) -> dict:
-    """``settings`` (nested) without the keys of :data:`ADDED_DEFAULTS` at their default."""
-    return {
-        key: without_added_defaults(value) if isinstance(value, dict) else value
-        for key, value in settings.items()
-        if key not in ADDED_DEFAULTS or value != ADDED_DEFAULTS[key]
-    }
-
-
 def synthetic_folder(cfg: DictConfig) -> Path:
     """Where the built-in BTF of these settings is (or will be) written: named by a hash of
     the generator's settings and views."""
     ds = cfg.dataset
     gen = plain_settings(ds.synthetic)
-    named = {"gen": without_added_defaults(gen), "views": plain_settings(ds.views)}
+    named = {"gen": gen, "views": plain_settings(ds.views)}
     tag = hashlib.sha256(canonical_json(named).encode()).hexdigest()
     return Path(cfg.paths.data) / f"synthetic_btf-{ds.format}-{gen['ext']}-{tag[:10]}"
 
@@ -92,11 +77,10 @@ def load(ctx: Context) -> Entry:
         "root": str(root),
         "views": views,
         "fingerprint": folder_fingerprint(root),
+        "linearize": linearize,
     }
     own_encoding = DEFAULT_LINEARIZE[ds.format]
     if linearize != own_encoding:
-        # Only when it differs: entries decoded the layout's own way keep their keys.
-        settings["linearize"] = linearize
         if ds.name == "synthetic" and ds.root is None and linearize != "none":
             log.warning(
                 "dataset.linearize=%s, but the built-in BTF is written in the %s layout's "
@@ -115,7 +99,7 @@ def load(ctx: Context) -> Entry:
         save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))
         return {"n_images": n, "height": height, "width": width}
 
-    return ctx.run("load", settings, {}, compute, version="1")
+    return ctx.run("load", settings, {}, compute, version="2")
 
 
 # --------------------------------------------------------------------------- crop

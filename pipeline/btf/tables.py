@@ -11,7 +11,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.btf.k_verdict import blocked_verdict, describe
-from pipeline.core.recipe import recipe_suffixes
+from pipeline.core.recipe import RECIPE_TAG, RENDER_RECIPE_TAG, recipe_suffixes, with_recipe
+from pipeline.core.report import param
 
 SIZE_ROWS = [
     ("bytes_decoder", "decoder"),
@@ -34,7 +35,7 @@ def _num(series: pd.Series) -> pd.Series:
     return pd.to_numeric(series, errors="coerce")
 
 
-def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
+def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     """Add ``dataset``, ``model`` (column label), ``k`` and ``seed`` columns.
 
     The dataset label is the preset's name (``synthetic:<material>`` for the built-in
@@ -44,57 +45,58 @@ def label_runs(runs: pd.DataFrame) -> pd.DataFrame:
     ``+scale`` when the graininess fix is on and ``(rep. target)`` when the clustered
     model was trained against the representatives, ``(bfloat16)`` when the decoder's products
     ran in bfloat16 (``train.precision``), and ``(<E> epochs)`` when it was trained for
-    another number of epochs than most runs of its dataset.
+    another number of epochs than most runs of its dataset. Runs with one label are seeds
+    of one model only when their recipes are equal (:mod:`pipeline.core.recipe`); where they
+    are not, each label gets the settings in which its runs differ (``render``: the render
+    settings count too, for the render tables). Runs without a recipe tag are left out.
     """
-    runs = runs.copy()
-    root = runs.get("params.dataset.root", pd.Series("", index=runs.index)).fillna("")
-    name = runs["params.dataset.name"].fillna("?")
+    runs = with_recipe(runs, RENDER_RECIPE_TAG if render else RECIPE_TAG).copy()
+    if runs.empty:
+        return runs.assign(dataset=[], model=[], base_model=[], family=[], k=[], seed=[],
+                           epochs=[], order=[])
+    root = param(runs, "dataset.root")
+    name = param(runs, "dataset.name", "?")
     leaf = root.map(lambda r: r.rstrip("/").split("/")[-1] if r not in ("", "None") else "")
     # Generic formats are told apart by their folder; presets (WOOL, ...) by their name.
     generic = name.isin(["ubo2003", "utia"]) & (leaf != "")
     label = pd.Series(np.where(generic, name + ":" + leaf, name), index=runs.index)
-    # The built-in BTF's material preset; runs from before the presets had plain_weave.
-    material = runs.get("params.dataset.synthetic.material", pd.Series(np.nan, index=runs.index))
-    material = material.fillna("plain_weave")
+    material = param(runs, "dataset.synthetic.material")
     label = label.where(name != "synthetic", label + ":" + material)
     # The same source cropped or subset differently is a different dataset: a 12 x 12
     # smoke crop must never be averaged with a 48 x 48 one.
-    # btf.crop.size; runs logged before A's settings moved under btf.* have crop.size.
-    crop = _num(runs.get("params.btf.crop.size", pd.Series(np.nan, index=runs.index)))
-    if "params.crop.size" in runs:
-        crop = crop.fillna(_num(runs["params.crop.size"]))
+    crop = _num(param(runs, "btf.crop.size"))
     n_dirs = _num(runs.get("metrics.n_directions", pd.Series(np.nan, index=runs.index)))
     shape = [f" {int(c)}²×{int(n)}" if pd.notna(c) and pd.notna(n) else ""
              for c, n in zip(crop, n_dirs, strict=True)]
     runs["dataset"] = label + shape
-    runs["k"] = _num(runs.get("params.method.k", pd.Series(np.nan, index=runs.index)))
+    runs["k"] = _num(param(runs, "method.k"))
     runs["seed"] = _num(runs["params.seed"])
     method = runs["params.method.name"]
     components = _num(runs.get("metrics.n_components", pd.Series(np.nan, index=runs.index)))
     label = np.where(method == "neural_btf", "Neural BTF", "k = " + runs["k"].map(_fmt_k))
     label = np.where(method == "pca", "PCA c = " + components.map(_fmt_k), label)
-    scale = runs.get("params.method.texel_scale", pd.Series("none", index=runs.index))
-    label = np.where((method == "clustered") & ~scale.isin(["none", None]), label + " +scale",
-                     label)
-    target = runs.get("params.method.target", pd.Series("texel", index=runs.index))
+    scale = param(runs, "method.texel_scale", "none")
+    label = np.where((method == "clustered") & (scale != "none"), label + " +scale", label)
+    target = param(runs, "method.target", "texel")
     label = np.where((method == "clustered") & (target == "representative"),
                      label + " (rep. target)", label)
-    # The decoder's products in bfloat16 (train.precision) give other numbers: another
-    # model, not another seed. Runs from before train.precision have no such parameter.
-    precision = runs.get("params.train.precision", pd.Series("", index=runs.index)).fillna("")
-    label = np.where(precision.isin(["", "float32"]), label, label + " (" + precision + ")")
+    # The decoder's products in bfloat16 (train.precision) give other numbers.
+    precision = param(runs, "train.precision", "float32")
+    label = np.where(precision == "float32", label, label + " (" + precision + ")")
     # A run trained for another number of epochs than most runs of its dataset (say, a 4x
     # longer convergence check) is another model, not another seed.
-    epochs = runs.get("params.train.epochs", pd.Series("", index=runs.index)).fillna("")
+    epochs = param(runs, "train.epochs", "")
     usual = epochs.groupby(runs["dataset"]).transform(lambda e: e.mode().iloc[0])
     runs["base_model"] = label
     runs["epochs"] = _num(epochs)
     label = np.where(epochs != usual, label + " (" + epochs + " epochs)", label)
-    # Runs are seeds of one model only when their recipes match: a column whose runs differ
-    # in anything else (optimizer, learning rate, held-out lights, ...) is split, each part
-    # labelled by what differs.
     runs["model"] = label
-    runs["model"] = runs["model"] + recipe_suffixes(runs, ["dataset", "model"])
+    # A clustered family (Table 2's k columns of one recipe but k), for the k verdict.
+    runs["family"] = np.where(method == "clustered",
+                              runs["model"].str.replace(r"^k = \d+", "clustered", regex=True), "")
+    runs["family"] = runs["family"] + recipe_suffixes(runs, ["dataset", "family"],
+                                                      ignore=["method.k"], render=render)
+    runs["model"] = runs["model"] + recipe_suffixes(runs, ["dataset", "model"], render=render)
     runs["order"] = np.where(method == "neural_btf", -1.0,
                              np.where(method == "pca", 1e9 + components.fillna(0), runs["k"]))
     return runs
@@ -227,9 +229,8 @@ def k_verdict(runs: pd.DataFrame, alpha: float = 0.05, target: float = 0.044) ->
     each step's effect with its 95 % interval and, without evidence, the power.
     """
     rows = []
-    clustered = runs[runs["model"].str.match(r"^k = \d+")]
-    family = clustered["model"].str.replace(r"^k = \d+", "clustered", regex=True)
-    for (dataset, name), group in clustered.groupby(["dataset", family]):
+    clustered = runs[runs["params.method.name"] == "clustered"]
+    for (dataset, name), group in clustered.groupby(["dataset", "family"]):
         table = group.pivot_table(index="seed", columns="k", values="metrics.rmse",
                                   aggfunc="mean").dropna()
         row = {"dataset": dataset, "model": name,

@@ -26,7 +26,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.core.errors import StoreError
-from pipeline.core.recipe import recipe_id
+from pipeline.core.recipe import recipe_id, render_recipe_id
 
 log = logging.getLogger(__name__)
 
@@ -235,6 +235,8 @@ def job_run(
     tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
     params = flatten(cfg)
     tags["recipe"] = recipe_id(params)  # equal for seeds of one model (pipeline.core.recipe)
+    if any(key.startswith("btf.render.") for key in params):
+        tags["render_recipe"] = render_recipe_id(params)  # and rendered alike
     # Who runs it: a later start marks it FAILED if this process dies without ending it.
     tags.update(host=socket.gethostname(), pid=str(os.getpid()))
     overrides = _task_overrides()
@@ -247,9 +249,9 @@ def job_run(
         parent_run_id=_parent_run_id(),
         tags=tags,
     ) as run:
-        # Unset settings (None: method.k of Neural BTF, dataset.root of built-in data) are
-        # left out rather than shown as the string "None"; config/resolved.yaml has them all.
-        mlflow.log_params({k: _param_value(v) for k, v in params.items() if v is not None})
+        # Every setting, unset ones (method.k of Neural BTF) as "None": a null is a value
+        # that the tables compare like any other (pipeline.core.recipe).
+        mlflow.log_params({k: _param_value(v) for k, v in params.items()})
         mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
         mlflow.log_text(OmegaConf.to_yaml(overrides), "config/overrides.yaml")
         log.info("MLflow run %s in %s", run.info.run_id, tracking_uri(cfg.paths.runs))

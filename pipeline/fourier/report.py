@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.core.recipe import recipe_suffixes, with_recipe
 from pipeline.core.report import param, write_table
 
 PAPER_CHOICE = (10, 3.14)
@@ -63,7 +64,7 @@ def label_runs(runs: pd.DataFrame, method: str = "fourier") -> pd.DataFrame:
         runs = runs[runs["status"] == "FINISHED"]
     if method == "fourier":
         runs = runs[runs[VALIDATION].notna()] if VALIDATION in runs else runs.iloc[0:0]
-    runs = runs.copy()
+    runs = with_recipe(runs).copy()
     root = param(runs, "dataset.root")
     name = param(runs, "dataset.name", "?")
     dataset = np.where(root.isin(["None", ""]), name, root.map(_leaf))
@@ -81,6 +82,10 @@ def label_runs(runs: pd.DataFrame, method: str = "fourier") -> pd.DataFrame:
         f"{d}{s}, normals={n}{c}"
         for d, s, n, c in zip(dataset, shrunk, normals, clamped, strict=True)
     ]
+    # One setup pools (or replaces) runs of one recipe only: others are set apart by
+    # the settings in which they differ, M and λ being the table's axes.
+    runs["setup"] = runs["setup"] + recipe_suffixes(runs, ["setup"],
+                                                    ignore=["method.M", "method.lam"])
     runs["M"] = pd.to_numeric(param(runs, "method.M"), errors="coerce")
     runs["lam"] = pd.to_numeric(param(runs, "method.lam"), errors="coerce")
     return runs
