@@ -341,6 +341,34 @@ def payload_bytes(path: str | os.PathLike) -> int:
     return Path(path).stat().st_size - 8 - n
 
 
+# Table 1's parts (the evaluate stage's ``bytes_<part>`` metrics) and their tensors' names.
+TABLE1_PARTS = {"decoder": "decoder.", "latents": "latents", "list": "latent_of_texel",
+                "extra": "texel_scale"}
+SAFETENSORS_DTYPES = {"F16": "float16", "BF16": "bfloat16", "F32": "float32",
+                      "F64": "float64", "I32": "int32", "I64": "int64", "U16": "uint16",
+                      "U8": "uint8", "I16": "int16", "I8": "int8", "U32": "uint32"}
+
+
+def stored_parts(path: str | os.PathLike) -> dict[str, dict]:
+    """Each of Table 1's parts as the file stores it, read from its header:
+    ``{"decoder": {"dtype": "float32", "bytes": 97532}, ...}`` (parts it lacks left out; a
+    part whose tensors differ in type lists them, e.g. ``"float16+float32"``)."""
+    _, header = read_header(path)
+    parts: dict[str, dict] = {}
+    for name, info in header.items():
+        if name == "__metadata__":
+            continue
+        part = next((p for p, prefix in TABLE1_PARTS.items() if name.startswith(prefix)), None)
+        if part is None:
+            continue
+        found = parts.setdefault(part, {"dtypes": set(), "bytes": 0})
+        found["dtypes"].add(SAFETENSORS_DTYPES.get(info["dtype"], info["dtype"]))
+        start, stop = info["data_offsets"]
+        found["bytes"] += stop - start
+    return {part: {"dtype": "+".join(sorted(found["dtypes"])), "bytes": found["bytes"]}
+            for part, found in parts.items()}
+
+
 @dataclass
 class CompressedBTF:
     """A compressed BTF read back from its file (:func:`load_compressed`).

@@ -16,10 +16,12 @@ from pipeline.btf.compressed import (
     FILE_NAME,
     QUERY_COLUMNS,
     RGB_COLUMNS,
+    TABLE1_PARTS,
     header_bytes,
     load_compressed,
     payload_bytes,
     read_header,
+    stored_parts,
     write_atomic,
     write_compressed,
 )
@@ -69,14 +71,19 @@ def export_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry,
             list_dtype=sizes["list_dtype"],
             extra_dtype=sizes["extra_dtype"],
         )
-        payload, table1 = payload_bytes(path), evaluated.json("metrics")["bytes_total"]
-        if payload != table1:
-            raise RuntimeError(f"{path} holds {payload} bytes of tensors, but Table 1 "
-                               f"counts {table1}: storage_sizes and the format disagree")
+        payload, table1 = payload_bytes(path), evaluated.json("metrics")
+        parts = stored_parts(path)
+        counted = {part: table1[f"bytes_{part}"] for part in TABLE1_PARTS}
+        stored = {part: parts.get(part, {"bytes": 0})["bytes"] for part in TABLE1_PARTS}
+        if payload != table1["bytes_total"] or stored != counted:
+            raise RuntimeError(f"{path} holds {payload} bytes of tensors ({stored}), but "
+                               f"Table 1 counts {table1['bytes_total']} ({counted}): "
+                               f"storage_sizes and the format disagree")
         return {"bytes_payload": payload, "bytes_header": header_bytes(path),
-                "bytes_file": path.stat().st_size}
+                "bytes_file": path.stat().st_size,
+                "stored_as": {part: found["dtype"] for part, found in parts.items()}}
 
-    return ctx.run("export", settings, inputs, compute, version="1")
+    return ctx.run("export", settings, inputs, compute, version="2")
 
 
 def log_compressed(entry: Entry, log_model: bool = True) -> None:

@@ -34,35 +34,31 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
     sizes = tables.table_sizes(runs)
     if not sizes.empty:
         found.append(write_table(sizes, out, "table1_sizes", "Table 1: stored sizes in bytes",
-                                 "Ratio (exact) = original bytes / total bytes. Ratio (paper) = "
-                                 "original in MB / total in whole KB, the paper's "
-                                 "convention. Original = M x N x 3 float32."))
-    rmse = tables.table_rmse(runs)
+                                 "Bytes as stored, in the types of the 'stored as' column (read "
+                                 "from the written tensors). Ratio (exact) = original bytes / "
+                                 "total bytes. Ratio (paper) = original in MB / total in whole "
+                                 "KB, the paper's convention. Original = M x N x 3 float32."))
+    rmse = tables.with_truth_floor(tables.table_rmse(runs), runs)
     found.append(write_table(rmse, out, "table2_rmse",
                              "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
                              "Over the directions each model was trained on: all N, unless "
                              "lights were held out (btf.interpolation.holdout_lights; those "
                              "directions are in the interpolation table). "
                              "n = number of seeds. Clustered runs use each texel's own values "
-                             "as the training target unless marked (rep. target). Learning "
+                             "as the training target unless marked (rep. target). data vs "
+                             "truth (built-in data only): the data's own RMSE against the "
+                             "generator's analytic truth (its 8-bit and JPEG rounding), what a "
+                             "perfect model would score. Learning "
                              f"rates: {tables.learning_rates(runs) or 'not logged'}."))
-    if "metrics.rmse_with_texel_scale" in runs:
-        scaled = runs[runs["params.method.name"] == "clustered"]
-        if not scaled.empty:
-            both = pd.concat(
-                {
-                    "without scale": tables.table_rmse(
-                        scaled, "rmse_without_texel_scale").stack(),
-                    "with per-texel scale": tables.table_rmse(
-                        scaled, "rmse_with_texel_scale").stack(),
-                },
-                axis=1,
-            )
-            both.index.names = ["dataset", "model"]
-            found.append(write_table(
-                both.reset_index(), out, "graininess",
-                "Graininess fix: clustered RMSE without / with a per-texel scale",
-                "The scale costs one float per texel (bytes_extra)."))
+    grain = tables.table_graininess(runs)
+    if not grain.empty:
+        found.append(write_table(
+            grain, out, "graininess",
+            "Graininess fix at equal bytes: clustered RMSE without / with a per-texel scale",
+            "The scale costs one btf.sizes.extra_dtype value per texel (Table 1's "
+            "'+ per-texel scale' rows). 'nearest in bytes': the model without a scale whose "
+            "total bytes are closest to the scaled model's, so that the scale is compared "
+            "with spending its bytes on the model itself (say, more clusters)."))
     failed = tables.failed_runs(runs)
     if not failed.empty:
         found.append(write_table(

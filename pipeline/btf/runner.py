@@ -221,6 +221,7 @@ def run(ctx: Context) -> dict[str, float]:
     metrics = dict(evaluated.json("metrics"))
     metrics.update(extra)
     summary = trained.manifest["summary"]
+    metrics.update(truth_metrics(ctx, cropped, prep))
     metrics.update(
         train_steps=summary["steps"], train_seconds=summary["seconds"],
         train_queries=summary["queries"], final_loss=summary["final_loss"],
@@ -228,9 +229,23 @@ def run(ctx: Context) -> dict[str, float]:
     )
     check_against_baseline(metrics)
     log_evaluation(evaluated, metrics)
+    log_stored_as(exported.manifest["summary"]["stored_as"])
     if mlflow.active_run() is not None:
         log_compressed(exported)
     return metrics
+
+
+def log_stored_as(stored_as: dict[str, str]) -> None:
+    """Tags ``stored_as.<part>`` (decoder, latents, list, extra): the type each of Table 1's
+    parts is stored in, read from what was written (Table 1's captions come from them)."""
+    if mlflow.active_run() is not None:
+        mlflow.set_tags({f"stored_as.{part}": dtype for part, dtype in stored_as.items()})
+
+
+def truth_metrics(ctx: Context, cropped: Entry, prep: Entry) -> dict[str, float]:
+    """``rmse_data_vs_truth`` (what a perfect model scores) for the built-in BTF, else {}."""
+    floor = stages.truth_floor(ctx, cropped, prep)
+    return {} if floor is None else dict(floor.manifest["summary"])
 
 
 def log_evaluation(entry: Entry, metrics: dict) -> None:
@@ -305,7 +320,11 @@ def run_linear(ctx: Context) -> dict[str, float]:
     prep = stages.preprocess(ctx, cropped)
     fitted = linear_stage(ctx, cropped, prep)
     metrics = {**fitted.json("metrics"), "n_texels": cropped.manifest["summary"]["M"],
-               "n_directions": cropped.manifest["summary"]["N"]}
+               "n_directions": cropped.manifest["summary"]["N"],
+               **truth_metrics(ctx, cropped, prep)}
     check_against_baseline(metrics)
+    log_stored_as({"decoder": "+".join(sorted({str(fitted.array("basis").dtype),
+                                               str(fitted.array("mean").dtype)})),
+                   "latents": str(fitted.array("coefficients").dtype)})
     log_evaluation(fitted, metrics)
     return metrics

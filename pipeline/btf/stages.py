@@ -206,3 +206,58 @@ def representatives(ctx: Context, cropped: Entry, clusters: Entry) -> Entry:
         return {"k": k}
 
     return ctx.run("representatives", {}, {"crop": cropped, "kmeans": clusters}, compute, version="1")
+
+
+# --------------------------------------------------------------------------- truth floor
+
+
+def built_in(cfg: DictConfig) -> bool:
+    """Whether the run's data is the built-in synthetic BTF (which has an analytic truth)."""
+    return cfg.dataset.name == "synthetic" and cfg.dataset.root is None
+
+
+def data_truth_rmse(abrdf: np.ndarray, directions: np.ndarray, truth_of, alpha: float,
+                    chunk: int = 256) -> float:
+    """Eq. 10's RMSE of the data against the analytic truth: what a perfect model scores.
+
+    Parameters
+    ----------
+    abrdf : ndarray of shape (M, N, 3), the data's values (a memory map is read in chunks).
+    directions : ndarray of shape (N, 4), the data's directions (radians).
+    truth_of : callable, directions (n, 4) -> ndarray (M, n, 3), the truth at the crop.
+    alpha : the normalisation of eq. 10 (values / alpha lie in [0, 1]).
+    """
+    squares = 0.0
+    for start in range(0, len(directions), chunk):
+        stop = min(start + chunk, len(directions))
+        data = np.asarray(abrdf[:, start:stop], dtype=np.float64)
+        squares += float(np.square(data - truth_of(directions[start:stop])).sum())
+    return float(np.sqrt(squares / abrdf.size)) / alpha
+
+
+def truth_floor(ctx: Context, cropped: Entry, prep: Entry) -> Entry | None:
+    """For the built-in BTF: the data's RMSE against the generator's analytic truth (the
+    JPEG and 8-bit rounding of the written images), over the crop and all its directions;
+    None for other data."""
+    cfg = ctx.cfg
+    if not built_in(cfg):
+        return None
+    from pipeline.btf.synthetic import SyntheticBTF
+
+    gen = plain_settings(cfg.dataset.synthetic)
+    size = int(cfg.btf.crop.size)
+    y0, x0 = (int(v) for v in cfg.btf.crop.offset)
+    generator = SyntheticBTF(size=gen["size"], seed=gen["seed"], material=gen["material"])
+
+    def truth_of(directions: np.ndarray) -> np.ndarray:
+        values = generator.evaluate(directions)[:, y0 : y0 + size, x0 : x0 + size]
+        return values.reshape(len(directions), -1, 3).transpose(1, 0, 2)
+
+    def compute(folder: Path) -> dict:
+        rmse = data_truth_rmse(cropped.array("abrdf"), cropped.array("directions", mmap=False),
+                               truth_of, prep.json("alpha"))
+        return {"rmse_data_vs_truth": rmse}
+
+    settings = {"synthetic": gen, "crop": plain_settings(cfg.btf.crop)}
+    return ctx.run("truth_floor", settings, {"crop": cropped, "preprocess": prep}, compute,
+                   version="1")

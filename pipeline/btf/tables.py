@@ -121,10 +121,33 @@ def model_columns(runs: pd.DataFrame) -> list[str]:
     return list(runs.sort_values(["order", "model"]).drop_duplicates("model")["model"])
 
 
-def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
-    """Table 1: exact bytes per dataset and model, and the compression ratios.
+PARTS = ("decoder", "latents", "list", "extra")  # Table 1's parts (tags stored_as.<part>)
 
-    Ratio conventions: ``ratio (exact)`` = original bytes / total bytes;
+
+def stored_as(run: pd.Series) -> str:
+    """``"decoder float32, latents float32, list int32"``: the types a run's parts were
+    written in (tags ``stored_as.*``, read from the stored tensors), "?" when not logged."""
+    parts = [f"{dict(SIZE_ROWS)[f'bytes_{p}']} {run[f'tags.stored_as.{p}']}" for p in PARTS
+             if pd.notna(run.get(f"tags.stored_as.{p}"))]
+    return ", ".join(parts) or "?"
+
+
+def scale_bytes(run: pd.Series) -> int:
+    """The bytes a per-texel scale adds to a clustered run that did not store one: one
+    ``btf.sizes.extra_dtype`` value per texel."""
+    from pipeline.btf.evaluate import DTYPE_BYTES
+
+    dtype = str(run.get("params.btf.sizes.extra_dtype", "float32"))
+    return int(float(run["metrics.n_texels"])) * DTYPE_BYTES[dtype]
+
+
+def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
+    """Table 1: exact bytes per dataset and model, the types they are stored in, and the
+    compression ratios.
+
+    A clustered model evaluated with a per-texel scale it does not store (the graininess
+    table's "with scale" RMSE) gets a row of its own, ``<model> + per-texel scale``, with
+    the scale's bytes. Ratio conventions: ``ratio (exact)`` = original bytes / total bytes;
     ``ratio (paper)`` = original in MB (2^20 B, rounded to 1 MB) / total in KB (2^10 B,
     rounded to 1 KB), which reproduces the paper's 1:1885, 1:5127, 1:4633, 1:3904.
     """
@@ -137,22 +160,70 @@ def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
         if group.empty:
             continue
         first = group.iloc[0]
-        row = {"dataset": dataset, "model": model}
-        for metric, name in SIZE_ROWS:
-            row[f"{name} [B]"] = int(first[f"metrics.{metric}"])
-        original = float(first["metrics.bytes_original"])
-        total = float(first["metrics.bytes_total"])
-        row["original [B]"] = int(original)
-        row["ratio (exact)"] = f"1:{original / total:.1f}"
-        row["ratio (paper)"] = f"1:{round(original / 2**20) * 1024 / round(total / 1024):.0f}"
-        rows.append(row)
+        parts = {name: int(first[f"metrics.{metric}"]) for metric, name in SIZE_ROWS}
+        rows.append(_size_row(dataset, model, parts, float(first["metrics.bytes_original"]),
+                              stored_as(first)))
+        if (first["params.method.name"] == "clustered" and parts["per-texel scale"] == 0
+                and pd.notna(first.get("metrics.rmse_with_texel_scale"))
+                and pd.notna(first.get("metrics.n_texels"))):
+            extra = scale_bytes(first)
+            scaled = {**parts, "per-texel scale": extra, "total": parts["total"] + extra}
+            dtype = first.get("params.btf.sizes.extra_dtype", "float32")
+            rows.append(_size_row(dataset, f"{model} + per-texel scale", scaled,
+                                  float(first["metrics.bytes_original"]),
+                                  f"{stored_as(first)}, per-texel scale {dtype}"))
     table = pd.DataFrame(rows)
     if table.empty:
         return table
     order = {m: i for i, m in enumerate(model_columns(runs))}
-    table = table.sort_values(["dataset", "model"], key=lambda s: s.map(order) if s.name ==
-                              "model" else s)
+    table["_order"] = table["model"].map(
+        lambda m: order.get(m, order.get(m.removesuffix(" + per-texel scale"), 0) + 0.5))
+    table = table.sort_values(["dataset", "_order"]).drop(columns="_order")
     return table.reset_index(drop=True)
+
+
+def _size_row(dataset: str, model: str, parts: dict, original: float, stored: str) -> dict:
+    total = parts["total"]
+    return {"dataset": dataset, "model": model, **{f"{k} [B]": v for k, v in parts.items()},
+            "original [B]": int(original), "stored as": stored,
+            "ratio (exact)": f"1:{original / total:.1f}",
+            "ratio (paper)": f"1:{round(original / 2**20) * 1024 / round(total / 1024):.0f}"}
+
+
+def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
+    """The graininess fix at equal bytes: each clustered model's RMSE without and with a
+    per-texel scale, the bytes of each, and the model without a scale whose total bytes
+    are nearest to the scaled one's (same dataset), with its RMSE: does the scale beat
+    spending its bytes on more clusters? Mean ± std over seeds."""
+    clustered = runs[(runs["params.method.name"] == "clustered")
+                     & runs.get("metrics.rmse_with_texel_scale", pd.Series(
+                         np.nan, index=runs.index)).notna()]
+    if clustered.empty or "metrics.bytes_total" not in runs:
+        return pd.DataFrame()
+    unscaled = runs[_num(runs.get("metrics.bytes_extra", 0)).fillna(0) == 0]
+    sizes = unscaled.groupby(["dataset", "model"])["metrics.bytes_total"].first()
+    rows = []
+    ordered = clustered.sort_values(["dataset", "order", "model"])
+    for (dataset, model), group in ordered.groupby(["dataset", "model"], sort=False):
+        first = group.iloc[0]
+        total = int(first["metrics.bytes_total"])
+        with_scale = total + (scale_bytes(first) if int(first["metrics.bytes_extra"]) == 0
+                              else 0)
+        row = {"dataset": dataset, "model": model,
+               "without scale": mean_std(_num(group["metrics.rmse_without_texel_scale"])),
+               "bytes": total,
+               "with per-texel scale": mean_std(_num(group["metrics.rmse_with_texel_scale"])),
+               "bytes with scale": with_scale}
+        others = sizes[dataset].drop(model, errors="ignore")
+        if not others.empty:
+            nearest = (others - with_scale).abs().idxmin()
+            row["nearest in bytes, no scale"] = nearest
+            row["its bytes"] = int(others[nearest])
+            row["its RMSE"] = mean_std(_num(unscaled.loc[
+                (unscaled["dataset"] == dataset) & (unscaled["model"] == nearest),
+                "metrics.rmse"]))
+        rows.append(row)
+    return pd.DataFrame(rows)
 
 
 def mean_std(values: pd.Series) -> str:
@@ -173,6 +244,21 @@ def table_rmse(runs: pd.DataFrame, metric: str = "rmse") -> pd.DataFrame:
     )
     table = table.reindex(columns=[c for c in columns if c in table.columns])
     return table.fillna("–")  # no run of that model on that dataset
+
+
+def with_truth_floor(table: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
+    """Table 2 with a first column ``data vs truth``: the data's own RMSE against the
+    built-in generator's analytic truth (``metrics.rmse_data_vs_truth``), the score of a
+    perfect model; "–" for measured data, which has no truth."""
+    column = "metrics.rmse_data_vs_truth"
+    if column not in runs or runs[column].isna().all():
+        return table
+    floors = _num(runs[column]).groupby(runs["dataset"]).agg(["min", "max"])
+    cell = {d: "–" if pd.isna(lo) else f"{lo:.4f}" if hi - lo < 5e-5 else f"{lo:.4f}–{hi:.4f}"
+            for d, (lo, hi) in floors.iterrows()}
+    table = table.copy()
+    table.insert(0, "data vs truth", [cell.get(d, "–") for d in table.index])
+    return table
 
 
 def failed_runs(runs: pd.DataFrame, near: float = 0.9) -> pd.DataFrame:
