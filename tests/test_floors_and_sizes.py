@@ -58,7 +58,8 @@ def test_table1_reads_the_stored_types(smoke_cfg):
 
 
 def _row(model: str, k, total: int, rmse: float, seed=0, scaled=None, unscaled=None) -> dict:
-    return {"dataset": "d", "model": model, "order": k or 0, "params.method.name":
+    return {"dataset": "d", "model": model, "family": "clustered" if k else "",
+            "order": k or 0, "params.method.name":
             "clustered" if k else "neural_btf", "seed": seed,
             "params.btf.sizes.extra_dtype": "float32", "metrics.n_texels": 100.0,
             "metrics.bytes_decoder": 1000, "metrics.bytes_latents": total - 1000 - 400 * bool(k),

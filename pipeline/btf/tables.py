@@ -192,16 +192,16 @@ def _size_row(dataset: str, model: str, parts: dict, original: float, stored: st
 
 def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
     """The graininess fix at equal bytes: each clustered model's RMSE without and with a
-    per-texel scale, the bytes of each, and the model without a scale whose total bytes
-    are nearest to the scaled one's (same dataset), with its RMSE: does the scale beat
-    spending its bytes on more clusters? Mean ± std over seeds."""
+    per-texel scale, the bytes of each, and the model of the same family (the same recipe
+    but k) without a scale whose total bytes are nearest to the scaled one's, with its
+    RMSE: does the scale beat spending its bytes on more clusters? Mean ± std over seeds."""
     clustered = runs[(runs["params.method.name"] == "clustered")
                      & runs.get("metrics.rmse_with_texel_scale", pd.Series(
                          np.nan, index=runs.index)).notna()]
     if clustered.empty or "metrics.bytes_total" not in runs:
         return pd.DataFrame()
     unscaled = runs[_num(runs.get("metrics.bytes_extra", 0)).fillna(0) == 0]
-    sizes = unscaled.groupby(["dataset", "model"])["metrics.bytes_total"].first()
+    sizes = unscaled.groupby(["dataset", "family", "model"])["metrics.bytes_total"].first()
     rows = []
     ordered = clustered.sort_values(["dataset", "order", "model"])
     for (dataset, model), group in ordered.groupby(["dataset", "model"], sort=False):
@@ -214,7 +214,8 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
                "bytes": total,
                "with per-texel scale": mean_std(_num(group["metrics.rmse_with_texel_scale"])),
                "bytes with scale": with_scale}
-        others = sizes[dataset].drop(model, errors="ignore")
+        others = sizes.get((dataset, first["family"]), pd.Series(dtype=float))
+        others = others.drop(model, errors="ignore")
         if not others.empty:
             nearest = (others - with_scale).abs().idxmin()
             row["nearest in bytes, no scale"] = nearest
