@@ -63,7 +63,7 @@ def _matches(key: str, pattern: str) -> bool:
 
 
 def _run(seed: int, value, metric: float, setting: str = "train.lr", render_lights="point",
-         method: str = "clustered", k=8) -> dict:
+         method: str = "clustered", k=8, truth: bool = False) -> dict:
     """One row as mlflow.search_runs returns it, with a job's recipe tags."""
     params = {"method.name": method, "method.k": k, "seed": seed, "dataset.name": "synthetic",
               "dataset.root": None, "dataset.synthetic.material": "plain_weave",
@@ -77,11 +77,16 @@ def _run(seed: int, value, metric: float, setting: str = "train.lr", render_ligh
                 "metrics.rmse_offgrid_model": metric,
                 "metrics.rmse_without_texel_scale": metric,
                 "metrics.rmse_with_texel_scale": metric,
-                "tags.cache.render": f"c{seed}{value}{render_lights}"})
-    for name in ("render_rmse_dark", "render_rmse_bright", "render_rmse_dark_spp4",
-                 "render_rmse_bright_spp4", "render_hf_ratio_dark_spp4",
-                 "render_hf_ratio_bright_spp4", "render_rmse_cloth_spp4"):
-        row[f"metrics.{name}"] = metric
+                "tags.cache.render": f"c{seed}{value}{render_lights}",
+                # One reference and one truth render per data and render set-up.
+                "tags.cache.render_reference": f"ref-{render_lights}",
+                "tags.cache.render_truth": f"truth-{render_lights}"})
+    for name in ("rmse_dark", "rmse_bright", "rmse_dark_spp4", "rmse_bright_spp4",
+                 "hf_ratio_dark_spp4", "hf_ratio_bright_spp4", "rmse_cloth_spp4"):
+        row[f"metrics.render_{name}"] = metric
+        if truth:  # the built-in material: scored against its analytic truth too
+            row[f"metrics.render_truth_{name}"] = metric
+            row[f"metrics.render_reference_truth_{name}"] = 0.01
     return row
 
 
@@ -108,12 +113,14 @@ def test_btf_tables_never_average_two_recipes(first, second):
     assert runs["family"].nunique() == 2
 
 
+@pytest.mark.parametrize("truth", [False, True])
 @pytest.mark.parametrize(("first", "second"), PAIRS)
-def test_render_tables_never_average_two_recipes(first, second):
-    runs = render_report.rendered_runs(tables.label_runs(
-        pd.DataFrame([_run(0, first, 0.1), _run(1, second, 0.2)]), render=True))
-    assert runs["model"].nunique() == 2
-    for table in (tables.table_rmse(runs, "render_rmse_dark"), render_report.table_cloth(runs),
+def test_render_tables_never_average_two_recipes(first, second, truth):
+    rows = [_run(0, first, 0.1, truth=truth), _run(1, second, 0.2, truth=truth)]
+    runs = render_report.scored_runs(render_report.rendered_runs(
+        tables.label_runs(pd.DataFrame(rows), render=True)))
+    assert runs["model"].nunique() >= 2
+    for table in (render_report.table_crop(runs, "dark"), render_report.table_cloth(runs),
                   render_report.table_graininess(runs)):
         assert not any("n=2" in c for c in _cells(table)), table
 
@@ -122,10 +129,11 @@ def test_render_tables_never_average_two_render_setups_that_table2_pools():
     rows = [_run(0, 0.1, 0.1, render_lights="point"),
             _run(1, 0.1, 0.2, render_lights="directional")]
     assert tables.label_runs(pd.DataFrame(rows))["model"].nunique() == 1  # one model
-    runs = render_report.rendered_runs(tables.label_runs(pd.DataFrame(rows), render=True))
+    runs = render_report.scored_runs(render_report.rendered_runs(
+        tables.label_runs(pd.DataFrame(rows), render=True)))
     assert set(runs["model"]) == {"k = 8 [btf.render.lights=point]",
                                   "k = 8 [btf.render.lights=directional]"}
-    assert not any("n=2" in c for c in _cells(tables.table_rmse(runs, "render_rmse_dark")))
+    assert not any("n=2" in c for c in _cells(render_report.table_crop(runs, "dark")))
 
 
 def test_seeds_of_one_recipe_pool():

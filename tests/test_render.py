@@ -1,5 +1,6 @@
 """The BTF renderer: closed-form images of a flat quad, shadows, seeds, batching, the
-measured-BTF interpolant, the cloth's tangent frames, and a small end-to-end render."""
+measured-BTF interpolant, the analytic truth and the grid's edge, the cloth's tangent
+frames, and a small end-to-end render."""
 
 import numpy as np
 import pytest
@@ -7,7 +8,16 @@ import pytest
 from pipeline.btf.interpolation import ProductInterpolator, offgrid_directions
 from pipeline.data.directions import btf_directions
 from pipeline.render.engine import render, render_with_stats, strata, subpixel_offsets
-from pipeline.render.materials import LambertianTexture, LinearMaterial, MeasuredMaterial
+from pipeline.render.materials import (
+    AnalyticMaterial,
+    BeyondGridIndicator,
+    GridClamped,
+    LambertianTexture,
+    LinearMaterial,
+    MeasuredMaterial,
+    beyond_grid,
+    clamp_to_grid,
+)
 from pipeline.render.scene import (
     Camera,
     DirectionalLight,
@@ -257,6 +267,116 @@ def test_measured_material_clamps_grazing_directions_to_the_outer_ring():
     grazing[:, [0, 2]] = np.radians([85.0, 89.0])
     texels = np.arange(50) % 4
     np.testing.assert_array_equal(material.evaluate(texels, grazing), values[texels, columns])
+
+
+def _queries(count: int, seed: int) -> np.ndarray:
+    """(count, 4) directions over the whole hemisphere and a little below it, phi of any
+    turn: grazing ones beyond the grid's 75-degree ring included."""
+    rng = np.random.default_rng(seed)
+    theta = rng.uniform(0.0, np.radians(95.0), (count, 2))
+    phi = rng.uniform(-7.0, 7.0, (count, 2))
+    return np.column_stack([theta[:, 0], phi[:, 0], theta[:, 1], phi[:, 1]])
+
+
+def test_analytic_material_is_the_generator_at_any_direction():
+    from pipeline.btf.synthetic import SyntheticBTF
+
+    fabric = SyntheticBTF(size=12, seed=3)
+    truth = AnalyticMaterial(fabric, offset=(2, 3), crop_size=(4, 6))  # not square: rows, cols
+    queries = _queries(60, seed=0)
+    expected = fabric.evaluate(queries)[:, 2:6, 3:9].reshape(60, 24, 3)  # (q, texel, 3)
+    texels = np.tile(np.arange(24), 60)
+    found = truth.evaluate(texels, np.repeat(queries, 24, axis=0)).reshape(60, 24, 3)
+    np.testing.assert_allclose(found, expected, rtol=1e-5, atol=1e-6)
+    # No clamp: beyond the grid the truth is not its value on the 75-degree ring.
+    grazing = np.radians([[85.0, 10.0, 20.0, 200.0]])
+    clamped = np.column_stack([clamp_to_grid(grazing[:, :2]), grazing[:, 2:]])
+    at_grazing = truth.evaluate(np.arange(24), np.repeat(grazing, 24, axis=0))
+    np.testing.assert_allclose(at_grazing, fabric.evaluate(grazing)[0, 2:6, 3:9].reshape(24, 3),
+                               rtol=1e-5, atol=1e-6)
+    assert not np.allclose(at_grazing, truth.evaluate(np.arange(24), np.repeat(clamped, 24, 0)))
+
+
+@pytest.mark.parametrize("ext", ["png", "jpg"])
+def test_analytic_material_agrees_with_the_measured_data_at_grid_directions(tmp_path, ext):
+    """The truth and the reference interpolate the same thing: the generator's values, as
+    the built-in dataset writes them (gamma 2.2, 8-bit: PNG, or JPEG q95) and the reader
+    decodes them, cropped as the crop stage cuts, at every grid direction pair."""
+    from pipeline.btf.synthetic import SyntheticBTF, write_synthetic_btf
+    from pipeline.data.btf import load_btf
+
+    root = write_synthetic_btf(tmp_path / "btf", size=12, seed=1, ext=ext)
+    data = load_btf(root)
+    images, directions = np.asarray(data.images), np.asarray(data.directions)
+    (y0, x0), size = (2, 5), 6
+    abrdf = images[:, y0 : y0 + size, x0 : x0 + size].reshape(len(images), -1, 3)
+    measured = MeasuredMaterial(abrdf.transpose(1, 0, 2).copy(), (size, size), directions)
+    truth = AnalyticMaterial(SyntheticBTF(size=12, seed=1), (y0, x0), (size, size))
+    texels = np.tile(np.arange(size * size), len(directions))
+    pairs = np.repeat(directions, size * size, axis=0)
+    error = truth.evaluate(texels, pairs) - measured.evaluate(texels, pairs)
+    rounding = 2.2 * 0.5 / 255  # half an 8-bit step of gamma 2.2, at its steepest
+    if ext == "png":  # lossless: only the 8-bit rounding of the encoded value
+        assert np.abs(error).max() <= rounding + 1e-6
+        # ... which a wrong direction convention (phi mirrored) is far from.
+        mirrored = truth.evaluate(texels, pairs * [1, -1, 1, -1]) - measured.evaluate(
+            texels, pairs)
+        assert np.abs(mirrored).max() > 10 * rounding
+    else:  # JPEG q95 adds its own rounding: the built-in data's distance from its truth
+        assert np.sqrt(np.mean(np.square(error))) < 0.012
+
+
+def test_analytic_material_rejects_a_crop_outside_the_texture():
+    from pipeline.btf.synthetic import SyntheticBTF
+
+    with pytest.raises(ValueError, match="does not fit the generator's 12x12"):
+        AnalyticMaterial(SyntheticBTF(size=12), offset=(8, 0), crop_size=(6, 6))
+
+
+def test_beyond_grid_marks_what_the_clamp_moves():
+    grid = btf_directions()
+    assert not beyond_grid(grid[:, :2]).any() and not beyond_grid(grid[:, 2:]).any()
+    queries = _queries(2000, seed=1)[:, :2]
+    moved = np.abs(clamp_to_grid(queries)[:, 0] - queries[:, 0]) > 1e-8
+    np.testing.assert_array_equal(beyond_grid(queries), moved)
+    assert 0 < moved.mean() < 1  # both cases occur
+
+
+def test_grid_clamped_material_answers_at_the_clamped_directions():
+    from pipeline.btf.synthetic import SyntheticBTF
+
+    truth = AnalyticMaterial(SyntheticBTF(size=8), (0, 0), (8, 8))
+    queries = _queries(300, seed=2)
+    texels = np.arange(300) % 64
+    clamped = np.column_stack([clamp_to_grid(queries[:, :2]), clamp_to_grid(queries[:, 2:])])
+    np.testing.assert_array_equal(GridClamped(truth).evaluate(texels, queries),
+                                  truth.evaluate(texels, clamped))
+    # The measured material clamps by itself: wrapping it changes nothing.
+    _, measured = _measured()
+    np.testing.assert_array_equal(GridClamped(measured).evaluate(texels % 4, queries),
+                                  measured.evaluate(texels % 4, queries))
+
+
+def test_beyond_grid_share_is_zero_within_the_grid_and_counts_grazing_light():
+    from pipeline.render.stage import beyond_grid_shares
+
+    camera = _camera()  # looking straight down: views within about 25 degrees of the normal
+    grazing = np.array([np.sin(np.radians(85.0)), np.cos(np.radians(85.0)), 0.0])
+    crops, size = {"dark": [6, 6], "bright": [5, 7]}, 4
+
+    def shares(lights):
+        scene = Scene(_floor_quad(), camera, lights)
+        image, stats = render_with_stats(scene, BeyondGridIndicator((TEXELS, TEXELS)), 4, 0)
+        assert stats.lit_cloth[6:10, 6:10].min() == 1  # the crops are wholly on lit cloth
+        return beyond_grid_shares(image, stats.lit_cloth, crops, size)
+
+    within = shares([DirectionalLight(SUN, [1.0, 1.0, 1.0])])
+    assert within == {"beyond_grid_share": 0.0, "beyond_grid_share_dark": 0.0,
+                      "beyond_grid_share_bright": 0.0}
+    # One light within the grid and one grazing, of equal irradiance: half the pairs.
+    both = shares([DirectionalLight(SUN, [1.0, 1.0, 1.0]),
+                   DirectionalLight(grazing, [1.0, 1.0, 1.0])])
+    assert both == pytest.approx({name: 0.5 for name in within})
 
 
 def _pca(texels: int = 6, components: int = 3, seed: int = 4):

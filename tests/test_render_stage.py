@@ -1,4 +1,6 @@
-"""The render stages of method A (pipeline/render/stage.py) and Fig. 8 / Tables 3-4."""
+"""The render stages of method A (pipeline/render/stage.py) and Fig. 8 / Tables 3-4:
+scored against the analytic truth for the built-in material, against the measured
+reference (every material clamped to the grid) for measured data."""
 
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from pipeline.render.stage import (
     compare,
     high_frequency_energy,
     render_settings,
+    scores,
     window_sums,
 )
 
@@ -92,7 +95,63 @@ def test_render_settings_are_not_part_of_the_recipe():
     assert recipe_id(flatten(plain)) == recipe_id(flatten(rendered))
 
 
+def test_scores_name_what_each_render_is_compared_with():
+    rng = np.random.default_rng(2)
+    model, reference, truth = (rng.random((16, 16, 3)).astype(np.float32) for _ in range(3))
+    crops, coverage = {"dark": [0, 0], "bright": [8, 8]}, np.ones((16, 16), np.float32)
+    found = scores(model, reference, coverage, crops, 8, truth)
+    for prefix, (a, b) in {"render_": (model, reference), "render_truth_": (model, truth),
+                           "render_reference_truth_": (reference, truth)}.items():
+        for name, value in compare(a, b, coverage, crops, 8).items():
+            assert found[prefix + name] == value, prefix + name
+    assert len(found) == 15
+    assert set(scores(model, reference, coverage, crops, 8)) == {
+        f"render_{name}" for name in compare(model, reference, coverage, crops, 8)}
+
+
+def _hand_made_runs() -> pd.DataFrame:
+    """Labelled rendered runs of two datasets: "built-in" with truth metrics (two seeds of
+    one model, one reference render), "measured" without."""
+    rows = []
+    for dataset, truth, seed in (("built-in", True, 0), ("built-in", True, 1),
+                                 ("measured", False, 0)):
+        row = {"dataset": dataset, "model": "k = 8", "order": 8.0, "seed": seed,
+               "run_id": f"{dataset}{seed}", "tags.cache.render_reference": f"ref-{dataset}",
+               "tags.cache.render_truth": "truth" if truth else None,
+               "metrics.render_rmse_dark": 0.1 + seed, "metrics.render_rmse_dark_spp4": 0.2,
+               "metrics.render_beyond_grid_share_dark": 0.25 if truth else 0.0}
+        if truth:
+            row.update({"metrics.render_truth_rmse_dark": 0.3 + seed,
+                        "metrics.render_truth_rmse_dark_spp4": 0.4,
+                        "metrics.render_reference_truth_rmse_dark": 0.05,
+                        "metrics.render_reference_truth_rmse_dark_spp4": 0.06})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def test_each_dataset_is_scored_against_its_truth_if_it_has_one_else_the_reference():
+    from pipeline.render.report import REFERENCE, TRUTH, scored_runs, table_crop
+
+    scored = scored_runs(_hand_made_runs())
+    models = scored[scored["model"] == "k = 8"].set_index("run_id")
+    assert list(models["scored against"]) == [TRUTH, TRUTH, REFERENCE]
+    assert list(models["metrics.scored_rmse_dark"]) == [0.3, 1.3, 0.1]
+    assert list(models["metrics.scored_rmse_dark_spp4"]) == [0.4, 0.4, 0.2]
+    # One reference row for the built-in dataset (two runs share its render), none else.
+    reference = scored[scored["model"] == REFERENCE]
+    assert list(reference["dataset"]) == ["built-in"]
+    assert list(reference["metrics.scored_rmse_dark"]) == [0.05]
+    table = table_crop(scored, "dark")
+    assert list(table.columns) == ["scored against", REFERENCE, "k = 8", "beyond grid"]
+    assert table.loc["built-in", REFERENCE] == "0.0500 (n=1)"
+    assert table.loc["measured", REFERENCE] == "–"
+    assert table.loc["built-in", "k = 8"] == "0.8000 ± 0.7071 (n=2)"
+    assert list(table["beyond grid"]) == ["25.0 %", "0.0 %"]
+
+
 def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlflow_template):
+    """The built-in material: the truth is rendered beside the reference, every run is
+    scored against both, and the tables score against the truth."""
     from pipeline.app import run_job
     from pipeline.tables import build_tables, default_settings
 
@@ -107,7 +166,8 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     experiment = client.get_experiment_by_name("render_smoke")
     pca, run = client.search_runs([experiment.experiment_id], order_by=["start_time DESC"])
     assert pca.data.params["method.name"] == "pca"
-    assert pca.data.tags["cache.render_reference"] == run.data.tags["cache.render_reference"]
+    for stage in ("render_reference", "render_truth"):  # one reference and one truth
+        assert pca.data.tags[f"cache.{stage}"] == run.data.tags[f"cache.{stage}"]
     assert np.isfinite(pca.data.metrics["render_rmse_bright"])
     for artifacts in (pca, run):  # every model's run keeps the same evaluation files
         logged = {a.path for a in client.list_artifacts(artifacts.info.run_id)}
@@ -115,13 +175,22 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
         assert {"metrics.json", "evaluate/rmse_per_direction.npy"} <= logged
     metrics = run.data.metrics
     for name in ("render_rmse_dark", "render_rmse_bright", "render_rmse_dark_spp1",
-                 "render_hf_ratio_bright_spp4", "render_seconds"):
+                 "render_hf_ratio_bright_spp4", "render_seconds", "render_truth_rmse_dark",
+                 "render_truth_rmse_cloth_spp1", "render_truth_hf_ratio_dark_spp4",
+                 "render_reference_truth_rmse_bright", "render_reference_truth_hf_ratio_dark"):
         assert np.isfinite(metrics[name]), name
     assert metrics["render_rmse_dark"] == metrics["render_rmse_dark_spp4"]
-    assert {"cache.render", "cache.render_reference"} <= set(run.data.tags)
+    assert metrics["render_truth_rmse_cloth"] == metrics["render_truth_rmse_cloth_spp4"]
+    for region in ("", "_dark", "_bright"):
+        assert 0 <= metrics[f"render_beyond_grid_share{region}"] <= 1
+    for name in ("render_reference_truth_rmse_cloth", "render_beyond_grid_share"):
+        assert pca.data.metrics[name] == metrics[name]  # the same reference, truth and crops
+    # The reference is near the truth (the data's JPEG rounding and the clamp), the model not.
+    assert metrics["render_reference_truth_rmse_cloth"] < 0.05
+    assert {"cache.render", "cache.render_reference", "cache.render_truth"} <= set(run.data.tags)
     logged = {a.path for a in client.list_artifacts(run.info.run_id, "render")}
     assert {"render/model_spp4.png", "render/model_spp4.exr", "render/reference_spp4.png",
-            "render/model_spp1.png", "render/crops.json"} <= logged
+            "render/truth_spp4.png", "render/model_spp1.png", "render/crops.json"} <= logged
 
     settings = default_settings()
     settings.experiments = ["render_smoke"]
@@ -129,22 +198,68 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     for name in ("table3_render_dark.md", "table4_render_bright.md", "render_graininess.md",
                  "render_cloth.md"):
         assert (out / name).is_file(), name
+        text = (out / name).read_text()
+        assert "against the analytic truth" in text and "measured reference" in text, name
+        assert "against the measured reference" not in text, name
     table3 = (out / "table3_render_dark.md").read_text()
     assert "k = 8" in table3 and "PCA c = 2" in table3
     cloth = pd.read_csv(out / "render_cloth.csv")
     assert sorted(cloth["spp"]) == [1, 4]  # one row per spp level of render_smoke
-    top = cloth.loc[cloth["spp"] == 4, "k = 8"].item()
-    assert top.startswith(f"{metrics['render_rmse_cloth']:.4f}")  # the run's own metric
+    top = cloth.loc[cloth["spp"] == 4]
+    assert top["k = 8"].item().startswith(f"{metrics['render_truth_rmse_cloth']:.4f}")
+    assert top["measured reference"].item().startswith(
+        f"{metrics['render_reference_truth_rmse_cloth']:.4f}")
+    assert top["beyond grid"].item() == f"{100 * metrics['render_beyond_grid_share']:.1f} %"
+    grain = pd.read_csv(out / "render_graininess.csv")
+    assert set(grain["model"]) == {"measured reference", "k = 8", "PCA c = 2"}
+    assert "dark: HF energy / truth" in grain
     figures = sorted(out.glob("fig8_*.png"))
     assert [p.name.endswith("_crops_per_spp.png") for p in figures] == [False, True]
     assert all(p.stat().st_size > 0 for p in figures)
-    assert len(list(out.glob("fig8_*.exr"))) == 3  # the reference and the two models
+    assert len(list(out.glob("fig8_*.exr"))) == 4  # the truth, the reference, two models
+
+
+def test_measured_data_is_scored_against_the_reference_with_every_material_clamped(
+        tmp_path, mlflow_template):
+    """Data without a generator (a dataset folder): no truth; the model is queried at
+    directions clamped onto the grid, and the tables say they score against the reference."""
+    from pipeline.app import run_job
+    from pipeline.btf.synthetic import write_synthetic_btf
+    from pipeline.core.cache import StageCache
+    from pipeline.tables import build_tables, default_settings
+
+    runs_dir = tmp_path / "runs"
+    mlflow_template(runs_dir)
+    root = write_synthetic_btf(tmp_path / "WOOL", size=16)
+    run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}",
+                           "dataset=ubo2003", f"dataset.root={root}", "method=pca",
+                           "method.n_components=2"))
+    client = MlflowClient(tracking_uri(runs_dir))
+    experiment = client.get_experiment_by_name("render_smoke")
+    (run,) = client.search_runs([experiment.experiment_id])
+    metrics = run.data.metrics
+    assert not any(name.startswith(("render_truth", "render_reference_truth"))
+                   for name in metrics)
+    assert "cache.render_truth" not in run.data.tags
+    assert 0 <= metrics["render_beyond_grid_share"] <= 1
+    entry = StageCache(runs_dir / "cache").lookup("render", run.data.tags["cache.render"])
+    assert entry.manifest["summary"]["beyond_grid"] == "clamped to the grid"
+
+    settings = default_settings()
+    settings.experiments = ["render_smoke"]
+    out = build_tables(runs_dir, settings)
+    for name in ("table3_render_dark.md", "render_cloth.md", "render_graininess.md"):
+        text = (out / name).read_text()
+        assert "against the measured reference" in text, name
+        assert "analytic truth" not in text, name
+    assert "dark: HF energy / reference" in pd.read_csv(out / "render_graininess.csv")
+    assert len(list(out.glob("fig8_*.exr"))) == 2  # the reference and the model
 
 
 def test_the_render_benchmark_runs_each_material_on_the_same_rays(capsys):
     from pipeline.render.bench import main
 
     found = main(["--size", "16", "--spp", "1", "--crop", "4"])
-    assert set(found) == {"lambertian", "measured", "neural"}
+    assert set(found) == {"lambertian", "measured", "neural", "truth", "beyond grid"}
     assert len({stats.material_queries for stats in found.values()}) == 1
     assert "x lambertian" in capsys.readouterr().out

@@ -248,22 +248,57 @@ class SyntheticBTF:
         ).astype(np.float32)
         return flat
 
+    def evaluate_pairs(self, texels: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Values of single texels, each at its own directions (what a renderer asks for).
+
+        Parameters
+        ----------
+        texels : array_like of shape (n,), flat texel indices (row * size + col).
+        directions : array_like of shape (n, 4), (θ_light, φ_light, θ_view, φ_view) in
+            radians.
+
+        Returns
+        -------
+        ndarray of shape (n, 3), float32: ``evaluate(directions)[i, row_i, col_i]``.
+        """
+        texels = np.asarray(texels, dtype=np.int64)
+        directions = np.asarray(directions, dtype=np.float64)
+        if directions.shape != (len(texels), 4):
+            raise ConfigError(f"directions must have shape ({len(texels)}, 4), got "
+                              f"{directions.shape}")
+        if texels.size and (texels.min() < 0 or texels.max() >= self.size**2):
+            raise ConfigError(f"texel indices must lie in [0, {self.size**2})")
+        maps = {name: values[texels] if name == "albedo_over_pi" else values[..., texels]
+                for name, values in self._flat_maps.items()}
+        return self._shade(directions, maps, pairs=True)
+
     def _evaluate_chunk(self, directions: np.ndarray) -> np.ndarray:
         """(c, 4) directions to (c, P, 3) float32 values, P = size²."""
-        maps = self._flat_maps
+        return self._shade(directions, self._flat_maps, pairs=False)
+
+    def _shade(self, directions: np.ndarray, maps: dict, pairs: bool) -> np.ndarray:
+        """The shading of texels ``maps`` (texel axis last; ``albedo_over_pi`` first) at
+        ``directions`` (c, 4): every direction at every texel, (c, P, 3), or with
+        ``pairs`` the i-th direction at the i-th texel, (c, 3)."""
+        def per_direction(values):  # (c,) -> broadcast against the texel axis
+            return values if pairs else values[:, None]
+
+        def dot(vectors, frames):  # (c, 3) with (3, P): (c, P), or (3, c) pairwise: (c,)
+            return np.sum(vectors.T * frames, axis=0) if pairs else vectors @ frames
+
         theta_light = np.clip(directions[:, 0], 0.0, np.pi)
         theta_view = np.clip(directions[:, 2], 0.0, np.pi)
         light = unit_vectors(theta_light, directions[:, 1]).astype(np.float32)
         view = unit_vectors(theta_view, directions[:, 3]).astype(np.float32)
         halfway = light + view
         halfway /= np.maximum(np.linalg.norm(halfway, axis=1, keepdims=True), 1e-12)
-        light_dot_half = np.clip(np.sum(light * halfway, axis=1), 1e-4, 1.0)[:, None]  # (c, 1)
+        light_dot_half = per_direction(np.clip(np.sum(light * halfway, axis=1), 1e-4, 1.0))
 
-        n_dot_l = light @ maps["normal"]  # (c, P)
-        n_dot_v = view @ maps["normal"]
-        n_dot_h = halfway @ maps["normal"]
-        t_dot_h = halfway @ maps["tangent"]
-        b_dot_h = halfway @ maps["bitangent"]
+        n_dot_l = dot(light, maps["normal"])  # (c, P), or (c,) for pairs
+        n_dot_v = dot(view, maps["normal"])
+        n_dot_h = dot(halfway, maps["normal"])
+        t_dot_h = dot(halfway, maps["tangent"])
+        b_dot_h = dot(halfway, maps["bitangent"])
 
         # Ashikhmin–Shirley: (n·h)^((n_u (t·h)² + n_v (b·h)²) / (1 - (n·h)²)); in an
         # orthonormal frame 1 - (n·h)² = (t·h)² + (b·h)², which stays finite at n = h.
@@ -292,11 +327,11 @@ class SyntheticBTF:
         features = occlusion_features(theta_light, directions[:, 1]) + occlusion_features(
             theta_view, directions[:, 3]
         )
-        occlusion = np.exp(-(features.astype(np.float32) @ maps["occlusion_weights"]))
+        occlusion = np.exp(-dot(features.astype(np.float32), maps["occlusion_weights"]))
         # Fade texels whose local surface turns away from the viewer (seen at a graze).
         facing = np.clip(n_dot_v / 0.2, 0.0, 1.0)
         facing = facing * facing * (3 - 2 * facing)
-        above = ((np.cos(theta_light) > 0) & (np.cos(theta_view) > 0))[:, None]
+        above = per_direction((np.cos(theta_light) > 0) & (np.cos(theta_view) > 0))
         exposure = self.preset.exposure
         weight = np.where(above, exposure * np.maximum(n_dot_l, 0) * occlusion * facing, 0.0)
         values = weight[..., None] * (maps["albedo_over_pi"] + specular[..., None])

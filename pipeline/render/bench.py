@@ -7,7 +7,10 @@ second:
 - ``lambertian``: a checkerboard albedo, nearly free to evaluate: the ray engine's share;
 - ``measured``: the reference, interpolating a random crop of all 81 x 81 directions;
 - ``neural``: a compressed BTF file with the paper's decoder and one latent per texel
-  (random weights: the cost of a query does not depend on training).
+  (random weights: the cost of a query does not depend on training);
+- ``truth``: the built-in material's analytic generator (the ``render_truth`` stage);
+- ``beyond grid``: the indicator that measures the share of samples beyond the measured grid
+  (rendered once beside the reference).
 
 The differences to ``lambertian`` are the materials' own cost. Figures are measured in the
 one run, so compare them as ratios; on a shared machine absolute times move.
@@ -25,13 +28,20 @@ import numpy as np
 
 
 def materials(crop: int, folder: Path, seed: int = 0) -> dict:
-    """The three benchmark materials for a crop x crop texture."""
+    """The benchmark materials for a crop x crop texture."""
     import torch
 
     from pipeline.btf.compressed import write_compressed
     from pipeline.btf.model import LATENT_DIM, Decoder
+    from pipeline.btf.synthetic import SyntheticBTF
     from pipeline.data.directions import btf_directions
-    from pipeline.render.materials import CompressedMaterial, LambertianTexture, MeasuredMaterial
+    from pipeline.render.materials import (
+        AnalyticMaterial,
+        BeyondGridIndicator,
+        CompressedMaterial,
+        LambertianTexture,
+        MeasuredMaterial,
+    )
 
     rng = np.random.default_rng(seed)
     checker = (np.indices((crop, crop)).sum(0) % 2 * 0.6 + 0.2).astype(np.float32)
@@ -44,6 +54,9 @@ def materials(crop: int, folder: Path, seed: int = 0) -> dict:
         "lambertian": LambertianTexture(np.repeat(checker[..., None], 3, axis=2)),
         "measured": MeasuredMaterial(values, (crop, crop), btf_directions()),
         "neural": CompressedMaterial.from_file(path),
+        "truth": AnalyticMaterial(SyntheticBTF(size=max(crop, 2), seed=seed), (0, 0),
+                                  (crop, crop)),
+        "beyond grid": BeyondGridIndicator((crop, crop)),
     }
 
 

@@ -12,6 +12,24 @@ perpendicular to the light, i.e. it already contains the cosine foreshortening
 - :class:`MeasuredMaterial`: the measured 81 x 81 directions, interpolated (the reference).
 - :class:`LinearMaterial`: the PCA baseline's reconstruction, interpolated the same way.
 - :class:`CompressedMaterial`: a compressed BTF file (``pipeline.btf.compressed``).
+- :class:`AnalyticMaterial`: the built-in material's generator (``pipeline.btf.synthetic``),
+  the truth at every direction.
+- :class:`GridClamped`: any material queried at directions clamped onto the measured grid.
+- :class:`BeyondGridIndicator`: 1 where a query lies beyond the grid, to measure how much of a
+  render the grid does not cover.
+
+Directions beyond the grid
+--------------------------
+The measured directions end at the theta = 75 degree ring. A query beyond the polygon of
+that ring's 24 directions (:func:`beyond_grid`) has no measured neighbours: the measured
+BTF and the PCA baseline, which store values at the grid only, answer it with their value
+clamped onto the ring (:func:`clamp_to_grid`: theta lowered, phi kept), while a neural
+decoder would extrapolate. Where a render has no truth (measured data), every material is
+queried through the same clamp (:class:`GridClamped`), so that renders differ by their
+reconstruction of the measured domain only, never by an extrapolation that nothing can
+check; the share of samples beyond the grid is reported with each render. Where the
+generator is at hand (the built-in material), the truth is evaluated unclamped and each
+model as it is.
 
 Examples
 --------
@@ -31,7 +49,7 @@ from pipeline.btf.interpolation import ProductInterpolator
 from pipeline.btf.stereographic import stereographic
 from pipeline.data.directions import RINGS_DEGREES, btf_directions, unit_vectors
 
-# Queries interpolated at once by MeasuredMaterial (bounds its temporary arrays).
+# Queries answered at once by MeasuredMaterial and AnalyticMaterial (bounds their temporaries).
 _MEASURED_CHUNK = 1 << 16
 # A barycentric weight this close to 1 is a query on a grid direction: snap it to 1.
 _SNAP = 1e-7
@@ -151,6 +169,115 @@ class CompressedMaterial(Material):
 
     def _evaluate(self, texels, directions):
         return np.asarray(self.compressed.query_pairs(texels, directions), dtype=np.float32)
+
+
+class AnalyticMaterial(Material):
+    """The built-in material's analytic generator over the run's crop: the truth.
+
+    The value of crop texel (row, col) at a direction pair is
+    ``fabric.evaluate(directions)[:, offset[0] + row, offset[1] + col]``
+    (:meth:`pipeline.btf.synthetic.SyntheticBTF.evaluate`) at any direction: no grid, no
+    clamp. Units and directions are those of the measured crop (:class:`MeasuredMaterial`):
+    the generator's values are the linear RGB that the built-in dataset encodes and the
+    reader decodes again, and its phi runs from +x (texture columns, the tangent +u) to +y
+    (rows, the bitangent +v), as the renderer's does. At grid directions it therefore
+    equals the measured material up to the data's 8-bit (JPEG) rounding.
+
+    Parameters
+    ----------
+    fabric : :class:`pipeline.btf.synthetic.SyntheticBTF`
+    offset : (row, col)
+        Top-left texel of the crop in the fabric's ``size x size`` texture
+        (``btf.crop.offset``).
+    crop_size : (rows, cols)
+
+    Notes
+    -----
+    The generator evaluates every texel of its texture at each direction; a render asks
+    for one texel per direction pair, so this class evaluates the generator's shading
+    per pair (``SyntheticBTF.evaluate_pairs``), which the tests check equals ``evaluate``.
+    """
+
+    def __init__(self, fabric, offset, crop_size):
+        self.crop_size = _crop_size(crop_size)
+        try:
+            row0, col0 = (int(v) for v in offset)
+        except (TypeError, ValueError):
+            raise ValueError(f"offset={offset!r} must be (row, col)") from None
+        rows, cols = self.crop_size
+        if min(row0, col0) < 0 or row0 + rows > fabric.size or col0 + cols > fabric.size:
+            raise ValueError(
+                f"a crop of {rows}x{cols} texels at offset ({row0}, {col0}) does not fit the "
+                f"generator's {fabric.size}x{fabric.size} texture"
+            )
+        self.fabric = fabric
+        crop_rows, crop_cols = np.divmod(np.arange(self.n_texels), cols)
+        # Crop texel -> the generator's flat texel index (row * size + col).
+        self._pixel = (row0 + crop_rows) * fabric.size + col0 + crop_cols
+
+    @classmethod
+    def from_config(cls, cfg) -> AnalyticMaterial:
+        """The truth of a run on the built-in dataset: the generator of
+        ``dataset.synthetic`` (size, seed, material) over the crop ``btf.crop``."""
+        from pipeline.btf.synthetic import SyntheticBTF
+
+        gen = cfg.dataset.synthetic
+        fabric = SyntheticBTF(size=int(gen.size), seed=int(gen.seed), material=str(gen.material))
+        size = int(cfg.btf.crop.size)
+        return cls(fabric, [int(v) for v in cfg.btf.crop.offset], (size, size))
+
+    def _evaluate(self, texels, directions):
+        out = np.empty((len(texels), 3), dtype=np.float32)
+        for start in range(0, len(texels), _MEASURED_CHUNK):
+            stop = start + _MEASURED_CHUNK
+            out[start:stop] = self.fabric.evaluate_pairs(
+                self._pixel[texels[start:stop]], directions[start:stop]
+            )
+        return out
+
+
+class GridClamped(Material):
+    """``material`` queried at directions clamped onto the measured grid
+    (:func:`clamp_to_grid`, light and view alike): the rule for directions beyond the grid
+    where a render has no truth (module docstring). The measured and PCA materials clamp
+    already, so for them this changes nothing.
+
+    Parameters
+    ----------
+    material : :class:`Material`
+    """
+
+    def __init__(self, material: Material):
+        if not callable(getattr(material, "evaluate", None)):
+            raise ValueError(f"{material!r} has no evaluate(texels, directions) method")
+        self.crop_size = _crop_size(material.crop_size)
+        self.material = material
+
+    def _evaluate(self, texels, directions):
+        clamped = np.column_stack(
+            [clamp_to_grid(directions[:, :2]), clamp_to_grid(directions[:, 2:])]
+        )
+        return np.asarray(self.material.evaluate(texels, clamped), dtype=np.float32)
+
+
+class BeyondGridIndicator(Material):
+    """Marks the queries beyond the measured grid: RGB = (light or view beyond, light
+    beyond, 1) (:func:`beyond_grid`), whatever the texel.
+
+    Rendered with the same samples as the models, channel 0 over channel 2 is, per pixel,
+    the share of its (camera sample, light) pairs whose light or view lies beyond the grid,
+    each pair weighted by the light's irradiance there (the renderer multiplies every
+    material value by it; with one light the weights vary little across a pixel or crop);
+    channel 1 over channel 2 the same for the light alone.
+    """
+
+    def __init__(self, crop_size):
+        self.crop_size = _crop_size(crop_size)
+
+    def _evaluate(self, texels, directions):
+        light = beyond_grid(directions[:, :2])
+        either = light | beyond_grid(directions[:, 2:])
+        return np.column_stack([either, light, np.ones(len(texels))]).astype(np.float32)
 
 
 class MeasuredMaterial(Material):
@@ -331,13 +458,46 @@ class _Barycentric:
 
 
 _OUTER_THETA, _OUTER_COUNT = np.radians(RINGS_DEGREES[-1][0]), RINGS_DEGREES[-1][1]
+# A direction this far (radians) outside the grid's polygon counts as beyond it: grid
+# directions on the 75-degree ring itself are inside, whatever their rounding.
+_BEYOND_TOLERANCE = 1e-9
+
+
+def _edge_theta(phi: np.ndarray, shrink: float = 1.0) -> np.ndarray:
+    """Theta of the grid's outer polygon at azimuth ``phi`` (its radius times ``shrink``).
+
+    The 24 directions of the 75-degree ring span, in stereographic coordinates (radius
+    tan(theta / 2)), a regular polygon; outside it the triangulation has no triangle.
+    """
+    step = 2.0 * np.pi / _OUTER_COUNT
+    offset = np.mod(phi, step) - step / 2.0  # azimuth from the middle of the polygon's edge
+    edge_radius = np.tan(_OUTER_THETA / 2.0) * np.cos(step / 2.0) / np.cos(offset)
+    return 2.0 * np.arctan(edge_radius * shrink)
+
+
+def beyond_grid(angles: np.ndarray) -> np.ndarray:
+    """Whether each direction lies beyond the measured grid's outer polygon.
+
+    Parameters
+    ----------
+    angles : ndarray of shape (n, 2), (theta, phi) in radians.
+
+    Returns
+    -------
+    ndarray of shape (n,), bool: True where :func:`clamp_to_grid` moves the direction (by
+    more than a rounding error), i.e. where no measured value surrounds it.
+
+    Examples
+    --------
+    >>> beyond_grid(np.radians([[75.0, 0.0], [75.0, 7.5], [74.0, 7.5], [80.0, 30.0]]))
+    array([False,  True, False,  True])
+    """
+    angles = np.asarray(angles, dtype=np.float64)
+    return angles[:, 0] > _edge_theta(angles[:, 1]) + _BEYOND_TOLERANCE
 
 
 def clamp_to_grid(angles: np.ndarray) -> np.ndarray:
     """Lower theta onto the grid's outer polygon where a direction lies beyond it.
-
-    The 24 directions of the 75-degree ring span, in stereographic coordinates (radius
-    tan(theta / 2)), a regular polygon; outside it the triangulation has no triangle.
 
     Parameters
     ----------
@@ -348,8 +508,5 @@ def clamp_to_grid(angles: np.ndarray) -> np.ndarray:
     ndarray of shape (n, 2): theta clamped to the polygon (slightly inside it), phi kept.
     """
     theta, phi = angles[:, 0], angles[:, 1]
-    step = 2.0 * np.pi / _OUTER_COUNT
-    offset = np.mod(phi, step) - step / 2.0  # azimuth from the middle of the polygon's edge
-    edge_radius = np.tan(_OUTER_THETA / 2.0) * np.cos(step / 2.0) / np.cos(offset)
-    theta_max = 2.0 * np.arctan(edge_radius * (1.0 - 1e-9))
+    theta_max = _edge_theta(phi, shrink=1.0 - 1e-9)
     return np.column_stack([np.where(theta > theta_max, theta_max, theta), phi])

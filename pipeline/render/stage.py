@@ -1,25 +1,52 @@
 """Method A's render stages: Fig. 8 and Tables 3-4 of the clustering paper.
 
     crop   -> render_reference   the measured BTF, interpolated between its 81 x 81 directions
-    export -> render             the run's compressed BTF (Neural BTF or clustered), compared
-                                 with the reference: same scene, same samples, same seed
+    crop   -> render_truth       the built-in material's analytic generator (when the data is
+                                 the built-in synthetic BTF): the truth, at every direction
+    export -> render             the run's compressed BTF (Neural BTF or clustered), scored
+                                 against the reference (and the truth): same scene, samples, seed
     linear -> render             or the PCA baseline, interpolated like the measured BTF
 
-Both render :func:`pipeline.render.scene.default_scene` with the crop tiled over the sheet,
+Each renders :func:`pipeline.render.scene.default_scene` with the crop tiled over the sheet,
 once per entry of ``btf.render.spp`` (say 1, 16 and 128 samples per pixel), so that the
 graininess of a reconstruction can be followed as the samples average over each pixel.
 
-Two crops of the rendered frame, a dark and a bright region, are compared with the
-reference at every spp (Tables 3 and 4 at the largest): the RMSE of linear radiance, and
-the ratio of high-frequency energy (the image minus its Gaussian blur, sigma 1 pixel) of the
-model's crop to the reference's, which is above 1 where the model adds grain. Unless
-given (``btf.render.crops``), the crops are chosen on the reference at the largest spp: of
-the windows wholly on lit cloth (every camera sample of every pixel on cloth that a light
-sees: no background, floor, shadow or silhouette), the darkest and the brightest by mean
-luminance.
+Scoring. Two crops of the rendered frame, a dark and a bright region, and every pixel
+wholly on lit cloth are compared at every spp (Tables 3 and 4 at the largest): the RMSE
+of linear radiance, and the ratio of high-frequency energy (the image minus its Gaussian
+blur, sigma 1 pixel) of the model's crop to the target's, above 1 where the model adds
+grain. The metrics (:func:`scores`; ``<name>`` is ``rmse_dark``, ``rmse_bright``,
+``rmse_cloth``, ``hf_ratio_dark`` or ``hf_ratio_bright``, each also per spp with
+``_spp<N>``):
 
-Both stages' code version (``version=`` below) covers :mod:`pipeline.render.scene`,
-``engine`` and ``materials`` too: bump it when a change there alters the images.
+- ``render_<name>``: the model against the measured reference render;
+- ``render_truth_<name>``: the model against the truth render (built-in material only);
+- ``render_reference_truth_<name>``: the reference itself against the truth, logged on
+  every run: the floor of what scoring against the reference can show;
+- ``render_beyond_grid_share`` and ``render_beyond_grid_share_{dark,bright}``: the share
+  of the (camera sample, light) pairs on the lit cloth and in each crop whose light or
+  view direction lies beyond the measured grid (weighted by the light's irradiance;
+  :class:`pipeline.render.materials.BeyondGridIndicator`), at the largest spp.
+
+Unless given (``btf.render.crops``), the crops are chosen on the truth when there is one,
+else on the reference, at the largest spp: of the windows wholly on lit cloth (every camera
+sample of every pixel on cloth that a light sees: no background, floor, shadow or
+silhouette), the darkest and the brightest by mean luminance. The same crops score every
+comparison of a run.
+
+Directions beyond the grid (theta past the 75-degree ring). Without a truth (measured
+data), every model is queried through :class:`pipeline.render.materials.GridClamped`:
+grazing light and view are clamped onto the ring for every material alike, as the
+measured reference and the PCA baseline do by construction, so that a render differs from
+the reference by its reconstruction of the measured domain only; a neural decoder's
+extrapolation, which no measurement can check, is not scored. Samples beyond the grid
+stay in the crops and the cloth RMSE (leaving them out would move the dark crop, which
+is dark because its light grazes): their share is reported instead. With a truth, each
+model is queried as it is (a neural decoder extrapolates) and the truth, unclamped,
+scores it.
+
+The stages' code versions (``version=`` below) cover :mod:`pipeline.render.scene`,
+``engine`` and ``materials`` too: bump them when a change there alters the images.
 
 Units: the key light gives irradiance 1 at the sheet's centre, so radiance is in the BTF's
 own units (the data's linear RGB), and the RMSE is comparable with eq. 10's un-normalised.
@@ -130,9 +157,10 @@ def write_images(stem: Path, image: np.ndarray, exposure: float) -> None:
     Image.fromarray(encoded).save(stem.with_suffix(".png"))
 
 
-def choose_crops(reference: np.ndarray, lit_cloth: np.ndarray, size: int,
+def choose_crops(target: np.ndarray, lit_cloth: np.ndarray, size: int,
                  given: dict | None = None) -> dict:
-    """Top-left [row, col] of the dark and bright crops of ``reference`` (H, W, 3).
+    """Top-left [row, col] of the dark and bright crops of ``target`` (H, W, 3), the render
+    that scores the models (the truth, else the reference).
 
     A crop given in ``given`` is kept; the others are, among the windows of ``size`` pixels
     (on a grid of step size / 4) whose every pixel is wholly on lit cloth (``lit_cloth``
@@ -140,7 +168,7 @@ def choose_crops(reference: np.ndarray, lit_cloth: np.ndarray, size: int,
     luminance.
     """
     given = given or {}
-    luminance = reference @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+    luminance = target @ np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
     lit = (lit_cloth >= 1).astype(np.int64)
     # Summed-area tables: the lit count and the luminance sum of every window at once.
     count = window_sums(lit, size)
@@ -156,7 +184,7 @@ def choose_crops(reference: np.ndarray, lit_cloth: np.ndarray, size: int,
             continue
         if not full.any():
             raise ValueError(
-                f"no {size}x{size} window of the reference render is wholly on "
+                f"no {size}x{size} window of the render is wholly on "
                 "lit cloth: lower btf.render.crop_size or give btf.render.crops"
             )
         flat = pick(np.where(full, total[np.ix_(rows, cols)],
@@ -181,32 +209,89 @@ def high_frequency_energy(image: np.ndarray) -> float:
     return float(np.mean(np.square(image - blurred)))
 
 
-def compare(model: np.ndarray, reference: np.ndarray, lit_cloth: np.ndarray, crops: dict,
+def compare(model: np.ndarray, target: np.ndarray, lit_cloth: np.ndarray, crops: dict,
             size: int) -> dict:
-    """RMSE and high-frequency energy ratio of ``model`` against ``reference`` in each crop,
-    and the RMSE over every pixel wholly on lit cloth (``lit_cloth`` (H, W) is 1)."""
+    """RMSE and high-frequency energy ratio of ``model`` against ``target`` (both
+    (H, W, 3)) in each crop, and the RMSE over every pixel wholly on lit cloth
+    (``lit_cloth`` (H, W) is 1)."""
     found = {}
     for region in REGIONS:
         r, c = crops[region]
-        a, b = model[r : r + size, c : c + size], reference[r : r + size, c : c + size]
+        a, b = model[r : r + size, c : c + size], target[r : r + size, c : c + size]
         found[f"rmse_{region}"] = float(np.sqrt(np.mean(np.square(a - b, dtype=np.float64))))
-        reference_hf = high_frequency_energy(b)
+        target_hf = high_frequency_energy(b)
         found[f"hf_ratio_{region}"] = (
-            high_frequency_energy(a) / reference_hf if reference_hf > 0 else math.nan
+            high_frequency_energy(a) / target_hf if target_hf > 0 else math.nan
         )
     lit = lit_cloth >= 1
     found["rmse_cloth"] = float(
-        np.sqrt(np.mean(np.square(model[lit] - reference[lit], dtype=np.float64)))
+        np.sqrt(np.mean(np.square(model[lit] - target[lit], dtype=np.float64)))
     )
     return found
 
 
+def scores(model: np.ndarray, reference: np.ndarray, lit_cloth: np.ndarray, crops: dict,
+           size: int, truth: np.ndarray | None = None) -> dict:
+    """:func:`compare` of a model's render (H, W, 3) with the reference's (``render_*``) and,
+    given the truth's, with it (``render_truth_*``), and of the reference with the truth
+    (``render_reference_truth_*``); same crops and lit cloth for all."""
+    found = {f"render_{name}": v for name, v in
+             compare(model, reference, lit_cloth, crops, size).items()}
+    if truth is not None:
+        for prefix, image in (("render_truth_", model), ("render_reference_truth_", reference)):
+            found.update({f"{prefix}{name}": v for name, v in
+                          compare(image, truth, lit_cloth, crops, size).items()})
+    return found
+
+
+def beyond_grid_shares(indicator: np.ndarray, lit_cloth: np.ndarray, crops: dict,
+                       size: int) -> dict:
+    """Share of the samples beyond the measured grid, over the lit cloth and in each crop.
+
+    Parameters
+    ----------
+    indicator : ndarray of shape (H, W, 3)
+        A render of :class:`pipeline.render.materials.BeyondGridIndicator`: channel 0 sums
+        the (sample, light) pairs whose light or view is beyond the grid, channel 2 all
+        pairs, each weighted by the light's irradiance.
+    lit_cloth : ndarray of shape (H, W)
+        The render's coverage: the pixels where it is 1 count (those of the cloth RMSE).
+    crops : dict
+        ``{"dark": [row, col], "bright": [row, col]}``, windows of ``size`` pixels.
+
+    Returns
+    -------
+    dict: ``beyond_grid_share`` (lit cloth), ``beyond_grid_share_dark`` and ``_bright``,
+    in [0, 1]; NaN where no pixel counts.
+    """
+    lit = lit_cloth >= 1
+
+    def share(window: np.ndarray, counted: np.ndarray) -> float:
+        total = float(window[..., 2][counted].sum())
+        return float(window[..., 0][counted].sum()) / total if total > 0 else math.nan
+
+    found = {"beyond_grid_share": share(indicator, lit)}
+    for region in REGIONS:
+        r, c = crops[region]
+        found[f"beyond_grid_share_{region}"] = share(indicator[r : r + size, c : c + size],
+                                                     lit[r : r + size, c : c + size])
+    return found
+
+
+def has_truth(cfg) -> bool:
+    """Whether the run's data has an analytic truth: the built-in synthetic BTF
+    (``dataset.name`` synthetic, generated because ``dataset.root`` is null)."""
+    return cfg.dataset.name == "synthetic" and cfg.dataset.get("root") is None
+
+
 def reference_stage(ctx: Context, cropped: Entry) -> Entry:
-    """Render the measured crop (the reference) at every spp and choose the crops."""
+    """Render the measured crop (the reference) at every spp, and at the largest spp the
+    :class:`~pipeline.render.materials.BeyondGridIndicator` (``beyond_grid_spp<N>.npy``)."""
     settings = render_settings(ctx.cfg)
 
     def compute(folder: Path) -> dict:
-        from pipeline.render.materials import MeasuredMaterial
+        from pipeline.render.engine import render_with_stats
+        from pipeline.render.materials import BeyondGridIndicator, MeasuredMaterial
 
         values = cropped.array("abrdf")
         directions = cropped.array("directions", mmap=False)
@@ -216,16 +301,40 @@ def reference_stage(ctx: Context, cropped: Entry) -> Entry:
                 f"the render's reference interpolates all 81 x 81 measured directions, but the "
                 f"crop has {len(directions)}: render a dataset with every view (dataset.views=null)"
             )
-        material = MeasuredMaterial(values, (side, values.shape[0] // side), directions)
-        stats = _render_every_spp(_scene(settings), material, settings, folder, "reference")
+        crop_size = (side, values.shape[0] // side)
+        scene = _scene(settings)
+        stats = _render_every_spp(scene, MeasuredMaterial(values, crop_size, directions),
+                                  settings, folder, "reference")
         top = settings["spp"][-1]
-        crops = choose_crops(np.load(folder / f"image_spp{top}.npy"),
-                             np.load(folder / f"lit_cloth_spp{top}.npy"),
-                             settings["crop_size"], settings.get("crops"))
-        save_json(folder, "crops", crops)
-        return {"spp": stats, "crops": crops}
+        indicator, _ = render_with_stats(scene, BeyondGridIndicator(crop_size), top,
+                                         settings["seed"])
+        save_arrays(folder, **{f"beyond_grid_spp{top}": indicator})
+        return {"spp": stats}
 
-    return ctx.run("render_reference", settings, {"crop": cropped}, compute, version="3")
+    return ctx.run("render_reference", settings, {"crop": cropped}, compute, version="4")
+
+
+def truth_stage(ctx: Context, cropped: Entry) -> Entry:
+    """Render the built-in material's generator over the run's crop (the truth,
+    :class:`~pipeline.render.materials.AnalyticMaterial`) at every spp."""
+    settings = render_settings(ctx.cfg)
+    generator = plain_settings(ctx.cfg.dataset.synthetic)
+    own = {**settings,
+           "generator": {name: generator[name] for name in ("size", "seed", "material")},
+           "crop": plain_settings(ctx.cfg.btf.crop)}
+
+    def compute(folder: Path) -> dict:
+        from pipeline.render.materials import AnalyticMaterial
+
+        material = AnalyticMaterial.from_config(ctx.cfg)
+        if material.n_texels != cropped.manifest["summary"]["M"]:
+            raise ConfigError(
+                f"the truth's crop btf.crop={own['crop']} has {material.n_texels} texels, the "
+                f"measured crop {cropped.manifest['summary']['M']}"
+            )
+        return {"spp": _render_every_spp(_scene(settings), material, settings, folder, "truth")}
+
+    return ctx.run("render_truth", own, {"crop": cropped}, compute, version="1")
 
 
 def compressed_material(exported: Entry):
@@ -252,38 +361,55 @@ def linear_material(fitted: Entry, cropped: Entry, prep: Entry):
     )
 
 
-def model_stage(ctx: Context, inputs: dict[str, Entry], material, reference: Entry) -> Entry:
-    """Render a model at every spp and compare it with the reference.
+def model_stage(ctx: Context, inputs: dict[str, Entry], material, reference: Entry,
+                truth: Entry | None = None) -> Entry:
+    """Render a model at every spp and score it against the reference, and the truth when
+    given (:func:`scores`); the crops are chosen on the truth, else on the reference.
 
     ``inputs`` are the entries the model comes from (they key the stage) and ``material()``
-    builds it from them, called only when the render is not in the cache.
+    builds it from them, called only when the render is not in the cache. Without a truth,
+    the model is queried through :class:`~pipeline.render.materials.GridClamped`.
     """
     settings = render_settings(ctx.cfg)
+    beyond = "as is" if truth is not None else "clamped to the grid"
 
     def compute(folder: Path) -> dict:
-        material_ = material()
+        from pipeline.render.materials import GridClamped
+
+        material_ = material() if truth is not None else GridClamped(material())
         stats = _render_every_spp(_scene(settings), material_, settings, folder, "model")
-        crops = reference.json("crops")
+        top = settings["spp"][-1]
+        target = truth if truth is not None else reference
+        crops = choose_crops(target.array(f"image_spp{top}", mmap=False),
+                             target.array(f"lit_cloth_spp{top}", mmap=False),
+                             settings["crop_size"], settings.get("crops"))
+        save_json(folder, "crops", crops)
         metrics = {}
         for spp in settings["spp"]:
-            found = compare(
+            found = scores(
                 np.load(folder / f"image_spp{spp}.npy"),
                 reference.array(f"image_spp{spp}", mmap=False),
                 reference.array(f"lit_cloth_spp{spp}", mmap=False),
                 crops,
                 settings["crop_size"],
+                None if truth is None else truth.array(f"image_spp{spp}", mmap=False),
             )
-            metrics.update({f"render_{name}_spp{spp}": value for name, value in found.items()})
-            if spp == settings["spp"][-1]:  # the headline: Tables 3 and 4
-                metrics.update({f"render_{name}": value for name, value in found.items()})
-        top = stats[str(settings["spp"][-1])]
+            metrics.update({f"{name}_spp{spp}": value for name, value in found.items()})
+            if spp == top:  # the headline: Tables 3 and 4
+                metrics.update(found)
+        shares = beyond_grid_shares(reference.array(f"beyond_grid_spp{top}", mmap=False),
+                                    reference.array(f"lit_cloth_spp{top}", mmap=False),
+                                    crops, settings["crop_size"])
+        metrics.update({f"render_{name}": value for name, value in shares.items()})
         metrics["render_seconds"] = sum(s["seconds"] for s in stats.values())
-        metrics["render_rays_per_second"] = top["rays"] / top["seconds"]
+        metrics["render_rays_per_second"] = stats[str(top)]["rays"] / stats[str(top)]["seconds"]
         save_json(folder, "metrics", metrics)
-        return {"spp": stats}
+        return {"spp": stats, "crops": crops, "beyond_grid": beyond}
 
     inputs = {**inputs, "render_reference": reference}
-    return ctx.run("render", settings, inputs, compute, version="3")
+    if truth is not None:
+        inputs["render_truth"] = truth
+    return ctx.run("render", {**settings, "beyond_grid": beyond}, inputs, compute, version="4")
 
 
 def _entries(ctx: Context, *names: str) -> list[Entry]:
@@ -296,27 +422,36 @@ def _entries(ctx: Context, *names: str) -> list[Entry]:
 
 
 def run(ctx: Context) -> dict[str, float]:
-    """Both stages for a method A job that has just run: a compressed model (its ``crop``
-    and ``export`` stages are in ``ctx.keys``) or the PCA baseline (``crop``,
-    ``preprocess``, ``linear``); logs the images and crops under ``render/`` of the active
-    MLflow run and returns the ``render_*`` metrics."""
+    """The render stages for a method A job that has just run: a compressed model (its
+    ``crop`` and ``export`` stages are in ``ctx.keys``) or the PCA baseline (``crop``,
+    ``preprocess``, ``linear``), with the reference and, for the built-in material, the
+    truth; logs the images and crops under ``render/`` of the active MLflow run and returns
+    the ``render_*`` metrics."""
     import mlflow
 
     if ctx.cfg.method.name == "pca":
         cropped, prep, fitted = _entries(ctx, "crop", "preprocess", "linear")
-        reference = reference_stage(ctx, cropped)
-        rendered = model_stage(ctx, {"linear": fitted, "preprocess": prep},
-                               lambda: linear_material(fitted, cropped, prep), reference)
+        inputs = {"linear": fitted, "preprocess": prep}
+
+        def material():
+            return linear_material(fitted, cropped, prep)
     else:
         cropped, exported = _entries(ctx, "crop", "export")
-        reference = reference_stage(ctx, cropped)
-        rendered = model_stage(ctx, {"export": exported},
-                               lambda: compressed_material(exported), reference)
+        inputs = {"export": exported}
+
+        def material():
+            return compressed_material(exported)
+    reference = reference_stage(ctx, cropped)
+    truth = truth_stage(ctx, cropped) if has_truth(ctx.cfg) else None
+    rendered = model_stage(ctx, inputs, material, reference, truth)
     metrics = rendered.json("metrics")
     if mlflow.active_run() is not None:
         top = render_settings(ctx.cfg)["spp"][-1]
+        shown = [("model", rendered), ("reference", reference)]
+        if truth is not None:
+            shown.append(("truth", truth))
         with tempfile.TemporaryDirectory() as tmp:
-            for name, entry in (("model", rendered), ("reference", reference)):
+            for name, entry in shown:
                 for suffix in (".png", ".exr"):
                     source = entry.file(f"image_spp{top}{suffix}")
                     (Path(tmp) / f"{name}_spp{top}{suffix}").write_bytes(source.read_bytes())
@@ -324,6 +459,6 @@ def run(ctx: Context) -> dict[str, float]:
                 (Path(tmp) / f"model_{path.stem[len('image_') :]}.png").write_bytes(
                     path.read_bytes()
                 )
-            (Path(tmp) / "crops.json").write_text(json.dumps(reference.json("crops")))
+            (Path(tmp) / "crops.json").write_text(json.dumps(rendered.json("crops")))
             mlflow.log_artifacts(tmp, "render")
     return metrics
