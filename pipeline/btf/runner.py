@@ -24,10 +24,46 @@ from pipeline.btf.export import export_stage, log_compressed
 from pipeline.btf.stereographic import direction_features
 from pipeline.core.cache import Entry, save_arrays, save_json
 from pipeline.core.errors import ConfigError
+from pipeline.core.settings import Integer, ListOf, OneOf, Real, check_settings
 from pipeline.core.stage import Context, plain_settings
 
 log = logging.getLogger(__name__)
 
+
+
+STORAGE_TYPES = ("float32", "float16")
+# Method A's settings and what each may be, checked before any stage runs (train.* is
+# checked by TrainSettings itself).
+CONSTRAINTS = {
+    "seed": Integer(0, 2**32 - 1),  # k-means' and PCA's random_state take 32 bits
+    "btf.crop.size": Integer(1),
+    "btf.crop.offset": ListOf(Integer(0), length=2),
+    "btf.pca.n_components": Integer(1),
+    "btf.pca.random_state": Integer(0, 2**32 - 1),
+    "btf.kmeans.n_init": Integer(1),
+    "btf.kmeans.max_iter": Integer(1),
+    "btf.model.encoder_channels": ListOf(Integer(1)),
+    "btf.sizes.weight_dtype": OneOf(*STORAGE_TYPES),
+    "btf.sizes.list_dtype": OneOf("int32", "uint16"),
+    "btf.sizes.extra_dtype": OneOf(*STORAGE_TYPES),
+    "btf.interpolation.holdout_lights": Integer(0),
+    "btf.interpolation.offgrid": Integer(0),
+    "btf.interpolation.seed": Integer(0),
+    "method.k": Integer(1, optional=True),
+    "method.lr": Real(0.0, closed=False, optional=True),
+    "method.texel_scale": OneOf("none", "lstsq", "luminance"),
+    "method.target": OneOf("texel", "representative"),
+    "method.n_components": Integer(1),
+    "method.dtype": OneOf(*STORAGE_TYPES),
+    "method.match_clustered_k": Integer(1, optional=True),
+}
+
+
+def check_settings_at_the_door(cfg) -> None:
+    """Refuse a bad method-A setting before any stage runs, naming it and what it may be."""
+    check_settings(cfg, CONSTRAINTS)
+    if cfg.method.name != "pca":
+        _train_settings(cfg)
 
 
 def _train_settings(cfg):
@@ -195,6 +231,7 @@ def run(ctx: Context) -> dict[str, float]:
     cfg = ctx.cfg
     if cfg.method.name == "clustered" and cfg.method.get("k") is None:
         raise ConfigError("method=clustered needs method.k")
+    check_settings_at_the_door(cfg)
     loaded = stages.load(ctx)
     cropped = stages.crop(ctx, loaded)
     prep = stages.preprocess(ctx, cropped)
@@ -315,6 +352,7 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
 
 def run_linear(ctx: Context) -> dict[str, float]:
     """``method=pca``: load -> crop -> preprocess -> truncated SVD."""
+    check_settings_at_the_door(ctx.cfg)
     loaded = stages.load(ctx)
     cropped = stages.crop(ctx, loaded)
     prep = stages.preprocess(ctx, cropped)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from pipeline.core.errors import ConfigError
+from pipeline.core.settings import check_fields
 
 PRECISIONS = ("float32", "bfloat16")  # train.precision
 
@@ -66,6 +67,7 @@ class TrainSettings:
     reuse_freed_memory: bool = False
 
     def __post_init__(self):
+        check_fields(self, "train")  # types first: 1.5 epochs, "abc" as lr, NaN as a count
         if self.epochs < 1:
             raise ConfigError(f"train.epochs={self.epochs} must be >= 1")
         if self.epoch_texels is not None and self.epoch_texels < self.batch_size:

@@ -1,0 +1,57 @@
+"""Bad settings are refused before any stage runs, with a message naming the setting and
+what it may be (issue: "bad settings not refused, or refused late")."""
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.app import run_job
+from pipeline.core.errors import ConfigError
+from pipeline.core.settings import Integer, ListOf, OneOf, Real, check_settings
+
+BAD = [
+    ("train.lr=abc", "train.lr='abc' must be a finite number"),
+    ("train.lr=nan", "train.lr=nan must be a finite number"),
+    ("train.epochs=nan", "train.epochs=nan must be an integer"),
+    ("train.batch_size=nan", "train.batch_size=nan must be an integer"),
+    ("train.queries_per_abrdf=nan", "train.queries_per_abrdf=nan must be an integer"),
+    ("train.epoch_texels=nan", "train.epoch_texels=nan must be an integer"),
+    ("train.epochs=1.5", "train.epochs=1.5 must be an integer"),
+    ("train.epochs=true", "train.epochs=True must be an integer"),
+    ("btf.sizes.weight_dtype=foo", "btf.sizes.weight_dtype='foo' must be one of float32, float16"),
+    ("method.k=true", "method.k=True must be an integer >= 1 or null"),
+    ("btf.kmeans.n_init=0", "btf.kmeans.n_init=0 must be an integer >= 1"),
+    ("seed=5000000000", "seed=5000000000 must be an integer >= 0 and <= 4294967295"),
+    ("btf.crop.offset=[0]", "btf.crop.offset=[0] must be a list of 2 items"),
+]
+
+
+@pytest.mark.parametrize(("override", "message"), BAD)
+def test_a_bad_setting_is_refused_before_any_stage(smoke_cfg, override, message):
+    cfg = smoke_cfg(override)
+    with pytest.raises(ConfigError) as error:
+        run_job(cfg)
+    assert message in str(error.value)
+    cache = Path(cfg.paths.cache)
+    assert not cache.exists() or not [p for p in cache.glob("*/*") if not p.name.startswith(".")]
+    assert not Path(cfg.paths.data).exists()  # the built-in data was not even generated
+
+
+def test_the_pca_arm_checks_its_own_settings(smoke_cfg):
+    with pytest.raises(ConfigError, match="method.dtype='float64' must be one of"):
+        run_job(smoke_cfg("method=pca", "method.dtype=float64"))
+
+
+@pytest.mark.parametrize(("constraint", "good", "bad"), [
+    (Integer(1), [1, 10**12], [0, 1.0, True, None, "1", float("nan")]),
+    (Integer(0, 3, optional=True), [0, 3, None], [4, -1, 2.5]),
+    (Real(0.0, closed=False), [1e-9, 2, 0.5], [0, 0.0, -1, float("inf"), float("nan"), True, "1"]),
+    (OneOf("a", None), ["a", None], ["b", 0, False]),
+    (ListOf(Integer(0), length=2), [[0, 1], (2, 3)], [[0], [0, -1], "01", [0, 1.5]]),
+])
+def test_constraints_by_hand(constraint, good, bad):
+    for value in good:
+        check_settings({"x": value}, {"x": constraint})
+    for value in bad:
+        with pytest.raises(ConfigError, match=r"^x="):
+            check_settings({"x": value}, {"x": constraint})
