@@ -1,9 +1,15 @@
 """``python -m pipeline``: the Hydra application (see conf/config.yaml)."""
 
-import hydra
-from omegaconf import DictConfig
+# First of all: a stop signal during the imports below must end the process with a
+# message that says so, not surface as an error of whatever module was loading.
+from pipeline.core import stopping
 
-from pipeline.app import run_job
+stopping.install()
+
+import hydra  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
+
+from pipeline.app import run_job  # noqa: E402
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")

@@ -3,11 +3,8 @@
 from __future__ import annotations
 
 import logging
-import signal
 import tempfile
-import threading
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 
 import mlflow
@@ -16,6 +13,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.brdf_map import runner as brdf_runner
 from pipeline.btf import report as btf_report
 from pipeline.btf import runner as btf_runner
+from pipeline.core import stopping
 from pipeline.core.errors import ConfigError
 from pipeline.core.memory import process_peak_mb
 from pipeline.core.stage import Context
@@ -89,7 +87,11 @@ def run_job(cfg: DictConfig) -> float | None:
 
         set_omp_spin_count(cfg.train.get("omp_spin_count"))
     description = DESCRIPTIONS.get(name, "")
-    with ends_on_sigterm(), job_run(cfg, run_name=run_name, description=description):
+    # SIGTERM/SIGINT end the run FAILED and the process, wherever they land; its temporary
+    # files under these folders go with it (pipeline.core.stopping).
+    leftovers = [cfg.paths.get(folder) for folder in ("runs", "cache", "data")]
+    with stopping.job_scope(leftovers_in=[f for f in leftovers if f]), \
+            job_run(cfg, run_name=run_name, description=description):
         ctx = Context.from_config(cfg)
         try:
             metrics = METHODS[name](ctx)
@@ -106,26 +108,6 @@ def run_job(cfg: DictConfig) -> float | None:
         if name in FIGURES:
             log_job_figures(cfg, ctx.keys, FIGURES[name])
     return metrics.get("rmse")
-
-
-@contextmanager
-def ends_on_sigterm() -> Iterator[None]:
-    """Turn SIGTERM (what ``timeout``, systemd and SLURM send) into ``SystemExit`` while the
-    job runs, so that its MLflow run ends FAILED and the cache removes its temporary folder,
-    as they do for any error. Only the main thread can install a handler; elsewhere a no-op."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def stop(signum, frame):
-        log.error("stopped by signal %d (SIGTERM): the run ends FAILED", signum)
-        raise SystemExit(128 + signum)
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 # Figures drawn from a finished job's cache entries (each method's own runs log theirs).

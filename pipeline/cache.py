@@ -13,6 +13,8 @@ its inputs' keys), and anything used since the oldest RUNNING run started (a job
 its keys when it ends; :class:`~pipeline.core.cache.StageCache` marks each hit on the
 manifest's mtime). Keys are matched whatever the stage. It removes nothing when the store
 cannot be read, nor when the store knows none of the entries (the wrong ``--runs``).
+A RUNNING run whose process is gone from this machine (killed with ``kill -9``) is not
+running: ``gc`` marks it FAILED first (``ls`` and ``--dry-run`` only leave it out).
 """
 
 from __future__ import annotations
@@ -26,9 +28,17 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from pipeline.core.cache import HASH, StageCache, folder_bytes, last_used, listed_files
+from pipeline.core.cache import StageCache, folder_bytes, last_used
+from pipeline.core.digests import is_hashed, listed_files
 from pipeline.core.errors import StoreError
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.files import human
+from pipeline.core.tracking import (
+    check_sqlite_store,
+    fail_dead_runs,
+    process_gone,
+    sqlite_path,
+    tracking_uri,
+)
 
 # Hosts of a shared cache may disagree on the time by this much (seconds).
 CLOCK_SKEW_S = 600
@@ -43,6 +53,7 @@ class Usage:
     finished: set[str] = field(default_factory=set)  # keys recorded by FINISHED runs
     n_finished: int = 0
     running_since: float | None = None  # start (time.time()) of the oldest RUNNING run
+    dead: list[str] = field(default_factory=list)  # RUNNING runs whose process is gone
 
 
 @dataclass
@@ -58,13 +69,16 @@ class Row:
     inputs: list[str]
 
 
-def read_usage(runs: Path) -> Usage:
-    """The keys that FINISHED runs of the store of ``runs`` record, over all experiments."""
+def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
+    """The keys that FINISHED runs of the store of ``runs`` record, over all experiments.
+    RUNNING runs whose process is gone from this machine count as ended (``fail_dead``:
+    they are marked FAILED in the store)."""
     uri = tracking_uri(runs)
-    if uri.startswith("sqlite:"):
-        db = Path(uri.split(":///", 1)[-1])
+    db = sqlite_path(uri)
+    if db is not None:
         if not db.is_file():  # MLflow would create an empty store, which uses nothing
             raise StoreError(f"there is no MLflow store at {db} (see --runs)")
+        check_sqlite_store(db)  # nor may it write its tables into another program's file
     try:
         from mlflow.entities import ViewType
         from mlflow.tracking import MlflowClient
@@ -73,6 +87,9 @@ def read_usage(runs: Path) -> Usage:
         experiments = [e.experiment_id for e in _all_pages(
             client.search_experiments, view_type=ViewType.ACTIVE_ONLY)]
         usage = Usage(uri)
+        if fail_dead and experiments:
+            usage.dead = fail_dead_runs(client, experiments,
+                                        ended_by="its process was gone at a cache gc")
         starts = []
         runs_found = _all_pages(client.search_runs, experiment_ids=experiments,
                                 run_view_type=ViewType.ACTIVE_ONLY) if experiments else []
@@ -81,6 +98,8 @@ def read_usage(runs: Path) -> Usage:
                 usage.n_finished += 1
                 usage.finished |= {value for name, value in run.data.tags.items()
                                    if name.startswith("cache.")}
+            elif run.info.status in IN_PROGRESS and process_gone(run):
+                usage.dead.append(run.info.run_id)
             elif run.info.status in IN_PROGRESS:
                 starts.append(run.info.start_time / 1000)
     except Exception as err:  # any failure of the store or its client: delete nothing
@@ -105,7 +124,7 @@ def scan(cache: StageCache) -> list[Row]:
     rows = []
     for stage in cache.stages():
         for key in cache.keys(stage):
-            entry, _ = cache.check(stage, key, hashes=False)
+            entry, _ = cache.read(stage, key)  # the manifest only: no file is checked
             manifest = entry.manifest if entry is not None else {}
             path = cache.entry_path(stage, key)
             rows.append(Row(stage, key, path, folder_bytes(path),
@@ -130,19 +149,6 @@ def kept(rows: list[Row], usage: Usage) -> dict[str, str]:
         row = by_key[key]
         todo += [(k, f"input of {row.stage} {key}") for k in row.inputs if k in by_key]
     return why
-
-
-def human(n: float) -> str:
-    """A size in bytes for people.
-
-    >>> human(1536), human(3 << 30)
-    ('1.5 KiB', '3.0 GiB')
-    """
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if n < 1024:
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n:.1f} TiB"
 
 
 def _when(seconds: float | None) -> str:
@@ -176,21 +182,40 @@ def ls(cache: StageCache, runs: Path, entries: bool) -> int:
 
 
 def verify(cache: StageCache, fix: bool) -> int:
+    """Check every entry's files, sizes and hashes, and its lineage; an entry computed
+    from a damaged one is damaged too. ``fix``: remove them all (unless a job is
+    computing them again)."""
     started = time.time()
     folders = [(stage, key) for stage in cache.stages() for key in cache.keys(stage)]
     total = sum(folder_bytes(cache.entry_path(*f)) for f in folders)
-    damaged, unhashed = [], 0
+    problems: dict[str, str] = {}
+    children: dict[str, list[str]] = {}
+    unhashed = 0
     with tqdm(total=total, unit="B", unit_scale=True, unit_divisor=1024, desc="verify",
               file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
         for stage, key in folders:
             entry, problem = cache.check(stage, key, hashes=True, progress=bar.update)
             if problem is not None:
-                damaged.append((stage, key, problem))
-            elif entry is not None and not all(
-                    HASH in record for record in listed_files(entry.manifest).values()):
+                problems[key] = problem
+            if entry is None:
+                continue
+            for parent in (entry.manifest.get("inputs") or {}).values():
+                children.setdefault(parent, []).append(key)
+            if problem is None and not all(
+                    is_hashed(record) for record in listed_files(entry.manifest).values()):
                 unhashed += 1
-    for stage, key, problem in damaged:
-        print(f"damaged {cache.entry_path(stage, key)}: {problem}")
+    todo = sorted(problems)
+    stage_of = {key: stage for stage, key in folders}
+    while todo:  # descendants of damaged entries, whatever their own state
+        parent = todo.pop()
+        for child in children.get(parent, []):
+            if child not in problems:
+                problems[child] = (f"computed from the damaged entry "
+                                   f"{cache.entry_path(stage_of[parent], parent)}")
+                todo.append(child)
+    damaged = [(stage, key) for stage, key in folders if key in problems]
+    for stage, key in damaged:
+        print(f"damaged {cache.entry_path(stage, key)}: {problems[key]}")
         if fix:
             removed = cache.remove(stage, key, unless_used_since=started)
             print("  removed" if removed else "  kept: a job is computing it again")
@@ -205,10 +230,13 @@ def verify(cache: StageCache, fix: bool) -> int:
 def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
     started = time.time()
     try:
-        usage = read_usage(runs)
+        usage = read_usage(runs, fail_dead=not dry_run)
     except StoreError as err:
         print(f"gc: {err}; nothing removed", file=sys.stderr)
         return 2
+    if usage.dead:
+        print(f"{'would mark' if dry_run else 'marked'} {len(usage.dead)} RUNNING runs FAILED: "
+              f"their processes on this host are gone ({', '.join(usage.dead)})")
     rows = scan(cache)
     why = kept(rows, usage)
     if rows and not why:

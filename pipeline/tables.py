@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.brdf_map import report as brdf_map_report
 from pipeline.btf import report as btf_report
-from pipeline.core.report import TABLES_EXPERIMENT, fetch_runs
+from pipeline.core.report import TABLES_EXPERIMENT, fetch_runs, write_file
 from pipeline.core.tracking import NOTE_TAG, environment_tags, init_store, tracking_uri
 from pipeline.fourier import report as fourier_report
 from pipeline.render import report as render_report
@@ -50,7 +50,7 @@ def build_tables(
     for report in REPORTS:
         sections += report.sections(runs, out, settings)
     summary = "\n".join(sections)
-    (out / "summary.md").write_text(summary)
+    write_file(out / "summary.md", summary)
     print(summary)
     log.info("tables written to %s", out)
     log_tables(runs_dir, out, settings, log_to, n_runs=len(runs))

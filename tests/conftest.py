@@ -50,3 +50,16 @@ def smoke_cfg(tmp_path, mlflow_template):
         return compose_config("experiment=smoke", f"paths.runs={tmp_path / 'runs'}", *overrides)
 
     return make
+
+
+@pytest.fixture(autouse=True)
+def _no_store_left_from_another_test(monkeypatch):
+    """Each test starts with no MLflow store chosen and no run active: a test that stops a
+    job midway (tests/test_signals.py) must not leave its store or run to the next one."""
+    import mlflow
+
+    while mlflow.active_run() is not None:
+        mlflow.end_run()
+    # The second: the store the pipeline itself chose (pipeline.core.tracking.use_store).
+    for name in ("MLFLOW_TRACKING_URI", "PIPELINE_TRACKING_URI_SET_BY_PIPELINE"):
+        monkeypatch.delenv(name, raising=False)

@@ -4,12 +4,14 @@ verifies and collects the cache; stale temporary folders go; dataset renames cou
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import logging
 import os
 import re
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -20,6 +22,7 @@ from omegaconf import OmegaConf
 
 from pipeline import cache as command
 from pipeline.core import cache as cache_module
+from pipeline.core import digests
 from pipeline.core.cache import MANIFEST, StageCache, save_arrays, save_json, temporary_name
 from pipeline.core.errors import DataError
 from pipeline.core.stage import Context, folder_fingerprint
@@ -68,25 +71,132 @@ def test_changed_values_of_a_small_entry_are_found_on_hit_and_recomputed(tmp_pat
     assert cache.run("s", "1", {"value": 1.0}, {}, compute).hit
 
 
-def test_verify_finds_changed_values_of_a_large_entry(tmp_path, monkeypatch, capsys):
-    """Above HASH_ON_HIT_BYTES a hit checks sizes only; verify checks the hashes, and
-    --fix removes the entry, which the next run computes again."""
-    monkeypatch.setattr(cache_module, "HASH_ON_HIT_BYTES", 0)
+LARGE = (64 << 20) + (2 << 20)  # above the 64 MiB that older code checked by size only
+
+
+def _stages(cache: StageCache, big: np.ndarray, value: float = 1.0) -> tuple[list, list]:
+    """load (``big``) -> crop -> evaluate, as the runners pass inputs; returns the entries
+    and their computes (each counts its calls)."""
+    load = Counting(images=big)
+    crop = Counting(x=np.full(16, value))
+    evaluate = Counting(y=np.arange(4))
+    loaded = cache.run("load", "1", {"value": value}, {}, load)
+    cropped = cache.run("crop", "1", {}, {"load": loaded.key}, crop)
+    evaluated = cache.run("evaluate", "1", {}, {"crop": cropped.key, "load": loaded.key}, evaluate)
+    return [loaded, cropped, evaluated], [load, crop, evaluate]
+
+
+def _flip_bytes(path: Path, offset: int, n: int = 12) -> None:
+    """Change ``n`` bytes in place from ``offset`` (same size, same mtime kept or not)."""
+    with open(path, "r+b") as f:
+        f.seek(offset)
+        old = f.read(n)
+        f.seek(offset)
+        f.write(bytes(b ^ 0x5A for b in old))
+
+
+def test_a_large_entry_changed_in_place_is_recomputed_with_its_descendants(tmp_path, caplog):
     cache = StageCache(tmp_path)
-    first, _ = _entry(cache)
-    _entry(cache, value=2.0)
-    _change_a_value(first.path / "x.npy")
-    assert _entry(cache)[0].hit  # not hashed on a hit: read as it is
+    big = np.zeros(LARGE, np.uint8)
+    first, _ = _stages(cache, big)
+    record = first[0].manifest["files"]["images.npy"]
+    assert len(record["sha256_chunks"]) == 2 and record["bytes"] > digests.CHUNK_BYTES
+    assert first[1].manifest["parents"] == {
+        first[0].key: {"stage": "load", "id": first[0].manifest["id"]}}
+    images = first[0].path / "images.npy"
+    _flip_bytes(images, offset=LARGE - 100)  # in the second chunk
+    with caplog.at_level(logging.WARNING, logger="pipeline.core.cache"):
+        again, computes = _stages(cache, big)
+    assert [c.calls for c in computes] == [1, 1, 1] and not any(e.hit for e in again)
+    assert [e.key for e in again] == [e.key for e in first]
+    assert f"{images} has changed: its sha256 of bytes {64 << 20}.." in caplog.text
+    assert f"{first[1].path} was computed from {first[0].path}, which has been computed " \
+           f"again since" in caplog.text
+    np.testing.assert_array_equal(again[0].array("images"), big)
+    # Recomputed once: the next run hits all three.
+    hits, computes = _stages(cache, big)
+    assert all(e.hit for e in hits) and [c.calls for c in computes] == [0, 0, 0]
+
+
+def test_verify_fix_removes_a_damaged_large_entry_and_its_descendants(tmp_path, capsys):
+    cache = StageCache(tmp_path)
+    big = np.zeros(LARGE, np.uint8)
+    first, _ = _stages(cache, big)
+    other, _ = _stages(cache, big[:1000], value=2.0)  # another chain, intact
+    _flip_bytes(first[0].path / "images.npy", offset=5000)
     assert command.main(["verify", "--cache", str(tmp_path)]) == 1
     out = capsys.readouterr().out
-    assert f"damaged {first.path}: {first.path / 'x.npy'} has changed" in out
-    assert "verified 2 entries" in out and "1 damaged" in out
-    assert first.path.is_dir()  # without --fix nothing is removed
+    assert f"damaged {first[0].path}: {first[0].path / 'images.npy'} has changed" in out
+    for child in first[1:]:
+        assert f"damaged {child.path}: computed from the damaged entry" in out
+    assert "verified 6 entries" in out and "3 damaged" in out
+    assert all(e.path.is_dir() for e in first)  # without --fix nothing is removed
     assert command.main(["verify", "--fix", "--cache", str(tmp_path)]) == 1
-    assert not first.path.exists()
+    assert not any(e.path.exists() for e in first) and all(e.path.is_dir() for e in other)
     assert command.main(["verify", "--cache", str(tmp_path)]) == 0
-    again, compute = _entry(cache)
-    assert compute.calls == 1 and not again.hit
+    again, computes = _stages(cache, big)
+    assert [c.calls for c in computes] == [1, 1, 1]
+
+
+def test_an_entry_whose_input_was_computed_again_or_is_gone_is_not_used(tmp_path, capsys):
+    cache = StageCache(tmp_path)
+    big = np.arange(100, dtype=np.uint8)
+    first, _ = _stages(cache, big)
+    # Recomputed (by verify --fix and another job, say): crop was made from the old one.
+    cache.remove("load", first[0].key)
+    cache.run("load", "1", {"value": 1.0}, {}, Counting(images=big))
+    assert cache.lookup("crop", first[1].key) is None
+    assert command.main(["verify", "--cache", str(tmp_path)]) == 1
+    out = capsys.readouterr().out
+    for child in first[1:]:  # both read load
+        assert f"damaged {child.path}: {child.path} was computed from {first[0].path}" in out
+    # Gone: the descendants cannot be checked against it.
+    cache.remove("load", first[0].key)
+    entry, problem = cache.check("evaluate", first[2].key)
+    assert entry is not None and f"{first[0].path}, which is gone" in problem
+
+
+def test_an_entry_written_before_lineage_is_older_than_a_recomputed_input(tmp_path):
+    cache = StageCache(tmp_path)
+    big = np.arange(100, dtype=np.uint8)
+    first, _ = _stages(cache, big)
+    for entry in first:
+        manifest = json.loads((entry.path / MANIFEST).read_text())
+        del manifest["parents"], manifest["id"]
+        (entry.path / MANIFEST).write_text(json.dumps(manifest))
+    again, computes = _stages(cache, big)
+    assert [c.calls for c in computes] == [0, 0, 0]  # its input is older: used
+    cache.remove("load", first[0].key)
+    again, computes = _stages(cache, big)
+    assert [c.calls for c in computes] == [1, 1, 1]
+
+
+def test_chunks_of_a_file_are_hashed_by_several_threads(tmp_path, monkeypatch):
+    monkeypatch.setattr(digests, "CHUNK_BYTES", 1000)
+    monkeypatch.setattr(digests, "HASH_THREADS", 3)
+    threads = set()
+    real = digests.range_digest
+
+    def recording(*args):
+        threads.add(threading.current_thread().name)
+        return real(*args)
+
+    monkeypatch.setattr(digests, "range_digest", recording)
+    cache = StageCache(tmp_path)
+    entry, _ = _entry(cache)
+    save_arrays(entry.path, z=np.arange(2500, dtype=np.uint8))
+    record = digests.describe_files(entry.path)["z.npy"]
+    assert record["bytes"] == 2500 + 128 and len(record["sha256_chunks"]) == 3
+    whole = (entry.path / "z.npy").read_bytes()
+    assert record["sha256_chunks"][1] == hashlib.sha256(whole[1000:2000]).hexdigest()
+    assert all(name.startswith("cache-hash") for name in threads)
+    entry.manifest["files"]["z.npy"] = record
+    assert entry.damage() is None
+    _flip_bytes(entry.path / "z.npy", offset=2600, n=1)
+    hashed = []
+    assert entry.damage(progress=hashed.append).endswith(
+        "z.npy has changed: its sha256 of bytes 2000..2627 differs from the one in its manifest")
+    assert hashed[-3:] == [1000, 1000, 628]
 
 
 def test_missing_or_truncated_file_is_recomputed(tmp_path, caplog):

@@ -3,6 +3,7 @@ evaluation's decoding, bytes against Table 1, atomic writes, damaged files, MLfl
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
@@ -206,6 +207,30 @@ def test_a_failed_write_leaves_no_file(tmp_path, monkeypatch):
     with pytest.raises(OSError):
         write_compressed(target, **_model("neural_btf"))
     assert list(tmp_path.iterdir()) == [target] and target.read_bytes() == before
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_the_same_model_gives_the_same_bytes(tmp_path, case):
+    """safetensors' own save orders the metadata by a hash map seeded anew on each call."""
+    first = write_compressed(tmp_path / "a.safetensors", **_model(case), run_id="r1")
+    second = write_compressed(tmp_path / "b.safetensors", **_model(case), run_id="r1")
+    assert first.read_bytes() == second.read_bytes()
+    _, header = compressed.read_header(first)
+    assert list(header)[0] == "__metadata__"
+    assert list(header["__metadata__"]) == sorted(header["__metadata__"])
+    assert load_compressed(first).metadata["mlflow_run_id"] == "r1"
+
+
+def test_a_full_disk_is_a_data_error_naming_the_file(tmp_path, monkeypatch):
+    def full(fd):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    target = tmp_path / FILE_NAME
+    with pytest.raises(DataError, match=rf"no space left for {re.escape(str(target))}: it "
+                                        rf"needs \d+ bytes, .* free in {re.escape(str(tmp_path))}"):
+        write_compressed(target, **_model("clustered"))
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_a_missing_file_is_a_data_error_naming_it(tmp_path):

@@ -353,6 +353,11 @@ def _is_private(name: str) -> bool:
     return name.startswith("_") and not name.startswith("__")
 
 
+# Standard-library modules whose names start with "_" but are documented for use
+# (docs.python.org/3/library/_thread.html): not private.
+DOCUMENTED_STDLIB = {"_thread"}
+
+
 def _private_uses(path: Path, pipeline_only: bool) -> list[str]:
     """``file:line module.name`` for each private name that ``path`` takes from another
     module: ``from m import _x``, ``import m._x`` and ``module._x`` (a pipeline module's
@@ -362,6 +367,8 @@ def _private_uses(path: Path, pipeline_only: bool) -> list[str]:
     out = []
     for imp in imports:
         if imp.target == imp.source or (pipeline_only and imp.target not in MODULES):
+            continue
+        if imp.target in DOCUMENTED_STDLIB:
             continue
         if any(_is_private(part) for part in imp.target.split(".")):  # a private module
             out.append(f"{where}:{imp.line} {imp.target}")

@@ -1,21 +1,31 @@
-"""The MLflow store survives kills: atomic creation, damaged stores named, orphans and
-SIGTERM end FAILED."""
+"""The MLflow store survives kills: atomic creation, damaged stores named, runs of dead
+processes end FAILED at any start and at ``cache gc`` (SIGTERM: tests/test_signals.py;
+leftover and foreign files: tests/test_store_leftovers.py)."""
 
 import os
-import signal
 import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
+from pipeline import cache as cache_command
+from pipeline.core.cache import StageCache, save_arrays
 from pipeline.core.errors import StoreError
+from pipeline.core.process import process_alive
 from pipeline.core.tracking import init_store, tracking_uri
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def _dead_pid() -> int:
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    return int(gone.stdout)
 
 
 def test_a_half_made_store_from_a_killed_creation_is_never_used(tmp_path):
@@ -33,45 +43,74 @@ def test_a_damaged_store_is_named_in_the_error(tmp_path):
         init_store(tmp_path, "btf")
 
 
-def test_runs_left_running_by_a_dead_process_are_marked_failed(tmp_path, mlflow_template):
+def test_runs_of_any_experiment_left_running_by_a_dead_process_are_marked_failed(
+        tmp_path, mlflow_template):
     mlflow_template(tmp_path)
-    experiment_id = init_store(tmp_path, "btf")
+    smoke = init_store(tmp_path, "smoke")
     client = MlflowClient(tracking_uri(tmp_path))
-    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                          capture_output=True, text=True, check=True)
     host = socket.gethostname()
-    dead = client.create_run(experiment_id, tags={"host": host, "pid": gone.stdout.strip()})
-    alive = client.create_run(experiment_id, tags={"host": host, "pid": str(os.getpid())})
-    elsewhere = client.create_run(experiment_id, tags={"host": "another-node", "pid": "1"})
+    dead = client.create_run(smoke, tags={"host": host, "pid": str(_dead_pid())})
+    alive = client.create_run(smoke, tags={"host": host, "pid": str(os.getpid())})
+    elsewhere = client.create_run(smoke, tags={"host": "another-node", "pid": "1"})
+    untagged = client.create_run(smoke)
+    pid_zero = client.create_run(smoke, tags={"host": host, "pid": "0"})  # no such process
 
-    init_store(tmp_path, "btf")  # the next job's start
-    status = {r: client.get_run(r.info.run_id).info.status for r in (dead, alive, elsewhere)}
-    assert status == {dead: "FAILED", alive: "RUNNING", elsewhere: "RUNNING"}
+    init_store(tmp_path, "fourier_smoke")  # the next start, of another experiment
+    status = {r: client.get_run(r.info.run_id).info.status
+              for r in (dead, alive, elsewhere, untagged, pid_zero)}
+    assert status == {dead: "FAILED", alive: "RUNNING", elsewhere: "RUNNING",
+                      untagged: "RUNNING", pid_zero: "FAILED"}
     assert "gone" in client.get_run(dead.info.run_id).data.tags["ended_by"]
 
 
-def test_sigterm_ends_the_run_failed_and_leaves_no_temporary_folder(tmp_path, mlflow_template):
+def test_a_zombie_is_not_alive():
+    """A process that ended but that its parent has not collected yet (kill -9 of a job
+    whose shell is busy) still answers os.kill(pid, 0): it is no less gone."""
+    child = subprocess.Popen(["true"])
+    stat = Path(f"/proc/{child.pid}/stat")
+    deadline = time.monotonic() + 30
+    while stat.read_text().rsplit(")", 1)[1].split()[0] != "Z" and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os.kill(child.pid, 0)  # no error: the pid still exists
+    assert not process_alive(child.pid)
+    child.wait()
+    assert not process_alive(child.pid)
+    assert process_alive(os.getpid()) and not process_alive(0) and not process_alive(-1)
+
+
+def _entry(cache: StageCache, stage: str, value: float):
+    return cache.run(stage, "1", {"value": value}, {},
+                     lambda folder: save_arrays(folder, x=np.full(4, value)))
+
+
+def test_cache_gc_ends_dead_runs_and_no_longer_keeps_what_they_used(
+        tmp_path, mlflow_template, monkeypatch, capsys):
+    """A run killed with kill -9 stays RUNNING; gc used to keep everything used since
+    it started. gc marks it FAILED (--dry-run only says so) and removes what no finished
+    run uses."""
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     runs = tmp_path / "runs"
     mlflow_template(runs)
-    job = subprocess.Popen(
-        [sys.executable, "-m", "pipeline", "experiment=smoke", f"paths.runs={runs}"],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        for line in job.stdout:  # wait until a stage is computing (Hydra logs to stdout)
-            if "generating the built-in synthetic BTF" in line or "stage " in line:
-                break
-        time.sleep(1.0)
-        job.send_signal(signal.SIGTERM)
-        job.communicate(timeout=300)  # reads the rest, so the job never blocks on the pipe
-    finally:
-        job.kill()
-        job.wait()
-    assert job.returncode != 0
-    client = MlflowClient(tracking_uri(runs))
-    found = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
-    assert [r.info.status for r in found] == ["FAILED"]
-    assert not list((runs / "cache").glob("*/.tmp-*"))
-    assert not list((runs / "data").glob(".*partial*"))
+    client = MlflowClient(f"sqlite:///{runs / 'mlflow.db'}")
+    experiment = client.create_experiment("smoke")
+    cache = StageCache(runs / "cache")
+    kept, unused = _entry(cache, "a", 1.0), _entry(cache, "b", 2.0)
+    finished = client.create_run(experiment, tags={"cache.a": kept.key})
+    client.set_terminated(finished.info.run_id, "FINISHED")
+    killed = client.create_run(experiment, tags={"host": socket.gethostname(),
+                                                 "pid": str(_dead_pid())})
+
+    assert cache_command.main(["gc", "--dry-run", "--runs", str(runs)]) == 0
+    out = capsys.readouterr().out
+    assert "would mark 1 RUNNING runs FAILED" in out and killed.info.run_id in out
+    assert f"would remove {unused.path}" in out
+    assert client.get_run(killed.info.run_id).info.status == "RUNNING"
+
+    assert cache_command.main(["gc", "--runs", str(runs)]) == 0
+    out = capsys.readouterr().out
+    assert "marked 1 RUNNING runs FAILED" in out and "still RUNNING" not in out
+    assert client.get_run(killed.info.run_id).info.status == "FAILED"
+    assert kept.path.is_dir() and not unused.path.exists()
 
 
 def test_a_tracking_server_chosen_by_the_user_stays_chosen(tmp_path, monkeypatch):

@@ -24,6 +24,7 @@ from matplotlib.colors import PowerNorm
 from matplotlib.figure import Figure
 
 from pipeline.core.errors import ConfigError, DataError  # noqa: E402
+from pipeline.core.report import save_figure
 from pipeline.data.brdf import to_angles  # noqa: E402
 
 MISSING_RGB = (1.0, 0.0, 1.0)  # magenta: no value can be computed there
@@ -279,5 +280,5 @@ def tone_map(image: np.ndarray, inside: np.ndarray, exposure: float) -> np.ndarr
 
 def _save(fig, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     return path

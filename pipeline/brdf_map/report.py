@@ -22,7 +22,7 @@ import pandas as pd
 
 from pipeline.brdf_map.runner import NEAR_MIRROR_DEG
 from pipeline.core.recipe import recipe_suffixes, with_recipe
-from pipeline.core.report import param, runs_of, write_table
+from pipeline.core.report import param, runs_of, save_figure, write_table
 
 MODELS = (("MAP", ""), ("no prior", "_noprior"), ("Ashikhmin-Shirley", "_as"))
 # The missing-region RMSE and its split at theta_h = NEAR_MIRROR_DEG (runner.py).
@@ -190,7 +190,7 @@ def plot_prior_study(runs: pd.DataFrame, path: Path) -> Path:
             ax.set_title(f"{source}: {dict(STUDY_METRICS)[metric]}", fontsize=8)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=6)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     return path
 
 

@@ -51,6 +51,7 @@ from pipeline.brdf_map.synthetic import (
 )
 from pipeline.core.cache import Entry, canonical_json, save_arrays, save_json
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.report import save_figure
 from pipeline.core.stage import Context, plain_settings
 from pipeline.data import brdf as brdf_io
 
@@ -355,7 +356,7 @@ def _figures(folder: Path, fig_cfg: dict, raw, models: dict) -> None:
         ax.axvline(start, color="grey", ls=":", lw=0.8)  # d and Rs recomputed: J jumps
     ax.set_xlabel("EM iteration (dotted: next outer iteration)")
     ax.set_ylabel("objective J (log posterior)")
-    fig.savefig(folder / "objective.png", dpi=100)
+    save_figure(fig, folder / "objective.png", dpi=100)
 
 
 def evaluate_stage(ctx: Context, data: Entry, fitted: Entry, baselines: Entry) -> Entry:

@@ -98,7 +98,6 @@ import json
 import math
 import os
 import struct
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -107,6 +106,7 @@ import numpy as np
 
 from pipeline.btf.stereographic import direction_features
 from pipeline.core.errors import DataError
+from pipeline.core.files import write_atomic
 
 if TYPE_CHECKING:
     from pipeline.btf.model import Decoder
@@ -156,7 +156,8 @@ def write_compressed(
     """Write a compressed BTF to ``path`` (the layout is in the module docstring).
 
     The file is written next to ``path`` under a temporary name and renamed onto it, so
-    that an interrupted write never leaves a partial file at ``path``.
+    that an interrupted write never leaves a partial file at ``path``; the same model
+    gives the same bytes (:func:`safetensors_bytes`).
 
     Parameters
     ----------
@@ -170,17 +171,40 @@ def write_compressed(
         ``texel_scale_mode`` that made them (``lstsq`` or ``luminance``); None for none.
     weight_dtype, list_dtype, extra_dtype : stored dtypes (``btf.sizes``).
     run_id : the MLflow run the file belongs to, when there is one.
-    """
-    from safetensors.numpy import save
 
+    Raises
+    ------
+    DataError
+        Naming ``path`` and the space left, when the disk is full.
+    """
     tensors, meta = _contents(
         decoder, latents, alpha, crop_size, crop_offset, method, k, dataset,
         latent_of_texel, texel_scale, texel_scale_mode, weight_dtype, list_dtype,
         extra_dtype, run_id,
     )
     path = Path(path)
-    write_atomic(path, save(tensors, metadata=meta))
+    write_atomic(path, safetensors_bytes(tensors, meta))
     return path
+
+
+def safetensors_bytes(tensors: dict[str, np.ndarray], metadata: dict[str, str]) -> bytes:
+    """The safetensors file of ``tensors`` and ``metadata``, the metadata in sorted order.
+
+    safetensors' own ``save`` writes the metadata in the order of a Rust hash map, which
+    changes from process to process, so equal models would give files with different
+    hashes; here the header is written again with its metadata sorted (the tensors keep
+    safetensors' order and offsets, the header its padding to 8 bytes).
+    """
+    from safetensors.numpy import save
+
+    data = save(tensors, metadata=metadata)
+    (n,) = struct.unpack("<Q", data[:8])
+    header = json.loads(data[8 : 8 + n])
+    if "__metadata__" in header:
+        header = {"__metadata__": dict(sorted(header.pop("__metadata__").items())), **header}
+    text = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode()
+    text += b" " * (-len(text) % 8)
+    return struct.pack("<Q", len(text)) + text + data[8 + n :]
 
 
 def _contents(decoder, latents, alpha, crop_size, crop_offset, method, k, dataset,
@@ -272,20 +296,6 @@ def _contents(decoder, latents, alpha, crop_size, crop_offset, method, k, datase
 
 def _as(array: np.ndarray, dtype: str) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(array).astype(dtype, copy=False))
-
-
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to a temporary file in ``path``'s folder, then rename it onto ``path``."""
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        with open(tmp, "wb") as out:
-            out.write(data)
-            out.flush()
-            os.fsync(out.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 # ----------------------------------------------------------------------------- reading

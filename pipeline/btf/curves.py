@@ -14,6 +14,8 @@ from pathlib import Path
 import pandas as pd
 from matplotlib.figure import Figure
 
+from pipeline.core.report import save_figure, write_file
+
 
 def curve_points(runs: pd.DataFrame) -> pd.DataFrame:
     """One row per curve point of every run that logged a curve."""
@@ -45,7 +47,7 @@ def curves_section(runs: pd.DataFrame, out: Path, tolerance: float = 0.05) -> st
     points = curve_points(runs)
     if points.empty:
         return ""
-    points.to_csv(out / "training_curves.csv", index=False)
+    write_file(out / "training_curves.csv", points.to_csv(index=False))
     lines = ["## Training: RMSE versus time\n",
              "Points: `training_curves.csv`. RMSE of a fixed subsample of texels at every "
              "training direction; time = training seconds (measuring excluded).\n"]
@@ -74,7 +76,7 @@ def curves_section(runs: pd.DataFrame, out: Path, tolerance: float = 0.05) -> st
         ax.legend(fontsize=7)
         fig.tight_layout()
         name = f"training_curves_{i}.png"
-        fig.savefig(out / name, dpi=110)
+        save_figure(fig, out / name)
         last = runs_in_order.tail(1)
         summary = last[["model", "epochs", "seconds", "rmse"]].rename(
             columns={"seconds": "training [s]", "rmse": "last curve RMSE"})

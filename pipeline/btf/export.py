@@ -21,6 +21,7 @@ from pipeline.btf.compressed import (
     load_compressed,
     payload_bytes,
     read_header,
+    safetensors_bytes,
     stored_parts,
     write_atomic,
     write_compressed,
@@ -132,15 +133,15 @@ mlflow.models.set_model(CompressedBTFModel())
 
 
 def _copy_with_run_id(source: Path, target: Path, run_id: str) -> None:
-    """The file at ``source`` with ``mlflow_run_id`` added to its metadata."""
+    """The file at ``source`` with ``mlflow_run_id`` added to its metadata (written in the
+    fixed order of :func:`pipeline.btf.compressed.safetensors_bytes`)."""
     from safetensors import safe_open
-    from safetensors.numpy import save
 
     read_header(source)
     with safe_open(source, framework="numpy") as f:
         meta = dict(f.metadata() or {})
         tensors = {name: f.get_tensor(name) for name in f.keys()}
-    write_atomic(target, save(tensors, metadata={**meta, "mlflow_run_id": run_id}))
+    write_atomic(target, safetensors_bytes(tensors, {**meta, "mlflow_run_id": run_id}))
 
 
 def query_signature():

@@ -19,7 +19,7 @@ from pipeline.btf.evaluate import decode_all  # noqa: E402
 from pipeline.btf.model import load_decoder  # noqa: E402
 from pipeline.btf.stereographic import direction_features  # noqa: E402
 from pipeline.core.cache import StageCache  # noqa: E402
-from pipeline.core.report import safe_stem  # noqa: E402
+from pipeline.core.report import safe_stem, save_figure  # noqa: E402
 from pipeline.data.directions import unit_vectors  # noqa: E402
 from pipeline.data.images import gamma_encode, write_exr  # noqa: E402
 
@@ -107,5 +107,5 @@ def _plot(panels, path: Path, title: str) -> Path:
             axes[i, j].set_title(label, fontsize=8)
     fig.suptitle(f"Fig. 7: reference vs reconstruction ({title})", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     return path

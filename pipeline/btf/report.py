@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 from pipeline.btf import tables
 from pipeline.btf.curves import curves_section
-from pipeline.core.report import runs_of, write_table
+from pipeline.core.report import runs_of, save_figure, write_table
 
 METHODS = ("neural_btf", "clustered", "pca")
 
@@ -151,5 +151,5 @@ def plot_rmse_vs_k(runs: pd.DataFrame, out: Path) -> str:
     ax.set_xscale("log")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(out / "rmse_vs_k.png", dpi=110)
+    save_figure(fig, out / "rmse_vs_k.png")
     return "## RMSE versus k\n\n![rmse_vs_k](rmse_vs_k.png) (error bars: std over seeds)\n"

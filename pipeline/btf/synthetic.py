@@ -526,7 +526,10 @@ def write_synthetic_btf(
                     name = ubo2003_file_name(number, theta_light, phi_light, *view, ext)
                 else:
                     name = utia_file_name(theta_light, phi_light, *view, ext)
-                encode_btf_image(folder / name, images[light_index], format, quality)
+                # Not synced one by one: one os.sync below covers the whole folder.
+                encode_btf_image(folder / name, images[light_index], format, quality,
+                                 sync=False)
+        os.sync()  # every image on disk before the marker and the rename publish them
         # The marker goes in last: its presence means every image before it was written.
         (partial / _MARKER_NAME).write_text(json.dumps(marker, indent=1))
         try:

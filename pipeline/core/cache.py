@@ -12,11 +12,20 @@ jobs compute the same key at once, the first rename wins and the loser discards 
 so one good entry remains. A killed run leaves only a ``.tmp-*`` folder, which no reader
 looks at and :meth:`StageCache.remove_stale_temporaries` removes once its owner is gone.
 
-Integrity: the manifest lists every file with its size and sha256. Each hit checks that
-the files are there with their sizes, and their hashes too when the entry holds at most
-:data:`HASH_ON_HIT_BYTES`; ``python -m pipeline.cache verify`` checks every hash. A damaged
-entry is never read: :meth:`StageCache.run` logs it, removes it and computes it again.
-Entries written before sizes and hashes were recorded are checked for presence only.
+Integrity: the manifest lists every file with its size and sha256 (files above 64 MiB one
+sha256 per chunk, which threads check at once: :mod:`pipeline.core.digests`). Every hit checks
+every byte, whatever the entry's size, and ``python -m pipeline.cache verify`` checks every
+entry. A damaged entry is never read: :meth:`StageCache.run` logs it, removes it and
+computes it again. Entries written before sizes and hashes were recorded are checked for
+presence only.
+
+Lineage: the manifest also records the entries the stage read (``parents``: each one's
+stage and the ``id`` its manifest got when it was computed). An entry whose parent has
+been computed again since (after damage, say), or is gone, is not a hit: it is computed
+again from the new parent, and so are its own descendants in turn. An ancestor's files
+are hashed when its own stage is hit, which a runner does before reading it;
+``verify --fix`` removes a damaged entry with its descendants. An entry written before
+lineage was recorded is not used once one of its inputs is newer than it.
 """
 
 from __future__ import annotations
@@ -30,7 +39,6 @@ import math
 import os
 import re
 import shutil
-import socket
 import time
 import uuid
 from collections.abc import Callable, Mapping
@@ -40,16 +48,16 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.core.digests import describe_files, first_changed, listed_files
 from pipeline.core.errors import DataError
+from pipeline.core.files import DiskFullError, disk_full_is_named, no_space, write_atomic
+from pipeline.core.process import host_name, process_alive
 
 log = logging.getLogger(__name__)
 
 MANIFEST = "manifest.json"
-HASH = "sha256"  # with SHA extensions faster than blake2b; the manifest names it per file
-HASH_BLOCK = 4 << 20  # files are hashed in blocks of this many bytes (bounded memory)
-# Entries of at most this many bytes have their hashes checked on every hit (a fraction of
-# a second); larger ones only their sizes, their hashes by `python -m pipeline.cache verify`.
-HASH_ON_HIT_BYTES = 64 << 20
+# What a full disk while a stage writes its entry advises.
+CACHE_HINT = "free some space (python -m pipeline.cache gc) or point paths.cache elsewhere"
 # A temporary folder whose owner cannot be asked (another host, or written before owners
 # were recorded) is stale once untouched this long and its key's lock is free.
 STALE_AFTER_S = 24 * 3600
@@ -132,69 +140,29 @@ class Entry:
         except (OSError, ValueError) as err:
             raise DataError(_unreadable(path, err)) from err
 
-    def damage(self, hashes: bool | None = None, progress: Callable[[int], Any] | None = None
+    def damage(self, hashes: bool = True, progress: Callable[[int], Any] | None = None
                ) -> str | None:
-        """What is wrong with the entry's files (naming the first bad one), or None.
+        """What is wrong with the entry's own files (naming the first bad one), or None.
 
-        Every listed file must exist with its recorded size. ``hashes``: also compare the
-        sha256 of every file (None: only when the entry holds at most
-        :data:`HASH_ON_HIT_BYTES`). ``progress(n)`` is called with each block's bytes.
+        Every listed file must exist with its recorded size and, with ``hashes``, its
+        recorded sha256 (per chunk for large files). ``progress(n)`` is called with the
+        bytes of each file or chunk hashed.
         """
         listed = listed_files(self.manifest)
-        total = 0
         for name, record in listed.items():
             path = self.path / name
             try:
                 size = path.stat().st_size
             except FileNotFoundError:
                 return f"{path} is missing"
-            total += size
             if "bytes" in record and size != record["bytes"]:
                 return f"{path} has {size} bytes, its manifest says {record['bytes']}"
-        if hashes is None:
-            hashes = total <= HASH_ON_HIT_BYTES
-        for name, record in listed.items() if hashes else ():
-            path = self.path / name
-            if HASH in record and file_digest(path, progress) != record[HASH]:
-                return f"{path} has changed: its {HASH} differs from the one in its manifest"
-        return None
+        return first_changed(self.path, listed, progress) if hashes else None
 
 
 def _unreadable(path: Path, err: BaseException) -> str:
     return (f"cache file {path} cannot be read ({type(err).__name__}: {err}); the entry is "
             f"damaged: remove it (python -m pipeline.cache verify --fix) and run again")
-
-
-def listed_files(manifest: Mapping) -> dict[str, dict]:
-    """``{relative path: {"bytes": n, "sha256": hex}}`` of an entry's manifest; entries
-    written before sizes and hashes were recorded list names only (``{name: {}}``)."""
-    files = manifest.get("files", {})
-    if isinstance(files, list):
-        return {name: {} for name in files}
-    return dict(files)
-
-
-def file_digest(path: Path, progress: Callable[[int], Any] | None = None) -> str:
-    """sha256 of a file, read in blocks of :data:`HASH_BLOCK` bytes."""
-    digest = hashlib.new(HASH)
-    block = bytearray(HASH_BLOCK)
-    view = memoryview(block)
-    with open(path, "rb", buffering=0) as f:
-        while size := f.readinto(block):
-            digest.update(view[:size])
-            if progress is not None:
-                progress(size)
-    return digest.hexdigest()
-
-
-def describe_files(folder: Path) -> dict[str, dict]:
-    """Size and sha256 of every file under ``folder`` but its manifest, by relative path."""
-    files = {}
-    for path in sorted(folder.rglob("*")):
-        name = path.relative_to(folder).as_posix()
-        if path.is_file() and name != MANIFEST:
-            files[name] = {"bytes": path.stat().st_size, HASH: file_digest(path)}
-    return files
 
 
 def folder_bytes(folder: Path) -> int:
@@ -214,6 +182,9 @@ class StageCache:
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
+        # The entries run() returned, by key: a stage computed from them records the ids
+        # they had when they were handed out (their files are what it read).
+        self._handed_out: dict[str, Entry] = {}
 
     def entry_path(self, stage: str, key: str) -> Path:
         return self.root / stage / key
@@ -231,11 +202,9 @@ class StageCache:
             return []
         return sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name[0] != ".")
 
-    def check(self, stage: str, key: str, hashes: bool | None = None,
-              progress: Callable[[int], Any] | None = None) -> tuple[Entry | None, str | None]:
-        """The entry and what is wrong with it: ``(None, None)`` when there is none,
-        ``(entry, None)`` when it is intact, ``(entry or None, problem)`` when damaged.
-        ``hashes`` and ``progress``: as in :meth:`Entry.damage`."""
+    def read(self, stage: str, key: str) -> tuple[Entry | None, str | None]:
+        """The entry with its manifest, files unchecked: ``(None, None)`` when there is
+        none, ``(None, problem)`` when its manifest is missing or unreadable."""
         path = self.entry_path(stage, key)
         manifest = path / MANIFEST
         if not path.is_dir():
@@ -248,15 +217,80 @@ class StageCache:
             return None, f"{manifest} cannot be read ({type(err).__name__}: {err})"
         if not isinstance(content, dict):
             return None, f"{manifest} is not a JSON object"
-        entry = Entry(stage, key, path, hit=True, manifest=content)
-        return entry, entry.damage(hashes, progress)
+        return Entry(stage, key, path, hit=True, manifest=content), None
+
+    def check(self, stage: str, key: str, hashes: bool = True,
+              progress: Callable[[int], Any] | None = None) -> tuple[Entry | None, str | None]:
+        """The entry and what is wrong with it: ``(None, None)`` when there is none,
+        ``(entry, None)`` when it can be used, ``(entry or None, problem)`` when not.
+
+        Checked: its files' sizes, its lineage (:meth:`lineage_problem`), then, with
+        ``hashes``, its files' hashes (``progress``: as in :meth:`Entry.damage`)."""
+        entry, problem = self.read(stage, key)
+        if entry is None:
+            return None, problem
+        problem = (entry.damage(hashes=False) or self.lineage_problem(entry)
+                   or (entry.damage(True, progress) if hashes else None))
+        return entry, problem
+
+    def lineage_problem(self, entry: Entry) -> str | None:
+        """Why ``entry`` must not be used for what it was computed from, or None.
+
+        Each ancestor (the parents its manifest records, theirs in turn) must still be
+        there, complete, with the id it had when its child was computed and its files at
+        their recorded sizes. An entry that records no parents (written before lineage
+        was) must be newer than the inputs it names."""
+        seen: set[str] = set()
+        todo = [entry]
+        while todo:
+            child = todo.pop()
+            for key, stage, expected in self._parents(child):
+                if key in seen:
+                    continue
+                seen.add(key)
+                parent, problem = self.read(stage, key) if stage else (None, None)
+                where = self.entry_path(stage, key) if stage else f"the entry {key}"
+                if parent is None:
+                    if expected is None:
+                        continue  # never an entry of this cache (written before lineage)
+                    return f"{child.path} was computed from {where}, which {problem or 'is gone'}"
+                if expected is None and parent.manifest.get("created", 0) > child.manifest.get(
+                        "created", 0):
+                    return (f"{child.path} is older than its input {where}, which has been "
+                            f"computed again since (it records no lineage)")
+                if expected is not None and lineage_id(parent.manifest) != expected:
+                    return (f"{child.path} was computed from {where}, which has been computed "
+                            f"again since")
+                problem = parent.damage(hashes=False)
+                if problem is not None:
+                    return f"{child.path} was computed from {where}, which is damaged: {problem}"
+                todo.append(parent)
+        return None
+
+    def _parents(self, entry: Entry) -> list[tuple[str, str | None, str | None]]:
+        """``(key, stage or None, expected id or None)`` of each parent of ``entry``;
+        for an entry written before lineage was recorded, its inputs with no id."""
+        recorded = entry.manifest.get("parents")
+        if isinstance(recorded, dict):
+            return [(key, str(parent.get("stage")), str(parent.get("id")))
+                    for key, parent in sorted(recorded.items())]
+        inputs = entry.manifest.get("inputs", {})
+        return [(key, self._stage_of(key, name), None)
+                for name, key in sorted(inputs.items()) if isinstance(key, str)]
+
+    def _stage_of(self, key: str, hint: str | None = None) -> str | None:
+        """The stage whose folder holds the entry ``key`` (keys differ between stages:
+        the stage's name is hashed into them), or None."""
+        for stage in ([hint] if hint else []) + self.stages():
+            if (self.entry_path(stage, key) / MANIFEST).is_file():
+                return stage
+        return None
 
     def lookup(self, stage: str, key: str) -> Entry | None:
-        """The intact entry, or None (a damaged one is logged and left in place)."""
+        """The entry if it can be used, or None (a damaged one is logged and left)."""
         entry, problem = self.check(stage, key)
         if problem is not None:
-            log.warning("cache entry %s is damaged and not used: %s",
-                        self.entry_path(stage, key), problem)
+            log.warning("cache entry %s cannot be used: %s", self.entry_path(stage, key), problem)
             return None
         return entry
 
@@ -268,17 +302,24 @@ class StageCache:
         inputs: Mapping[str, str],
         compute: Callable[[Path], Mapping | None],
     ) -> Entry:
-        """Return the entry for this stage computation, computing it if absent or damaged.
+        """Return the entry for this stage computation, computing it if absent, damaged
+        or computed from inputs that have been computed again since.
 
-        ``compute(folder)`` writes the artifacts into ``folder`` (a fresh temporary
-        folder) and may return a small JSON-able summary stored in the manifest. If it
-        raises, nothing is left behind under the entry's name.
+        ``inputs`` maps a name to the key of each entry the stage reads. ``compute(folder)``
+        writes the artifacts into ``folder`` (a fresh temporary folder) and may return a
+        small JSON-able summary stored in the manifest. If it raises, nothing is left
+        behind under the entry's name.
+
+        Raises
+        ------
+        DataError
+            Naming the file (or the entry) and the space left, when the disk is full.
         """
         key = stage_key(stage, version, settings, inputs)
         start = time.perf_counter()
         found, problem = self.check(stage, key)
         if found is not None and problem is None:
-            return _hit(found, start, "")
+            return self._hand_out(_hit(found, start, ""))
 
         final = self.entry_path(stage, key)
         final.parent.mkdir(parents=True, exist_ok=True)
@@ -289,29 +330,66 @@ class StageCache:
             fcntl.flock(lock, fcntl.LOCK_EX)
             found, problem = self.check(stage, key)
             if found is not None and problem is None:
-                return _hit(found, start, ", after waiting for another job")
+                return self._hand_out(_hit(found, start, ", after waiting for another job"))
             if problem is not None:
-                log.warning("cache entry %s is damaged: %s; computing it again", final, problem)
+                log.warning("cache entry %s cannot be used: %s; computing it again",
+                            final, problem)
                 discard(final)
-            return self._compute(stage, version, settings, inputs, compute, key, final, start)
+            entry = self._compute(stage, version, settings, inputs, compute, key, final, start)
+            return self._hand_out(entry)
+
+    def _hand_out(self, entry: Entry) -> Entry:
+        self._handed_out[entry.key] = entry
+        return entry
+
+    def _lineage(self, inputs: Mapping[str, str]) -> dict[str, dict]:
+        """``{key: {"stage", "id"}}`` of the entries behind ``inputs``: those this cache
+        handed out, else those on disk now (keys that are no entry are left out)."""
+        parents = {}
+        for name, key in sorted(inputs.items()):
+            parent = self._handed_out.get(key)
+            if parent is None:
+                stage = self._stage_of(key, name)
+                parent = self.read(stage, key)[0] if stage else None
+            if parent is not None:
+                parents[key] = {"stage": parent.stage, "id": lineage_id(parent.manifest)}
+        return parents
 
     def _compute(self, stage, version, settings, inputs, compute, key, final, start) -> Entry:
         tmp = final.parent / temporary_name(key)
         tmp.mkdir()
         try:
-            summary = compute(tmp) or {}
-            manifest = {
-                "stage": stage,
-                "version": version,
-                "key": key,
-                "settings": canonical(settings),
-                "inputs": dict(inputs),
-                "summary": canonical(summary),
-                "files": describe_files(tmp),
-                "created": time.time(),
-            }
-            _write_atomic(tmp / MANIFEST, json.dumps(manifest, indent=1))
-            publish(tmp, final)
+            parents = self._lineage(inputs)
+            # Libraries that lose the errno of a full disk (numpy, torch) raise other
+            # errors; a failed write on a full disk names the entry and the space left.
+            with disk_full_is_named(final, CACHE_HINT):
+                summary = compute(tmp) or {}
+                manifest = {
+                    "stage": stage,
+                    "version": version,
+                    "key": key,
+                    "id": uuid.uuid4().hex,
+                    "settings": canonical(settings),
+                    "inputs": dict(inputs),
+                    "parents": parents,
+                    "summary": canonical(summary),
+                    "files": describe_files(tmp, skip=MANIFEST),
+                    "created": time.time(),
+                }
+                # No fsync: the folder is published by its rename, and an entry a crash
+                # left short is found by the sizes and hashes of its manifest.
+                write_atomic(tmp / MANIFEST, json.dumps(manifest, indent=1), sync=False,
+                             hint=CACHE_HINT)
+            if not publish(tmp, final):
+                # Another job published the same key first: hand out its entry (its id).
+                entry, _ = self.read(stage, key)
+                manifest = entry.manifest if entry is not None else manifest
+        except DiskFullError as error:
+            shutil.rmtree(tmp, ignore_errors=True)
+            # Named as the entry's file (not its temporary folder's), with the space that
+            # is free now that the partial entry is gone.
+            named = Path(str(error.path).replace(str(tmp), str(final)))
+            raise no_space(named, needed=error.needed, hint=error.hint) from error
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
@@ -382,11 +460,8 @@ def last_used(path: Path) -> float:
 
 def temporary_name(key: str) -> str:
     """The name of the folder an entry is computed in: its key and owner (pid@host)."""
-    return f"{TEMPORARY}{key}-{uuid.uuid4().hex[:8]}-{os.getpid()}@{_host()}"
+    return f"{TEMPORARY}{key}-{uuid.uuid4().hex[:8]}-{os.getpid()}@{host_name()}"
 
-
-def _host() -> str:
-    return re.sub(r"[^A-Za-z0-9.-]", "_", socket.gethostname()) or "unknown"
 
 
 def _why_stale(folder: Path) -> str | None:
@@ -397,8 +472,8 @@ def _why_stale(folder: Path) -> str | None:
     if match is None:
         return None
     key, pid, host = match.groups()
-    if pid is not None and host == _host():
-        return None if _alive(int(pid)) else f"its process {pid} on this host is gone"
+    if pid is not None and host == host_name():
+        return None if process_alive(int(pid)) else f"its process {pid} on this host is gone"
     age = time.time() - _newest_mtime(folder)
     if age < STALE_AFTER_S:
         return None
@@ -410,16 +485,6 @@ def _why_stale(folder: Path) -> str | None:
         fcntl.flock(lock, fcntl.LOCK_UN)
     owner = f"of {pid}@{host}" if pid is not None else "of unknown owner"
     return f"{owner}, untouched for {age / 3600:.0f} h, its key unlocked"
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
 
 
 def _newest_mtime(folder: Path) -> float:
@@ -441,16 +506,17 @@ def discard(path: Path) -> bool:
     return True
 
 
-def publish(tmp: Path, final: Path) -> None:
-    """Rename ``tmp`` onto ``final`` unless a complete entry is already there."""
+def publish(tmp: Path, final: Path) -> bool:
+    """Rename ``tmp`` onto ``final`` unless a complete entry is already there; returns
+    whether ``tmp`` became the entry (False: another job's entry was kept)."""
     try:
         os.rename(tmp, final)
-        return
+        return True
     except OSError:
         if (final / MANIFEST).is_file():
             # Another job finished the same key first: its entry is as good as ours.
             shutil.rmtree(tmp, ignore_errors=True)
-            return
+            return False
     # A folder without a manifest under the final name is not an entry (it can only come
     # from outside the cache): move it aside and publish ours.
     discard(final)
@@ -460,19 +526,30 @@ def publish(tmp: Path, final: Path) -> None:
         if not (final / MANIFEST).is_file():
             raise
         shutil.rmtree(tmp, ignore_errors=True)
+        return False
+    return True
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex[:8]}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+def lineage_id(manifest: Mapping) -> str:
+    """What tells one computation of an entry from another: the ``id`` of its manifest
+    (for manifests written before ids were, the time it was created)."""
+    return str(manifest.get("id") or f"created {manifest.get('created')!r}")
 
 
 def save_arrays(folder: Path, **arrays: np.ndarray) -> None:
-    """Write each array as ``<name>.npy`` (memory-mappable)."""
+    """Write each array as ``<name>.npy`` (memory-mappable).
+
+    Raises :class:`DataError` naming the file and the space left when the disk is full."""
     for name, array in arrays.items():
-        np.save(folder / f"{name}.npy", np.asarray(array))
+        path = folder / f"{name}.npy"
+        with disk_full_is_named(path, CACHE_HINT):
+            np.save(path, np.asarray(array))
 
 
 def save_json(folder: Path, name: str, value: Any) -> None:
-    (folder / f"{name}.json").write_text(json.dumps(canonical(value), indent=1))
+    """Write ``value`` as ``<name>.json`` (canonical: sorted keys, 1.0 as 1).
+
+    Raises :class:`DataError` naming the file and the space left when the disk is full."""
+    path = folder / f"{name}.json"
+    with disk_full_is_named(path, CACHE_HINT):
+        path.write_text(json.dumps(canonical(value), indent=1))

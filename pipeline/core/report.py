@@ -3,7 +3,9 @@
 Each method's ``report`` module turns a DataFrame of runs (one row per MLflow run, columns
 ``params.*``, ``metrics.*`` and ``tags.*`` as ``mlflow.search_runs`` returns them) into
 Markdown sections, writing its tables with :func:`write_table`; ``python -m
-pipeline.tables`` fetches the runs once and hands them to each method.
+pipeline.tables`` fetches the runs once and hands them to each method. Every file is
+written atomically (:func:`write_file`): a table is whole or absent, never 0 bytes, and a
+full disk is a DataError naming the file and the space left.
 """
 
 from __future__ import annotations
@@ -12,9 +14,11 @@ from pathlib import Path
 
 import pandas as pd
 
+from pipeline.core.files import write_atomic
 from pipeline.core.tracking import use_store
 
 TABLES_EXPERIMENT = "tables"  # where `python -m pipeline.tables` logs what it writes
+TABLES_HINT = "free some space or point paths.runs elsewhere"
 
 
 def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> pd.DataFrame:
@@ -41,13 +45,39 @@ def safe_stem(text: str) -> str:
     return "".join(c if c.isascii() and c.isalnum() else "_" for c in text)
 
 
+def write_file(path: Path, content) -> Path:
+    """Write a report file atomically (:func:`pipeline.core.files.write_atomic`: ``content``
+    is bytes, text, or a callable writing the temporary path it is given, e.g.
+    ``lambda tmp: fig.savefig(tmp, dpi=110)``).
+
+    Raises
+    ------
+    DataError
+        Naming ``path`` and the space left, when the disk is full.
+    """
+    return write_atomic(path, content, hint=TABLES_HINT)
+
+
+def save_figure(fig, path: Path, dpi: int = 110) -> Path:
+    """Save a Matplotlib figure atomically (:func:`write_file`): whole or absent."""
+    return write_file(path, lambda tmp: fig.savefig(tmp, dpi=dpi))
+
+
 def write_table(table: pd.DataFrame, out: Path, stem: str, title: str, note: str = "") -> str:
-    """Write ``stem``.md/.csv/.tex into ``out``; return the Markdown section."""
+    """Write ``stem``.md/.csv/.tex into ``out`` (each atomically); return the Markdown
+    section.
+
+    Raises
+    ------
+    DataError
+        Naming the file and the space left, when the disk is full.
+    """
     index = table.index.name is not None
-    table.to_csv(out / f"{stem}.csv", index=index)
-    table.to_latex(out / f"{stem}.tex", index=index, caption=title, label=f"tab:{stem}")
+    write_file(out / f"{stem}.csv", table.to_csv(index=index))
+    write_file(out / f"{stem}.tex",
+               table.to_latex(index=index, caption=title, label=f"tab:{stem}"))
     markdown = f"## {title}\n\n{table.to_markdown(index=index)}\n\n{note}\n"
-    (out / f"{stem}.md").write_text(markdown)
+    write_file(out / f"{stem}.md", markdown)
     return markdown
 
 

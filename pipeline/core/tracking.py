@@ -5,15 +5,21 @@ The store is SQLite at ``${paths.runs}/mlflow.db`` with artifacts in
 MLflow 3.x creates its SQLite schema on first use and several processes doing that at
 once crash ("duplicate column"), so :func:`init_store` creates it under a file lock
 before any job logs; sweeps call it once in the launching process as well.
+
+A run records who runs it (tags ``host`` and ``pid``): any later start, ``cache gc`` and a
+stopping sweep mark FAILED the RUNNING runs whose process is gone from this machine.
 """
 
 from __future__ import annotations
 
 import atexit
+import contextlib
 import fcntl
 import logging
 import os
+import re
 import socket
+import sqlite3
 import subprocess
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
@@ -25,7 +31,9 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from pipeline.core import stopping
 from pipeline.core.errors import StoreError
+from pipeline.core.process import process_alive, stop_children
 from pipeline.core.recipe import recipe_id, render_recipe_id
 
 log = logging.getLogger(__name__)
@@ -38,6 +46,9 @@ PACKAGES = ("torch", "numpy", "scikit-learn", "mlflow", "hydra-core", "OpenEXR",
 EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
 EXPERIMENT_KIND = (EXPERIMENT_KIND_TAG, "custom_model_development")
 NOTE_TAG = "mlflow.note.content"  # the run's description in the UI (Markdown)
+ENDED_BY_TAG = "ended_by"  # why a run ended FAILED when its own process did not say
+MLFLOW_TABLES = {"experiments", "alembic_version"}  # what makes a SQLite file a store
+_PARTIAL = re.compile(rf"\.{re.escape(DB_NAME)}\.partial-(\d+)(?:-journal|-wal|-shm)?")
 
 
 def tracking_uri(runs: str | os.PathLike) -> str:
@@ -71,14 +82,16 @@ def init_store(runs: str | os.PathLike, experiment: str) -> str:
     """Create (or upgrade) the store and the experiment once; return the experiment id.
 
     A new SQLite store is built under another name and renamed into place, so a process
-    killed while MLflow creates its tables never leaves a half-made ``mlflow.db``. Runs of
-    this experiment left RUNNING by a process of this machine that no longer exists (killed
-    with ``kill -9``, or the machine went down) are marked FAILED.
+    killed while MLflow creates its tables never leaves a half-made ``mlflow.db``; such
+    a process's partial file is removed here. Runs of any experiment left RUNNING by a
+    process of this machine that no longer exists (killed with ``kill -9``, or the
+    machine went down) are marked FAILED.
 
     Raises
     ------
     StoreError
-        Naming the store, when it cannot be opened (a damaged database, say).
+        Naming the store, when it cannot be opened (a damaged database, say), is empty,
+        or holds another program's tables.
     """
     from mlflow.tracking import MlflowClient
 
@@ -89,11 +102,17 @@ def init_store(runs: str | os.PathLike, experiment: str) -> str:
     with open(runs / ".mlflow.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            if uri == f"sqlite:///{runs / DB_NAME}" and not (runs / DB_NAME).exists():
-                _create_sqlite_store(runs / DB_NAME)
+            db = sqlite_path(uri)
+            if db is not None and db == runs / DB_NAME:
+                remove_partial_stores(runs)
+                if not db.exists():
+                    _create_sqlite_store(db)
+            if db is not None and db.exists():
+                check_sqlite_store(db)
             try:
                 client = MlflowClient(uri)
                 found = client.get_experiment_by_name(experiment)
+                fail_dead_runs(client)
             except Exception as error:  # SQLAlchemy's and MLflow's errors alike
                 raise StoreError(
                     f"the MLflow store {uri} cannot be opened ({type(error).__name__}: "
@@ -103,7 +122,6 @@ def init_store(runs: str | os.PathLike, experiment: str) -> str:
             if found is not None:
                 if EXPERIMENT_KIND_TAG not in found.tags:
                     client.set_experiment_tag(found.experiment_id, *EXPERIMENT_KIND)
-                fail_orphaned_runs(client, found.experiment_id)
                 return found.experiment_id
             location = None
             if uri.startswith("sqlite:"):
@@ -113,6 +131,12 @@ def init_store(runs: str | os.PathLike, experiment: str) -> str:
             )
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` tracking URI, else None."""
+    prefix = "sqlite:///"
+    return Path(uri[len(prefix):].split("?", 1)[0]) if uri.startswith(prefix) else None
 
 
 def _create_sqlite_store(db: Path) -> None:
@@ -126,34 +150,131 @@ def _create_sqlite_store(db: Path) -> None:
         os.replace(partial, db)
     finally:
         partial.unlink(missing_ok=True)
+        partial.with_name(f"{partial.name}-journal").unlink(missing_ok=True)
 
 
-def fail_orphaned_runs(client, experiment_id: str) -> list[str]:
-    """Mark FAILED the RUNNING runs whose process (tags ``host``, ``pid``) is gone from
-    this machine; returns their ids. Runs of other machines are left alone."""
-    ended = []
+def remove_partial_stores(runs: Path) -> list[Path]:
+    """Remove the half-made stores (``.mlflow.db.partial-<pid>`` and its ``-journal``)
+    of processes killed while they created the store. Call it holding the store's lock:
+    a partial file is only written under that lock, so any found then is a leftover."""
+    removed = []
+    for path in sorted(runs.glob(f".{DB_NAME}.partial-*")):
+        match = _PARTIAL.fullmatch(path.name)
+        if match is None or int(match[1]) == os.getpid():
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+            removed.append(path)
+    if removed:
+        log.info("removed %s: left by processes killed while they created the store",
+                 ", ".join(p.name for p in removed))
+    return removed
+
+
+def check_sqlite_store(db: Path) -> None:
+    """Refuse a file at ``db`` that is not an MLflow store, before MLflow writes its
+    tables into it: an empty file, a file that is not SQLite, a database holding
+    another program's tables (none of :data:`MLFLOW_TABLES`).
+
+    Raises
+    ------
+    StoreError
+        Naming ``db``, what is wrong and what to do.
+    """
+    aside = ("move it aside (or point paths.runs, or MLFLOW_TRACKING_URI, elsewhere) and "
+             "a new store is created")
+    if db.stat().st_size == 0:
+        raise StoreError(
+            f"the MLflow store {db} is an empty file (0 bytes: a copy or a write cut short?); "
+            f"delete it to start a new store, or put the real store in its place"
+        )
+    with open(db, "rb") as head:
+        if head.read(16) != b"SQLite format 3\x00":
+            raise StoreError(f"the MLflow store {db} is not a SQLite database; {aside}")
+    try:
+        # Not read-only: a journal left by a killed writer must be rolled back first.
+        with contextlib.closing(sqlite3.connect(db, timeout=30)) as connection:
+            tables = {name for (name,) in connection.execute(
+                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+    except sqlite3.Error as error:
+        raise StoreError(
+            f"the MLflow store {db} cannot be read ({type(error).__name__}: {error}); {aside}"
+        ) from error
+    if not tables:
+        raise StoreError(f"the MLflow store {db} is a SQLite database without tables, "
+                         f"not an MLflow store; {aside}")
+    if not MLFLOW_TABLES <= tables:
+        listed = ", ".join(sorted(tables)[:8]) + (", ..." if len(tables) > 8 else "")
+        raise StoreError(
+            f"the MLflow store {db} holds another program's tables ({listed}), not MLflow's "
+            f"(no {' or '.join(sorted(MLFLOW_TABLES - tables))} table); {aside}"
+        )
+
+
+def process_gone(run) -> bool:
+    """Whether ``run`` (an MLflow Run) was started by a process of this machine (tags
+    ``host``, ``pid``) that no longer exists. Runs of other machines: False."""
+    tags = run.data.tags
+    if tags.get("host") != socket.gethostname() or not tags.get("pid", "").isdigit():
+        return False
+    return not process_alive(int(tags["pid"]))
+
+
+def fail_dead_runs(client, experiment_ids: list[str] | None = None, *,
+                   ended_by: str = "its process was gone at a later start",
+                   also_pid: int | None = None) -> list[str]:
+    """Mark FAILED the RUNNING runs whose process is gone from this machine (and, with
+    ``also_pid``, those of that process: this one, as it stops); returns their ids. All
+    experiments' runs unless ``experiment_ids`` says which. Other machines' are left."""
+    if experiment_ids is None:
+        experiment_ids = [e.experiment_id for e in _all_pages(client.search_experiments)]
+    if not experiment_ids:
+        return []
     host = socket.gethostname()
-    for run in client.search_runs([experiment_id], "attributes.status = 'RUNNING'"):
+    ended = []
+    for run in _all_pages(client.search_runs, experiment_ids=experiment_ids,
+                          filter_string="attributes.status = 'RUNNING'"):
         tags = run.data.tags
-        if tags.get("host") != host or not tags.get("pid", "").isdigit():
+        own = also_pid is not None and tags.get("host") == host and tags.get("pid") == str(
+            also_pid)
+        if not (own or process_gone(run)):
             continue
-        if _process_alive(int(tags["pid"])):
-            continue
-        client.set_tag(run.info.run_id, "ended_by", "its process was gone at a later start")
+        client.set_tag(run.info.run_id, ENDED_BY_TAG, ended_by)
         client.set_terminated(run.info.run_id, status="FAILED")
-        log.warning("marked run %s FAILED: its process %s is gone", run.info.run_id, tags["pid"])
+        if own:
+            log.warning("marked run %s FAILED (%s)", run.info.run_id, ended_by)
+        else:
+            log.warning("marked run %s FAILED: its process %s is gone", run.info.run_id,
+                        tags["pid"])
         ended.append(run.info.run_id)
     return ended
 
 
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True  # another user's process
-    return True
+def _all_pages(search, **kwargs) -> list:
+    found, token = [], None
+    while True:
+        page = search(**kwargs, page_token=token)
+        found += list(page)
+        token = page.token
+        if not token:
+            return found
+
+
+def _fail_runs_when_stopped(uri: str) -> None:
+    """At a stop (:mod:`pipeline.core.stopping`), end FAILED this process's RUNNING runs and
+    those of processes now gone (a sweep's killed workers, or its killed launcher)."""
+    from mlflow.tracking import MlflowClient
+
+    fail_dead_runs(MlflowClient(uri), ended_by=f"stopped by {stopping.describe()}",
+                   also_pid=os.getpid())
+
+
+_STOP_CLEANUPS: dict[str, int] = {}  # tracking URI -> its cleanup's token (one per store)
+
+
+def _on_stop_fail_runs(uri: str) -> None:
+    if uri not in _STOP_CLEANUPS:
+        _STOP_CLEANUPS[uri] = stopping.on_stop(lambda: _fail_runs_when_stopped(uri))
 
 
 def flatten(config: Mapping | DictConfig, prefix: str = "") -> dict[str, Any]:
@@ -231,6 +352,7 @@ def job_run(
     import mlflow
 
     experiment_id = init_store(cfg.paths.runs, cfg.tracking.experiment)
+    _on_stop_fail_runs(tracking_uri(cfg.paths.runs))
     tags = environment_tags()
     tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
     params = flatten(cfg)
@@ -257,6 +379,12 @@ def job_run(
         log.info("MLflow run %s in %s", run.info.run_id, tracking_uri(cfg.paths.runs))
         try:
             yield run
+            stopping.check()  # a stop the job's code swallowed: the run ends FAILED
+        except BaseException:
+            if stopping.requested() is not None:
+                with contextlib.suppress(Exception):
+                    mlflow.set_tag(ENDED_BY_TAG, f"stopped by {stopping.describe()}")
+            raise
         finally:
             _log_hydra_output()
 
@@ -310,11 +438,15 @@ class SweepParentRun(Callback):
 
     Registered in ``conf/config.yaml`` under ``hydra.callbacks``. The parent's id is
     written into the sweep folder, where every job (joblib worker or SLURM task) reads it.
+    When the launching process is stopped by a signal (:mod:`pipeline.core.stopping`), the
+    parent run ends FAILED at once, then the joblib workers are stopped (their runs end
+    FAILED too); workers also stop by themselves when the launcher is killed outright.
     """
 
     def __init__(self) -> None:
         self.run_id: str | None = None
         self.uri: str | None = None
+        self._on_stop: list[int] = []  # tokens of pipeline.core.stopping.on_stop
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from mlflow.tracking import MlflowClient
@@ -338,10 +470,30 @@ class SweepParentRun(Callback):
         (sweep_dir / PARENT_RUN_FILE).write_text(self.run_id)
         # If a job fails, Hydra exits without on_multirun_end: mark the parent FAILED then.
         atexit.register(self._end, "FAILED")
+        # At a stop signal: the parent first, then the workers, then their runs (LIFO).
+        _on_stop_fail_runs(self.uri)
+        os.environ[stopping.LAUNCHER_ENV] = f"{os.getpid()}@{socket.gethostname()}"
+        folders = [config.paths.get(name) for name in ("runs", "cache", "data")]
+        self._on_stop = [
+            stopping.on_stop(lambda: stop_children([f for f in folders if f])),
+            stopping.on_stop(self._stopped),
+        ]
         log.info("MLflow parent run %s for sweep %s", self.run_id, sweep_dir)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        for token in self._on_stop:
+            stopping.forget(token)
         self._end("FINISHED")
+
+    def _stopped(self) -> None:
+        run_id = self.run_id
+        if run_id is not None:
+            from mlflow.tracking import MlflowClient
+
+            why = f"stopped by {stopping.describe()}"
+            MlflowClient(self.uri).set_tag(run_id, ENDED_BY_TAG, why)
+            self._end("FAILED")
+            log.error("sweep run %s ends FAILED; stopping its workers", run_id)
 
     def _end(self, status: str) -> None:
         if self.run_id is None:

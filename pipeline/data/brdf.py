@@ -31,7 +31,6 @@ MERL isotropic BRDF
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,6 +38,7 @@ import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.files import write_atomic
 
 UTIA_THETA_DEG = np.arange(6) * 15.0
 UTIA_PHI_DEG = np.arange(48) * 7.5
@@ -184,19 +184,6 @@ def missing_mask_by_polar_angle(brdf: MeasuredBRDF, max_theta_deg: float) -> Mea
     )
 
 
-def _atomic_write_bytes(path: Path, payload: bytes) -> None:
-    """Write into a temporary file in the same folder, then rename: no partial file is seen."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(payload)
-        os.replace(tmp_name, path)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
-
-
 # ----------------------------------------------------------------------------- UTIA
 
 
@@ -277,7 +264,8 @@ def write_utia_brdf(
         values[~measured] = -1.0
     payload = np.ascontiguousarray(values.T).astype("<f8").tobytes()
     path = Path(path)
-    _atomic_write_bytes(path, payload)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, payload)
     return path
 
 
@@ -491,5 +479,6 @@ def write_merl_brdf(
         + np.ascontiguousarray(raw.T).astype("<f8").tobytes()
     )
     path = Path(path)
-    _atomic_write_bytes(path, payload)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, payload)
     return path

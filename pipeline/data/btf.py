@@ -326,7 +326,8 @@ def decode_btf_image(
 
 
 def encode_btf_image(
-    path: str | PathLike, linear_rgb: np.ndarray, format: str = "ubo2003", quality: int = 95
+    path: str | PathLike, linear_rgb: np.ndarray, format: str = "ubo2003", quality: int = 95,
+    *, sync: bool = True,
 ) -> None:
     """Write one linear RGB image the way ``format`` stores it; the inverse of
     :func:`decode_btf_image` up to quantization.
@@ -342,6 +343,9 @@ def encode_btf_image(
     format : {"ubo2003", "utia"}
     quality : int
         JPEG quality 1..100.
+    sync : bool
+        fsync the file before it is renamed into place; a writer that publishes a whole
+        folder at once (the synthetic BTF's staging folder) syncs nothing file by file.
     """
     _check_format(format)
     suffix = Path(path).suffix.lower().lstrip(".")
@@ -349,13 +353,14 @@ def encode_btf_image(
         raise ConfigError(f"extension {suffix!r} is not used by format {format!r}: {path}")
     if suffix == "exr":
         if format == "utia":
-            write_exr(path, linear_srgb_to_xyz(linear_rgb), names=("X", "Y", "Z"))
+            write_exr(path, linear_srgb_to_xyz(linear_rgb), names=("X", "Y", "Z"), sync=sync)
         else:
-            write_exr(path, linear_rgb, names=("R", "G", "B"))
+            write_exr(path, linear_rgb, names=("R", "G", "B"), sync=sync)
     elif format == "utia":
-        write_image_8bit(path, srgb_oetf(linear_rgb))
+        write_image_8bit(path, srgb_oetf(linear_rgb), sync=sync)
     else:
-        write_image_8bit(path, gamma_encode(linear_rgb, UBO2003_GAMMA), quality=quality)
+        write_image_8bit(path, gamma_encode(linear_rgb, UBO2003_GAMMA), quality=quality,
+                         sync=sync)
 
 
 def count_btf_images(

@@ -1,8 +1,11 @@
 """Small image I/O: 8-bit JPEG/PNG via Pillow, half-float EXR via OpenEXR, colour transforms.
 
 Every reader raises :class:`~pipeline.core.errors.DataError` naming the file when it is missing,
-truncated, corrupt or holds non-finite values, so a bad file in a 6561-image dataset is
-reported by path rather than as a library traceback.
+truncated, corrupt (as far as the decoder tells: JPEG has no checksum, and a flipped bit in
+its compressed data mostly decodes to wrong pixels without a word) or holds non-finite
+values, so a bad file in a 6561-image dataset is reported by path rather than as a library
+traceback. Every writer writes atomically (:func:`pipeline.core.files.write_atomic`): a
+file is whole or absent, and a full disk is a DataError naming it.
 
 Colour conventions:
 
@@ -24,6 +27,12 @@ import OpenEXR
 from PIL import Image
 
 from pipeline.core.errors import DataError
+from pipeline.core.files import write_atomic
+
+# What Pillow raises for a file it cannot decode: OSError (truncated, corrupt, unknown
+# format), SyntaxError and ValueError (bad headers), DecompressionBombError (a header
+# that claims billions of pixels, e.g. a flipped bit in a JPEG's size).
+_DECODE_ERRORS = (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError)
 
 # --- transfer functions ---------------------------------------------------------------
 
@@ -160,7 +169,7 @@ def read_image_8bit(path: str | PathLike) -> np.ndarray:
         raise
     except FileNotFoundError:
         raise DataError(f"image file missing: {path}") from None
-    except (OSError, ValueError, SyntaxError) as error:  # Pillow's errors for bad data
+    except _DECODE_ERRORS as error:
         raise DataError(f"cannot decode image {path}: {error}") from None
     return codes.astype(np.float32) / np.float32(255.0)
 
@@ -171,8 +180,11 @@ def quantize_8bit(encoded: np.ndarray) -> np.ndarray:
     return np.rint(encoded * np.float32(255.0)).astype(np.uint8)
 
 
-def write_image_8bit(path: str | PathLike, encoded: np.ndarray, quality: int = 95) -> None:
-    """Write encoded values in [0, 1] as an 8-bit image; the format follows the extension.
+def write_image_8bit(
+    path: str | PathLike, encoded: np.ndarray, quality: int = 95, *, sync: bool = True
+) -> None:
+    """Write encoded values in [0, 1] as an 8-bit image (atomically); the format follows
+    the extension.
 
     Parameters
     ----------
@@ -182,19 +194,28 @@ def write_image_8bit(path: str | PathLike, encoded: np.ndarray, quality: int = 9
         Already-encoded values (apply :func:`srgb_oetf` or :func:`gamma_encode` first).
     quality : int
         JPEG quality 1..100; ignored for PNG.
+    sync : bool
+        fsync before the rename (:func:`~pipeline.core.files.write_atomic`); False for
+        images written into a staging folder that is published as a whole.
+
+    Raises
+    ------
+    DataError
+        Naming the file, for an unknown extension or when the disk is full.
     """
     encoded = np.asarray(encoded)
     if encoded.ndim != 3 or encoded.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) image for {path}, got shape {encoded.shape}")
-    image = Image.fromarray(quantize_8bit(encoded))
     suffix = Path(path).suffix.lower()
     if suffix in (".jpg", ".jpeg"):
         # 4:4:4 (no chroma subsampling) keeps thread-scale colour detail of small textures.
-        image.save(path, format="JPEG", quality=int(quality), subsampling=0)
+        options = {"format": "JPEG", "quality": int(quality), "subsampling": 0}
     elif suffix == ".png":
-        image.save(path, format="PNG")
+        options = {"format": "PNG"}
     else:
         raise DataError(f"cannot write an 8-bit image with extension {suffix!r}: {path}")
+    image = Image.fromarray(quantize_8bit(encoded))
+    write_atomic(path, lambda tmp: image.save(tmp, **options), sync=sync)
 
 
 def image_size(path: str | PathLike) -> tuple[int, int]:
@@ -218,7 +239,7 @@ def image_size(path: str | PathLike) -> tuple[int, int]:
             width, height = image.size
     except FileNotFoundError:
         raise DataError(f"image file missing: {path}") from None
-    except (OSError, ValueError, SyntaxError) as error:
+    except _DECODE_ERRORS as error:
         raise DataError(f"cannot read image header of {path}: {error}") from None
     return height, width
 
@@ -292,9 +313,13 @@ def read_exr_channels(path: str | PathLike, names: Sequence[str]) -> np.ndarray:
 
 
 def write_exr(
-    path: str | PathLike, image: np.ndarray, names: Sequence[str] = ("R", "G", "B")
+    path: str | PathLike,
+    image: np.ndarray,
+    names: Sequence[str] = ("R", "G", "B"),
+    *,
+    sync: bool = True,
 ) -> None:
-    """Write an image as a half-float, ZIP-compressed scanline EXR.
+    """Write an image as a half-float, ZIP-compressed scanline EXR (atomically).
 
     Parameters
     ----------
@@ -303,6 +328,13 @@ def write_exr(
         Values to store; they are rounded to half precision.
     names : sequence of C str
         Channel names, e.g. ``("R", "G", "B")`` or ``("X", "Y", "Z")``.
+    sync : bool
+        As in :func:`write_image_8bit`.
+
+    Raises
+    ------
+    DataError
+        Naming the file when the disk is full.
     """
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != len(names):
@@ -313,5 +345,9 @@ def write_exr(
         for index, name in enumerate(names)
     }
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with OpenEXR.File(header, channels) as exr_file:
-        exr_file.write(str(path))
+
+    def write(tmp: Path) -> None:
+        with OpenEXR.File(header, channels) as exr_file:
+            exr_file.write(str(tmp))
+
+    write_atomic(path, write, sync=sync)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.report import save_figure
 from pipeline.fourier.series import rms_error
 
 
@@ -30,7 +31,7 @@ def segmentation_figure(path: Path, mean, truth, labels: dict) -> None:
         ax.set_title(title, fontsize=9)
         ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
 
 
 def heldout_figure(path: Path, rows: dict, dirs: np.ndarray, exposure: float) -> None:
@@ -52,7 +53,7 @@ def heldout_figure(path: Path, rows: dict, dirs: np.ndarray, exposure: float) ->
             ax.axis("off")
     fig.suptitle("held-out lights: reference and relit models", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
 
 
 def normals_figure(path: Path, normals: np.ndarray) -> None:

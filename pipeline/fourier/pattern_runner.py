@@ -27,6 +27,7 @@ import numpy as np
 
 from pipeline.core.cache import Entry, save_arrays
 from pipeline.core.errors import ConfigError
+from pipeline.core.report import save_figure
 from pipeline.core.stage import Context, plain_settings
 from pipeline.data.images import write_exr, write_image_8bit
 from pipeline.data.light_stack import load_normal_map
@@ -233,7 +234,7 @@ def _quilting_figure(path, quilted: Entry, regions, light, view, clamp, exposure
             )
             axes[row, col].axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
 
 
 # --------------------------------------------------------------------------- the job

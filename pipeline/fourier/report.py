@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.core.recipe import recipe_suffixes, with_recipe
-from pipeline.core.report import param, write_table
+from pipeline.core.report import param, save_figure, write_table
 
 PAPER_CHOICE = (10, 3.14)
 VALIDATION = "metrics.rmse_validation_fourier"
@@ -240,7 +240,7 @@ def plot_rms_vs_m(runs: pd.DataFrame, path: Path, title: str) -> Path:
     ax.legend(fontsize=7, ncol=2)
     ax.grid(alpha=0.3, which="both")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     return path
 
 

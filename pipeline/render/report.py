@@ -31,7 +31,7 @@ from matplotlib.patches import Rectangle
 
 from pipeline.btf import tables
 from pipeline.core.cache import StageCache
-from pipeline.core.report import runs_of, safe_stem, write_table
+from pipeline.core.report import runs_of, safe_stem, save_figure, write_table
 from pipeline.data.images import gamma_encode, write_exr
 from pipeline.render import RENDERED
 from pipeline.render.stage import REGIONS
@@ -359,7 +359,7 @@ def _grid(panels, crops: dict, size: int, exposure: float, title: str, path: Pat
         axis.set_yticks([])
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     return path
 
 
@@ -390,5 +390,5 @@ def _crops_per_spp(by_spp: dict, crops: dict, size: int, title: str, path: Path)
         axis.set_yticks([])
     fig.suptitle(f"{title}\nthe crops at each samples-per-pixel level", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     return path
