@@ -33,6 +33,7 @@ from pipeline.core.digests import is_hashed, listed_files
 from pipeline.core.errors import StoreError
 from pipeline.core.files import human
 from pipeline.core.tracking import (
+    all_pages,
     check_sqlite_store,
     fail_dead_runs,
     process_gone,
@@ -84,14 +85,14 @@ def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
         from mlflow.tracking import MlflowClient
 
         client = MlflowClient(uri)
-        experiments = [e.experiment_id for e in _all_pages(
+        experiments = [e.experiment_id for e in all_pages(
             client.search_experiments, view_type=ViewType.ACTIVE_ONLY)]
         usage = Usage(uri)
         if fail_dead and experiments:
             usage.dead = fail_dead_runs(client, experiments,
                                         ended_by="its process was gone at a cache gc")
         starts = []
-        runs_found = _all_pages(client.search_runs, experiment_ids=experiments,
+        runs_found = all_pages(client.search_runs, experiment_ids=experiments,
                                 run_view_type=ViewType.ACTIVE_ONLY) if experiments else []
         for run in runs_found:
             if run.info.status == "FINISHED":
@@ -108,15 +109,6 @@ def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
     usage.running_since = min(starts, default=None)
     return usage
 
-
-def _all_pages(search, **kwargs) -> list:
-    found, token = [], None
-    while True:
-        page = search(**kwargs, page_token=token)
-        found += list(page)
-        token = page.token
-        if not token:
-            return found
 
 
 def scan(cache: StageCache) -> list[Row]:

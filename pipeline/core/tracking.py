@@ -227,12 +227,12 @@ def fail_dead_runs(client, experiment_ids: list[str] | None = None, *,
     ``also_pid``, those of that process: this one, as it stops); returns their ids. All
     experiments' runs unless ``experiment_ids`` says which. Other machines' are left."""
     if experiment_ids is None:
-        experiment_ids = [e.experiment_id for e in _all_pages(client.search_experiments)]
+        experiment_ids = [e.experiment_id for e in all_pages(client.search_experiments)]
     if not experiment_ids:
         return []
     host = socket.gethostname()
     ended = []
-    for run in _all_pages(client.search_runs, experiment_ids=experiment_ids,
+    for run in all_pages(client.search_runs, experiment_ids=experiment_ids,
                           filter_string="attributes.status = 'RUNNING'"):
         tags = run.data.tags
         own = also_pid is not None and tags.get("host") == host and tags.get("pid") == str(
@@ -250,7 +250,8 @@ def fail_dead_runs(client, experiment_ids: list[str] | None = None, *,
     return ended
 
 
-def _all_pages(search, **kwargs) -> list:
+def all_pages(search, **kwargs) -> list:
+    """Every item of a paged MLflow search (``client.search_runs`` and the like)."""
     found, token = [], None
     while True:
         page = search(**kwargs, page_token=token)
