@@ -4,7 +4,8 @@
 # message that says so, not surface as an error of whatever module was loading.
 from pipeline.core import stopping
 
-stopping.install()
+if __name__ == "__main__":  # the command only: importing this module installs nothing
+    stopping.install()
 
 import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402

@@ -2,6 +2,7 @@
 equal (pipeline.core.recipe), in every table that reports mean ± std."""
 
 import logging
+from fnmatch import fnmatchcase
 from pathlib import Path
 
 import mlflow
@@ -50,13 +51,7 @@ def test_every_entry_of_the_list_names_settings_that_exist():
     for experiment in EXPERIMENTS:
         keys |= set(flatten(compose_config(f"experiment={experiment}")))
     for pattern in NOT_RECIPE:
-        assert any(left_out(k) and _matches(k, pattern) for k in keys), pattern
-
-
-def _matches(key: str, pattern: str) -> bool:
-    from fnmatch import fnmatchcase
-
-    return fnmatchcase(key, pattern)
+        assert any(left_out(k) and fnmatchcase(k, pattern) for k in keys), pattern
 
 
 # ----------------------------------------------------------------- never averaged

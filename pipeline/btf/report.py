@@ -47,8 +47,8 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
                              "n = number of seeds. Clustered runs use each texel's own values "
                              "as the training target unless marked (rep. target). data vs "
                              "truth (built-in data only): the data's own RMSE against the "
-                             "generator's analytic truth (its 8-bit and JPEG rounding), what a "
-                             "perfect model would score. Learning "
+                             "generator's analytic truth (its 8-bit and JPEG rounding): what a "
+                             "model that recovered the truth exactly would score. Learning "
                              f"rates: {tables.learning_rates(runs) or 'not logged'}."))
     grain = tables.table_graininess(runs)
     if not grain.empty:

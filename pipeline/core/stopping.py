@@ -285,7 +285,9 @@ def _watch() -> None:
         wait = 0.2 if _state.redeliver_at is None else REDELIVER_S / 2
         if select.select([read], [], [], wait)[0]:
             for signum in os.read(read, 512):
-                if signum in _state.previous and _state.signum is None:
+                # A byte read after a scoped job ended (its handlers uninstalled) is a
+                # stop that scope already raised, not a new one.
+                if signum in _state.previous and _state.signum is None and _state.mode:
                     _state.signum = signum  # the handler has not run yet
         if _state.signum is not None and _state.deadline is None and _state.mode:
             _state.deadline = time.monotonic() + GRACE_S
