@@ -10,13 +10,22 @@ if __name__ == "__main__":  # the command only: importing this module installs n
 import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from pipeline.app import run_job  # noqa: E402
+from pipeline.core.methods import CONF_DIR, register_schemas  # noqa: E402
+from pipeline.core.settings import check_added_keys  # noqa: E402
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
+    from hydra.core.hydra_config import HydraConfig
+
+    # A typo is answered here, before the job imports torch and MLflow.
+    check_added_keys(cfg, list(HydraConfig.get().overrides.task), CONF_DIR,
+                     compose=lambda overrides: hydra.compose("config", overrides))
+    from pipeline.app import run_job
+
     return run_job(cfg)
 
 
 if __name__ == "__main__":
+    register_schemas()  # the settings dataclasses the YAML files extend, before composing
     main()

@@ -1,37 +1,31 @@
 r"""``python -m pipeline.tables``: regenerate the papers' tables and figures from MLflow.
 
 Reads the finished runs back once (``mlflow.search_runs``, with the user's experiments and
-filter) and hands them to each method's report (:mod:`pipeline.btf.report`,
-:mod:`pipeline.brdf_map.report`, :mod:`pipeline.fourier.report`), which write their
-tables (Markdown, CSV, LaTeX) and figures (PNG, EXR) under ``${paths.runs}/tables/``; all
-sections go into ``summary.md``. Works with whatever subset of runs exists and says what
-is missing. Options (Hydra overrides): ``paths.runs=...``,
+filter) and hands them to the reports of every registered method
+(:func:`pipeline.core.methods.registered`), which write their tables (Markdown, CSV,
+LaTeX) and figures (PNG, EXR); all sections go into ``summary.md``. The set is written
+whole into a new folder that then replaces ``${paths.runs}/tables/``: no file of an
+earlier run is left beside it. Works with whatever subset of runs exists and says what
+is missing; experiments or a filter that match nothing are an error. Options (Hydra overrides): ``paths.runs=...``,
 ``tables.experiments=[btf,...]``, ``"tables.filter=\"tags.note = 'x'\""`` (quoted for the shell).
 """
 
 from __future__ import annotations
 
 import logging
+import os
+import shutil
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from pipeline.brdf_map import report as brdf_map_report
-from pipeline.btf import report as btf_report
+from pipeline.core.methods import registered, reports
 from pipeline.core.report import TABLES_EXPERIMENT, fetch_runs, write_file
+from pipeline.core.report import tables_settings as default_settings
 from pipeline.core.tracking import NOTE_TAG, environment_tags, init_store, tracking_uri
-from pipeline.fourier import report as fourier_report
-from pipeline.render import report as render_report
 
 log = logging.getLogger(__name__)
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
-REPORTS = (btf_report, render_report, brdf_map_report, fourier_report)  # A, A's renders, B, C
-
-
-def default_settings() -> DictConfig:
-    """The ``tables`` section of ``conf/tables.yaml`` (used after a sweep ends)."""
-    return OmegaConf.load(CONF_DIR / "tables.yaml").tables
 
 
 def build_tables(
@@ -43,18 +37,35 @@ def build_tables(
     sweep's parent) or, when None, to a run of its own in the experiment ``tables``.
     """
     settings = settings if settings is not None else default_settings()
-    out = Path(runs_dir) / "tables"
-    out.mkdir(parents=True, exist_ok=True)
     runs = fetch_runs(runs_dir, list(settings.experiments or []), settings.filter)
-    sections = [f"# Tables regenerated from MLflow ({tracking_uri(runs_dir)})\n"]
-    for report in REPORTS:
-        sections += report.sections(runs, out, settings)
-    summary = "\n".join(sections)
-    write_file(out / "summary.md", summary)
+    out = Path(runs_dir) / "tables"
+    new = Path(runs_dir) / f".tables.new-{os.getpid()}"
+    shutil.rmtree(new, ignore_errors=True)
+    new.mkdir(parents=True)
+    try:
+        sections = [f"# Tables regenerated from MLflow ({tracking_uri(runs_dir)})\n"]
+        for report in reports(registered()):
+            sections += report.sections(runs, new, settings)
+        summary = "\n".join(sections)
+        write_file(new / "summary.md", summary)
+        replace_folder(out, new)
+    finally:
+        shutil.rmtree(new, ignore_errors=True)
     print(summary)
     log.info("tables written to %s", out)
     log_tables(runs_dir, out, settings, log_to, n_runs=len(runs))
     return out
+
+
+def replace_folder(old: Path, new: Path) -> None:
+    """Put the complete folder ``new`` in the place of ``old`` (two renames, so a reader
+    sees the old set or the new one; a crash between them leaves ``old`` absent, never
+    mixed)."""
+    trash = old.with_name(f".{old.name}.old-{os.getpid()}")
+    if old.exists():
+        old.rename(trash)
+    new.rename(old)
+    shutil.rmtree(trash, ignore_errors=True)
 
 
 def log_tables(runs_dir, out: Path, settings: DictConfig, run_id: str | None, n_runs: int) -> str:

@@ -19,6 +19,10 @@ import pytest
 from helpers import compose_config
 from omegaconf import DictConfig
 
+from pipeline.core.methods import register_schemas
+
+register_schemas()  # for the tests that compose with Hydra's API themselves
+
 
 @pytest.fixture(scope="session")
 def _empty_mlflow_db(tmp_path_factory) -> Path:

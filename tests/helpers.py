@@ -20,6 +20,9 @@ SHARED = ROOT.parent / "shared"  # real datasets, where the checkout has them
 def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictConfig:
     """Compose ``conf/config.yaml`` exactly as ``python -m pipeline`` would (with the
     ``hydra`` section too if asked: its sweeper's parameters, for instance)."""
+    from pipeline.core.methods import register_schemas
+
+    register_schemas()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides),
                        return_hydra_config=return_hydra_config)

@@ -16,7 +16,6 @@ import json
 import re
 import subprocess
 import sys
-import warnings
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -463,18 +462,47 @@ def test_no_import_cycle():
     assert _cycles(graph) == [], _describe(graph, _cycles(graph))
 
 
-def test_import_cycles_through_functions_are_reported():
-    """Cycles that only close through an import inside a function are reported (a
-    warning in pytest's summary), not refused: Python resolves them (the inner import runs
-    when the function is called, once both modules are loaded), e.g. a module and the
-    child-process entry point that calls back into it. Across packages they are refused
-    by :func:`test_packages_depend_downwards`, since one edge then points up a layer."""
+# Cycles that close only through an import inside a function, each with why it is there:
+# Python resolves them (the inner import runs when the function is called, once both
+# modules are loaded), e.g. a module and the child-process entry point that calls back
+# into it, but each should be a decision, not an accident. Across packages they are
+# refused anyway by test_packages_depend_downwards (one edge then points up a layer).
+DEFERRED_CYCLES: dict[frozenset[str], str] = {}
+
+
+def test_import_cycles_through_functions_are_the_listed_ones():
+    """Catches a new cycle through a function-level import (add it to DEFERRED_CYCLES
+    with its reason if it is meant), and a listed one that is gone."""
     graph = _graph(include_deferred=True)
     loaded = {frozenset(c) for c in _cycles(_graph(include_deferred=False))}
     deferred = [c for c in _cycles(graph) if frozenset(c) not in loaded]
-    if deferred:
-        warnings.warn("import cycles closed inside functions: "
-                      + "; ".join(_describe(graph, deferred)), stacklevel=1)
+    new = [c for c in deferred if frozenset(c) not in DEFERRED_CYCLES]
+    assert new == [], "import cycles closed inside functions: " + "; ".join(
+        _describe(graph, new))
+    gone = set(DEFERRED_CYCLES) - {frozenset(c) for c in deferred}
+    assert gone == set(), f"listed in DEFERRED_CYCLES but no longer there: {gone}"
+
+
+def test_imports_inside_functions_and_type_checking_blocks_are_deferred(tmp_path):
+    """Catches the import scanner that the cycle tests rely on taking a function's or a
+    type-checking block's import for one that runs at load time, or the reverse."""
+    module = tmp_path / "scanned.py"
+    module.write_text(
+        "import os\n"
+        "from typing import TYPE_CHECKING\n"
+        "if TYPE_CHECKING:\n"
+        "    import json\n"
+        "class Loaded:\n"
+        "    import math\n"
+        "def later():\n"
+        "    import re\n"
+        "    return lambda: __import__('glob')\n"
+        "async def later_too():\n"
+        "    from pipeline.core import errors\n"
+    )
+    found = [(imp.target, imp.deferred) for imp in _imports(module)[0]]
+    assert found == [("os", False), ("typing", False), ("json", True), ("math", False),
+                     ("re", True), ("pipeline.core.errors", True)]
 
 
 def test_cycle_finder_finds_cycles():
@@ -489,8 +517,8 @@ def test_cycle_finder_finds_cycles():
 ALLOWED = {
     "core": {"core"},
     "data": {"core", "data"},
-    "btf": {"core", "data", "btf"},
-    "render": {"core", "data", "btf", "render"},  # renders method A's compressed BTFs
+    "btf": {"core", "data", "btf", "render"},  # btf.render: A's materials on the renderer
+    "render": {"core", "data", "render"},  # the general renderer, a library below the methods
     "brdf_map": {"core", "data", "brdf_map"},
     "fourier": {"core", "data", "fourier"},
 }
@@ -584,3 +612,63 @@ def test_docstring_examples(name):
     assert results.failed == 0, report.getvalue()
     if name in MUST_RUN:
         assert results.attempted > 0
+
+
+# ------------------------------------------------------- the renderer imports no method
+
+METHOD_PACKAGES = ("pipeline.btf", "pipeline.brdf_map", "pipeline.fourier")
+
+
+def _method_imports(path: Path, module: str) -> list[str]:
+    """``file:line target`` for each import in ``path`` (module ``module``) that names a
+    method package or a module in one, wherever it is: module level, functions, classes,
+    ``if TYPE_CHECKING:``; relative imports resolved."""
+    tree = ast.parse(path.read_text(), str(path))
+
+    def is_method(target: str) -> bool:
+        return any(target == p or target.startswith(p + ".") for p in METHOD_PACKAGES)
+
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = _resolve(module, path.name == "__init__.py", node.module, node.level)
+            # ``from pipeline import btf`` names the method in the imported names.
+            targets = [base] if is_method(base) else [f"{base}.{a.name}" for a in node.names]
+        else:
+            continue
+        found += [(node.lineno, t) for t in targets if is_method(t)]
+    where = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path.name
+    return [f"{where}:{line} {target}" for line, target in sorted(found)]
+
+
+def test_the_general_renderer_imports_no_method_package():
+    """``pipeline/render/`` (scene, tracer, the material interface) is a library that any
+    method can build on: none of its modules imports a method package, not even inside a
+    function. A method's materials, render stages and reports live in its own package
+    (method A's in ``pipeline/btf/render/``)."""
+    renderer = {name: path for name, path in MODULES.items()
+                if name == "pipeline.render" or name.startswith("pipeline.render.")}
+    assert {"pipeline.render", "pipeline.render.engine", "pipeline.render.scene"} <= set(renderer)
+    assert set(METHOD_PACKAGES) <= set(MODULES)  # the names checked are the real packages
+    found = [hit for name, path in renderer.items() for hit in _method_imports(path, name)]
+    assert found == []
+
+
+def test_the_method_import_check_sees_every_kind_of_import(tmp_path):
+    path = tmp_path / "probe.py"
+    path.write_text(
+        "import numpy\n"
+        "from pipeline.render.scene import Scene\n"
+        "from pipeline import btf, core\n"
+        "def f():\n"
+        "    import pipeline.fourier.series\n"
+        "    from ..brdf_map import report\n"
+        "    return 1\n"
+        "class C:\n"
+        "    from pipeline.btf.interpolation import Barycentric, ProductInterpolator\n")
+    found = _method_imports(path, "pipeline.render.probe")
+    assert [hit.split(" ", 1)[1] for hit in found] == [
+        "pipeline.btf", "pipeline.fourier.series", "pipeline.brdf_map",
+        "pipeline.btf.interpolation"]

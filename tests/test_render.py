@@ -6,18 +6,18 @@ import numpy as np
 import pytest
 
 from pipeline.btf.interpolation import ProductInterpolator, offgrid_directions
-from pipeline.data.directions import btf_directions
-from pipeline.render.engine import render, render_with_stats, strata, subpixel_offsets
-from pipeline.render.materials import (
+from pipeline.btf.render.surfaces import (
     AnalyticMaterial,
     BeyondGridIndicator,
     GridClamped,
-    LambertianTexture,
     LinearMaterial,
     MeasuredMaterial,
     beyond_grid,
     clamp_to_grid,
 )
+from pipeline.data.directions import btf_directions
+from pipeline.render.engine import render, render_with_stats, strata, subpixel_offsets
+from pipeline.render.materials import LambertianTexture
 from pipeline.render.scene import (
     Camera,
     DirectionalLight,
@@ -358,7 +358,7 @@ def test_grid_clamped_material_answers_at_the_clamped_directions():
 
 
 def test_beyond_grid_share_is_zero_within_the_grid_and_counts_grazing_light():
-    from pipeline.render.stage import beyond_grid_shares
+    from pipeline.btf.render.stage import beyond_grid_shares
 
     camera = _camera()  # looking straight down: views within about 25 degrees of the normal
     grazing = np.array([np.sin(np.radians(85.0)), np.cos(np.radians(85.0)), 0.0])
@@ -427,7 +427,7 @@ def test_compressed_material_answers_what_the_compressed_file_answers(tmp_path):
     torch = pytest.importorskip("torch")
     from pipeline.btf.compressed import load_compressed, write_compressed
     from pipeline.btf.model import Decoder
-    from pipeline.render.materials import CompressedMaterial
+    from pipeline.btf.render.surfaces import CompressedMaterial
 
     torch.manual_seed(0)
     latents = np.random.default_rng(0).normal(size=(6, 8)).astype(np.float32)

@@ -1,4 +1,4 @@
-"""The render stages of method A (pipeline/render/stage.py) and Fig. 8 / Tables 3-4:
+"""The render stages of method A (pipeline/btf/render/stage.py) and Fig. 8 / Tables 3-4:
 scored against the analytic truth for the built-in material, against the measured
 reference (every material clamped to the grid) for measured data."""
 
@@ -10,10 +10,7 @@ import pytest
 from helpers import compose_config
 from mlflow.tracking import MlflowClient
 
-from pipeline.core.errors import ConfigError
-from pipeline.core.recipe import recipe_id
-from pipeline.core.tracking import flatten, tracking_uri
-from pipeline.render.stage import (
+from pipeline.btf.render.stage import (
     choose_crops,
     compare,
     high_frequency_energy,
@@ -21,6 +18,9 @@ from pipeline.render.stage import (
     scores,
     window_sums,
 )
+from pipeline.core.errors import ConfigError
+from pipeline.core.recipe import recipe_id
+from pipeline.core.tracking import flatten, tracking_uri
 
 
 def test_window_sums_match_a_loop():
@@ -130,7 +130,7 @@ def _hand_made_runs() -> pd.DataFrame:
 
 
 def test_each_dataset_is_scored_against_its_truth_if_it_has_one_else_the_reference():
-    from pipeline.render.report import REFERENCE, TRUTH, scored_runs, table_crop
+    from pipeline.btf.render.report import REFERENCE, TRUTH, scored_runs, table_crop
 
     scored = scored_runs(_hand_made_runs())
     models = scored[scored["model"] == "k = 8"].set_index("run_id")
@@ -257,7 +257,7 @@ def test_measured_data_is_scored_against_the_reference_with_every_material_clamp
 
 
 def test_the_render_benchmark_runs_each_material_on_the_same_rays(capsys):
-    from pipeline.render.bench import main
+    from pipeline.btf.render.bench import main
 
     found = main(["--size", "16", "--spp", "1", "--crop", "4"])
     assert set(found) == {"lambertian", "measured", "neural", "truth", "beyond grid"}

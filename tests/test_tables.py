@@ -262,3 +262,28 @@ def test_table2_names_each_columns_learning_rate(tmp_path, settings):
                  {"rmse": 0.03}, {"cache.evaluate": method})
     text = (build_tables(tmp_path, settings) / "table2_rmse.md").read_text()
     assert "Learning rates: Neural BTF: 0.05; k = 500: 0.05." in text
+
+
+def test_experiments_or_a_filter_that_match_nothing_are_refused_and_nothing_is_rewritten(
+        tmp_path, settings):
+    from pipeline.core.errors import ConfigError
+
+    _log_runs(tmp_path, RUNS)
+    out = build_tables(tmp_path, settings)
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    typo = OmegaConf.merge(settings, {"experiments": ["btff"]})
+    with pytest.raises(ConfigError, match=r"\['btff'\] not in the store .*'btf'"):
+        build_tables(tmp_path, typo)
+    nothing = OmegaConf.merge(settings, {"filter": "tags.note = 'none'"})
+    with pytest.raises(ConfigError, match="matches none of the 8 runs"):
+        build_tables(tmp_path, nothing)
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before
+
+
+def test_a_new_set_of_tables_leaves_no_file_of_the_old_one(tmp_path, settings):
+    _log_runs(tmp_path, RUNS)
+    out = build_tables(tmp_path, settings)
+    (out / "stale_table.md").write_text("from an earlier run")
+    build_tables(tmp_path, settings)
+    assert not (out / "stale_table.md").exists() and (out / "table2_rmse.md").is_file()
+    assert [p.name for p in tmp_path.iterdir() if "tables." in p.name] == []  # no temporaries

@@ -11,9 +11,13 @@ The Neural BTF is compared with two interpolants of the measured training data: 
 nearest measured (light, view) pair, and "linear": barycentric weights in a Delaunay
 triangulation of the light directions times those of the view directions (both in
 stereographic coordinates), i.e. piecewise-linear interpolation on the product mesh.
+:class:`Barycentric` computes those weights; the renderer's measured material
+(:mod:`pipeline.btf.render.surfaces`) uses the same ones.
 """
 
 from __future__ import annotations
+
+from functools import cached_property
 
 import numpy as np
 
@@ -47,6 +51,92 @@ def training_directions(directions: np.ndarray, heldout: np.ndarray) -> np.ndarr
     return np.flatnonzero(~np.isin(light_ids, heldout))
 
 
+class Barycentric:
+    """Barycentric weights in the Delaunay triangulation of grid directions (stereographic).
+
+    The triangulation is built once, when the object is made.
+
+    Parameters
+    ----------
+    grid_angles : ndarray of shape (P, 2)
+        (theta, phi) in radians of the grid directions. With fewer than 3 there is no
+        triangulation and every query takes its nearest grid direction.
+    """
+
+    def __init__(self, grid_angles: np.ndarray):
+        grid_angles = np.asarray(grid_angles, dtype=np.float64)
+        if grid_angles.ndim != 2 or grid_angles.shape[1] != 2 or len(grid_angles) == 0:
+            raise ValueError(f"grid_angles must have shape (P, 2), P >= 1, got {grid_angles.shape}")
+        self.unit = unit_vectors(*grid_angles.T)
+        self.triangulation = None
+        if len(grid_angles) >= 3:
+            from scipy.spatial import Delaunay
+
+            self.triangulation = Delaunay(stereographic(*grid_angles.T))
+
+    def nearest(self, angles: np.ndarray) -> np.ndarray:
+        """Index (n,) of the grid direction closest (largest cosine) to each of ``angles``
+        (n, 2)."""
+        return np.argmax(unit_vectors(*angles.T) @ self.unit.T, axis=1)
+
+    def __call__(
+        self,
+        angles: np.ndarray,
+        *,
+        nearest: np.ndarray | None = None,
+        bruteforce: bool = False,
+        snap: float = 0.0,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Grid indices and weights of each direction.
+
+        Parameters
+        ----------
+        angles : ndarray of shape (n, 2)
+            (theta, phi) in radians.
+        nearest : ndarray of shape (n,), optional
+            :meth:`nearest` of ``angles`` when the caller has it already; otherwise it is
+            computed for the queries outside the triangulation only.
+        bruteforce : bool
+            scipy's exhaustive simplex search instead of its walk: much faster for queries
+            scattered over the hemisphere (a render's). Both find the triangle that holds
+            a query; on a shared edge they may pick different ones (same point, weights
+            that differ by rounding).
+        snap : float
+            A weight above ``1 - snap`` marks a query on a grid direction: its weights
+            become exactly (1, 0, 0) in that corner's place. 0 leaves weights as computed.
+
+        Returns
+        -------
+        ids : ndarray of shape (n, 3), int
+            Grid indices of the triangle's corners; outside the triangulation, the nearest
+            grid direction three times.
+        weights : ndarray of shape (n, 3), float64
+            Summing to 1; outside the triangulation (1, 0, 0).
+        """
+        angles = np.asarray(angles, dtype=np.float64)
+        inside = np.zeros(len(angles), dtype=bool)
+        ids = np.zeros((len(angles), 3), dtype=np.int64)
+        weights = np.zeros((len(angles), 3))
+        tri = self.triangulation
+        if tri is not None:
+            points = stereographic(*angles.T)
+            simplex = tri.find_simplex(points, bruteforce=bruteforce)
+            inside = simplex >= 0
+            transform = tri.transform[simplex[inside]]
+            b = np.einsum("qij,qj->qi", transform[:, :2], points[inside] - transform[:, 2])
+            ids[inside] = tri.simplices[simplex[inside]]
+            weights[inside] = np.column_stack([b, 1.0 - b.sum(1)])
+        if not inside.all():
+            outside = self.nearest(angles[~inside]) if nearest is None else nearest[~inside]
+            ids[~inside] = outside[:, None]
+            weights[~inside, 0] = 1.0
+        if snap > 0:
+            corner = weights > 1.0 - snap
+            weights = np.where(corner.any(axis=1, keepdims=True), corner.astype(np.float64),
+                               weights)
+        return ids, weights
+
+
 class ProductInterpolator:
     """Nearest and linear interpolation of measured ABRDFs over (light, view) pairs."""
 
@@ -62,29 +152,23 @@ class ProductInterpolator:
         table[light_ids, view_ids] = columns
         self.table = table
 
-    @staticmethod
-    def _weights(points: np.ndarray, queries: np.ndarray):
-        """Barycentric (index, weight) triples; nearest point when outside the hull."""
-        p2, q2 = stereographic(*points.T), stereographic(*queries.T)
-        nearest = np.argmax(unit_vectors(*queries.T) @ unit_vectors(*points.T).T, axis=1)
-        idx = np.repeat(nearest[:, None], 3, axis=1)
-        w = np.tile([1.0, 0.0, 0.0], (len(queries), 1))
-        if len(points) >= 3:
-            from scipy.spatial import Delaunay
+    # Built when first needed: a grid that cannot be triangulated fails at predict only.
+    @cached_property
+    def light_weights(self) -> Barycentric:
+        """:class:`Barycentric` weights over the sampled light directions ``light_dirs``."""
+        return Barycentric(self.light_dirs)
 
-            tri = Delaunay(p2)
-            simplex = tri.find_simplex(q2)
-            inside = simplex >= 0
-            t = tri.transform[simplex[inside]]
-            b = np.einsum("qij,qj->qi", t[:, :2], q2[inside] - t[:, 2])
-            idx[inside] = tri.simplices[simplex[inside]]
-            w[inside] = np.column_stack([b, 1.0 - b.sum(1)])
-        return idx, w, nearest
+    @cached_property
+    def view_weights(self) -> Barycentric:
+        """:class:`Barycentric` weights over the sampled view directions ``view_dirs``."""
+        return Barycentric(self.view_dirs)
 
     def predict(self, abrdf: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(nearest, linear) predictions of shape (M, q, 3) at (q, 4) query directions."""
-        li, lw, ln = self._weights(self.light_dirs, queries[:, :2])
-        vi, vw, vn = self._weights(self.view_dirs, queries[:, 2:])
+        ln = self.light_weights.nearest(queries[:, :2])
+        vn = self.view_weights.nearest(queries[:, 2:])
+        li, lw = self.light_weights(queries[:, :2], nearest=ln)
+        vi, vw = self.view_weights(queries[:, 2:], nearest=vn)
         nearest_cols = self.table[self.lights[ln], self.views[vn]]
         nearest = np.asarray(abrdf[:, nearest_cols], dtype=np.float32)
         linear = np.zeros_like(nearest)

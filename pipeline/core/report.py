@@ -13,8 +13,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pandas as pd
+from omegaconf import DictConfig, OmegaConf
 
+from pipeline.core.errors import ConfigError
 from pipeline.core.files import write_atomic
+from pipeline.core.methods import CONF_DIR
 from pipeline.core.tracking import use_store
 
 TABLES_EXPERIMENT = "tables"  # where `python -m pipeline.tables` logs what it writes
@@ -22,18 +25,30 @@ TABLES_HINT = "free some space or point paths.runs elsewhere"
 
 
 def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> pd.DataFrame:
-    """Finished runs of the given MLflow experiments (all when empty) as one DataFrame."""
+    """Finished runs of the given MLflow experiments (all when empty) as one DataFrame.
+
+    Named experiments that the store lacks, or a filter that matches none of their runs,
+    are a ConfigError naming what the store has: a typo must not give an empty report.
+    """
     import mlflow
 
     use_store(runs_dir)
     # The tables' own runs hold outputs, not results.
     found = [e.name for e in mlflow.search_experiments() if e.name != TABLES_EXPERIMENT]
-    names = [e for e in (experiments or found) if e in found]
+    missing = [e for e in experiments or [] if e not in found]
+    if missing:
+        raise ConfigError(f"tables.experiments: {missing} not in the store {runs_dir}; "
+                          f"its experiments: {found or 'none'}")
+    names = list(experiments or found)
     if not names:
         return pd.DataFrame()
     runs = mlflow.search_runs(
         experiment_names=names, filter_string=filter_string or "", output_format="pandas"
     )
+    if runs.empty and filter_string:
+        total = len(mlflow.search_runs(experiment_names=names, output_format="pandas"))
+        raise ConfigError(f"tables.filter={filter_string!r} matches none of the {total} runs "
+                          f"of {names} in {runs_dir}")
     if runs.empty:
         return runs
     return runs[runs["status"] == "FINISHED"]
@@ -92,3 +107,9 @@ def runs_of(runs: pd.DataFrame, methods) -> pd.DataFrame:
     if runs.empty or "params.method.name" not in runs:
         return runs.iloc[0:0]
     return runs[runs["params.method.name"].isin(list(methods))]
+
+
+def tables_settings() -> DictConfig:
+    """The ``tables`` section of ``conf/tables.yaml``: the tables command's defaults, also
+    read by a job that draws a table's figures for itself (method A's Fig. 7 pairs)."""
+    return OmegaConf.load(CONF_DIR / "tables.yaml").tables

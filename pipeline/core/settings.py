@@ -12,11 +12,13 @@ pipeline.core.errors.ConfigError: k=True must be an integer >= 1
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import types
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -162,3 +164,74 @@ class _String:
 
     def __str__(self) -> str:
         return "a string" + (" or null" if self.optional else "")
+
+
+def schema(settings_class: type, class_name: str | None = None, **extra: object) -> type:
+    """A Hydra structured config with the fields and defaults of ``settings_class``.
+
+    The settings dataclass stays the one source of defaults and checks (it is frozen and
+    checks itself when the job builds it; a structured config must be mutable, so this is
+    a plain copy of its fields). ``extra`` adds fields the config group holds besides
+    (name: default); a dict default becomes an open ``dict[str, Any]`` field.
+    """
+    hints = typing.get_type_hints(settings_class)
+    fields = []
+    for f in dataclasses.fields(settings_class):
+        default = (dataclasses.field(default_factory=f.default_factory)
+                   if f.default is dataclasses.MISSING else dataclasses.field(default=f.default))
+        fields.append((f.name, hints[f.name], default))
+    for key, value in extra.items():
+        if isinstance(value, dict):
+            fields.append((key, dict[str, typing.Any],
+                           dataclasses.field(default_factory=lambda v=value: dict(v))))
+        else:
+            fields.append((key, type(value) if value is not None else typing.Any, value))
+    return dataclasses.make_dataclass(class_name or f"{settings_class.__name__}Schema", fields)
+
+
+def check_added_keys(cfg: DictConfig, overrides: list[str], conf_dir: Path,
+                     open_maps: tuple[str, ...] = ("tracking.tags",),
+                     compose=None) -> None:
+    """Refuse a setting added with ``+key=value`` (or ``++``) that the config does not have.
+
+    Hydra refuses ``btf.crop.szie=32`` but adds ``+btf.crop.szie=32`` as a new key that no
+    code reads, so the run would go on with the default. Adding is allowed for config
+    groups (``+experiment=...``) and under the maps meant to be open (``tracking.tags``).
+    ``++key`` sets a key whether or not it exists: it is refused when the config composed
+    without it (``compose(overrides)``) lacks the key. The error names the closest setting.
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    base = None
+    for override in parsed:
+        if not (override.is_add() or override.is_force_add()):
+            continue
+        key = override.key_or_group
+        if "/" in key or (conf_dir / key.replace(".", "/")).is_dir():
+            continue  # a config group, e.g. +experiment=smoke
+        if any(key == m or key.startswith(m + ".") for m in open_maps):
+            continue
+        if override.is_force_add() and compose is not None:
+            if base is None:
+                base = compose([o.input_line for o in parsed if not o.is_force_add()])
+            if OmegaConf.select(base, key, default=_ABSENT) is not _ABSENT:
+                continue  # ++ on a real setting: a plain change
+        known = [k for k in _leaf_keys(cfg) if k != key]
+        close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+        hint = f"; did you mean {close[0]}?" if close else ""
+        raise ConfigError(f"+{key}: no such setting{hint} (a + adds a new key that no code "
+                          f"reads; only {', '.join(open_maps)} take new keys)")
+
+
+_ABSENT = object()
+
+
+def _leaf_keys(cfg: DictConfig, prefix: str = "") -> list[str]:
+    keys = []
+    for key, value in cfg.items():
+        name = f"{prefix}{key}"
+        keys.append(name)
+        if isinstance(value, DictConfig):
+            keys += _leaf_keys(value, name + ".")
+    return keys

@@ -21,7 +21,7 @@ import re
 import socket
 import sqlite3
 import subprocess
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from importlib import metadata
 from pathlib import Path
@@ -341,7 +341,8 @@ def _parent_run_id() -> str | None:
 
 @contextmanager
 def job_run(
-    cfg: DictConfig, run_name: str | None = None, description: str = ""
+    cfg: DictConfig, run_name: str | None = None, description: str = "",
+    unused: Sequence[str] = (),
 ) -> Iterator[Any]:
     """Start the MLflow run of one job; it ends FAILED if the body raises.
 
@@ -356,7 +357,7 @@ def job_run(
     _on_stop_fail_runs(tracking_uri(cfg.paths.runs))
     tags = environment_tags()
     tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
-    params = flatten(cfg)
+    params = {k: v for k, v in flatten(cfg).items() if k not in set(unused)}
     tags["recipe"] = recipe_id(params)  # equal for seeds of one model (pipeline.core.recipe)
     if any(key.startswith("btf.render.") for key in params):
         tags["render_recipe"] = render_recipe_id(params)  # and rendered alike
@@ -463,6 +464,12 @@ class SweepParentRun(Callback):
         tags["sweep.overrides"] = " ".join(f"{k}={v}" for k, v in swept.items())
         # As for a job's run: a later start marks the parent FAILED if this process dies.
         tags.update(host=socket.gethostname(), pid=str(os.getpid()))
+        tags[NOTE_TAG] = (
+            f"**Hydra sweep** over `{tags['sweep.overrides'] or 'one job'}`. Its jobs are the "
+            "child runs below; each one's headline metrics are logged here as "
+            "`<job>/<metric>` when the sweep ends, and the tables (when the experiment "
+            "builds them) under `tables/`."
+        )
         run = client.create_run(experiment_id, run_name=f"sweep {sweep_dir.name}", tags=tags)
         self.run_id = run.info.run_id
         # What the sweep varies (each job's value is among its own params) and what it fixes.

@@ -1,4 +1,5 @@
-"""``python -m pipeline.render.bench``: how long a Fig. 8 frame takes, and where the time goes.
+"""``python -m pipeline.btf.render.bench``: how long a Fig. 8 frame takes, and where the time
+goes.
 
 Renders the default scene (:func:`pipeline.render.scene.default_scene`) once with each
 material, at one size and spp, and prints seconds, rays per second and material queries per
@@ -15,7 +16,7 @@ second:
 The differences to ``lambertian`` are the materials' own cost. Figures are measured in the
 one run, so compare them as ratios; on a shared machine absolute times move.
 
-    python -m pipeline.render.bench --size 256 --spp 128 --crop 100
+    python -m pipeline.btf.render.bench --size 256 --spp 128 --crop 100
 """
 
 from __future__ import annotations
@@ -33,15 +34,15 @@ def materials(crop: int, folder: Path, seed: int = 0) -> dict:
 
     from pipeline.btf.compressed import write_compressed
     from pipeline.btf.model import LATENT_DIM, Decoder
-    from pipeline.btf.synthetic import SyntheticBTF
-    from pipeline.data.directions import btf_directions
-    from pipeline.render.materials import (
+    from pipeline.btf.render.surfaces import (
         AnalyticMaterial,
         BeyondGridIndicator,
         CompressedMaterial,
-        LambertianTexture,
         MeasuredMaterial,
     )
+    from pipeline.btf.synthetic import SyntheticBTF
+    from pipeline.data.directions import btf_directions
+    from pipeline.render.materials import LambertianTexture
 
     rng = np.random.default_rng(seed)
     checker = (np.indices((crop, crop)).sum(0) % 2 * 0.6 + 0.2).astype(np.float32)

@@ -26,7 +26,7 @@ grain. The metrics (:func:`scores`; ``<name>`` is ``rmse_dark``, ``rmse_bright``
 - ``render_beyond_grid_share`` and ``render_beyond_grid_share_{dark,bright}``: the share
   of the (camera sample, light) pairs on the lit cloth and in each crop whose light or
   view direction lies beyond the measured grid (weighted by the light's irradiance;
-  :class:`pipeline.render.materials.BeyondGridIndicator`), at the largest spp.
+  :class:`pipeline.btf.render.surfaces.BeyondGridIndicator`), at the largest spp.
 
 Unless given (``btf.render.crops``), the crops are chosen on the truth when there is one,
 else on the reference, at the largest spp: of the windows wholly on lit cloth (every camera
@@ -35,7 +35,7 @@ silhouette), the darkest and the brightest by mean luminance. The same crops sco
 comparison of a run.
 
 Directions beyond the grid (theta past the 75-degree ring). Without a truth (measured
-data), every model is queried through :class:`pipeline.render.materials.GridClamped`:
+data), every model is queried through :class:`pipeline.btf.render.surfaces.GridClamped`:
 grazing light and view are clamped onto the ring for every material alike, as the
 measured reference and the PCA baseline do by construction, so that a render differs from
 the reference by its reconstruction of the measured domain only; a neural decoder's
@@ -45,8 +45,9 @@ is dark because its light grazes): their share is reported instead. With a truth
 model is queried as it is (a neural decoder extrapolates) and the truth, unclamped,
 scores it.
 
-The stages' code versions (``version=`` below) cover :mod:`pipeline.render.scene`,
-``engine`` and ``materials`` too: bump them when a change there alters the images.
+The stages' code versions (``version=`` below) cover the general renderer
+(:mod:`pipeline.render.scene`, ``engine``, ``materials``) and method A's materials
+(:mod:`pipeline.btf.render.surfaces`) too: bump them when a change there alters the images.
 
 Units: the key light gives irradiance 1 at the sheet's centre, so radiance is in the BTF's
 own units (the data's linear RGB), and the RMSE is comparable with eq. 10's un-normalised.
@@ -251,9 +252,9 @@ def beyond_grid_shares(indicator: np.ndarray, lit_cloth: np.ndarray, crops: dict
     Parameters
     ----------
     indicator : ndarray of shape (H, W, 3)
-        A render of :class:`pipeline.render.materials.BeyondGridIndicator`: channel 0 sums
-        the (sample, light) pairs whose light or view is beyond the grid, channel 2 all
-        pairs, each weighted by the light's irradiance.
+        A render of :class:`pipeline.btf.render.surfaces.BeyondGridIndicator`: channel 0
+        sums the (sample, light) pairs whose light or view is beyond the grid, channel 2
+        all pairs, each weighted by the light's irradiance.
     lit_cloth : ndarray of shape (H, W)
         The render's coverage: the pixels where it is 1 count (those of the cloth RMSE).
     crops : dict
@@ -286,12 +287,12 @@ def has_truth(cfg) -> bool:
 
 def reference_stage(ctx: Context, cropped: Entry) -> Entry:
     """Render the measured crop (the reference) at every spp, and at the largest spp the
-    :class:`~pipeline.render.materials.BeyondGridIndicator` (``beyond_grid_spp<N>.npy``)."""
+    :class:`~pipeline.btf.render.surfaces.BeyondGridIndicator` (``beyond_grid_spp<N>.npy``)."""
     settings = render_settings(ctx.cfg)
 
     def compute(folder: Path) -> dict:
+        from pipeline.btf.render.surfaces import BeyondGridIndicator, MeasuredMaterial
         from pipeline.render.engine import render_with_stats
-        from pipeline.render.materials import BeyondGridIndicator, MeasuredMaterial
 
         values = cropped.array("abrdf")
         directions = cropped.array("directions", mmap=False)
@@ -316,7 +317,7 @@ def reference_stage(ctx: Context, cropped: Entry) -> Entry:
 
 def truth_stage(ctx: Context, cropped: Entry) -> Entry:
     """Render the built-in material's generator over the run's crop (the truth,
-    :class:`~pipeline.render.materials.AnalyticMaterial`) at every spp."""
+    :class:`~pipeline.btf.render.surfaces.AnalyticMaterial`) at every spp."""
     settings = render_settings(ctx.cfg)
     generator = plain_settings(ctx.cfg.dataset.synthetic)
     own = {**settings,
@@ -324,7 +325,7 @@ def truth_stage(ctx: Context, cropped: Entry) -> Entry:
            "crop": plain_settings(ctx.cfg.btf.crop)}
 
     def compute(folder: Path) -> dict:
-        from pipeline.render.materials import AnalyticMaterial
+        from pipeline.btf.render.surfaces import AnalyticMaterial
 
         material = AnalyticMaterial.from_config(ctx.cfg)
         if material.n_texels != cropped.manifest["summary"]["M"]:
@@ -340,15 +341,15 @@ def truth_stage(ctx: Context, cropped: Entry) -> Entry:
 def compressed_material(exported: Entry):
     """The export stage's compressed BTF file (Neural BTF or clustered) as a material."""
     from pipeline.btf.compressed import FILE_NAME
-    from pipeline.render.materials import CompressedMaterial
+    from pipeline.btf.render.surfaces import CompressedMaterial
 
     return CompressedMaterial.from_file(exported.file(FILE_NAME))
 
 
 def linear_material(fitted: Entry, cropped: Entry, prep: Entry):
     """The linear stage's PCA, as stored, back in linear RGB, as a material."""
+    from pipeline.btf.render.surfaces import LinearMaterial
     from pipeline.btf.stages import normalization
-    from pipeline.render.materials import LinearMaterial
 
     side = math.isqrt(cropped.manifest["summary"]["M"])  # the crop stage cuts squares
     return LinearMaterial(
@@ -368,13 +369,13 @@ def model_stage(ctx: Context, inputs: dict[str, Entry], material, reference: Ent
 
     ``inputs`` are the entries the model comes from (they key the stage) and ``material()``
     builds it from them, called only when the render is not in the cache. Without a truth,
-    the model is queried through :class:`~pipeline.render.materials.GridClamped`.
+    the model is queried through :class:`~pipeline.btf.render.surfaces.GridClamped`.
     """
     settings = render_settings(ctx.cfg)
     beyond = "as is" if truth is not None else "clamped to the grid"
 
     def compute(folder: Path) -> dict:
-        from pipeline.render.materials import GridClamped
+        from pipeline.btf.render.surfaces import GridClamped
 
         material_ = material() if truth is not None else GridClamped(material())
         stats = _render_every_spp(_scene(settings), material_, settings, folder, "model")

@@ -30,11 +30,11 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from pipeline.btf import tables
+from pipeline.btf.render import RENDERED
+from pipeline.btf.render.stage import REGIONS
 from pipeline.core.cache import StageCache
 from pipeline.core.report import runs_of, safe_stem, save_figure, write_table
 from pipeline.data.images import gamma_encode, write_exr
-from pipeline.render import RENDERED
-from pipeline.render.stage import REGIONS
 
 log = logging.getLogger(__name__)
 
