@@ -21,7 +21,7 @@ import hydra
 from omegaconf import DictConfig
 
 from pipeline.core.methods import registered, reports
-from pipeline.core.report import TABLES_EXPERIMENT, fetch_runs, write_file
+from pipeline.core.report import TABLES_EXPERIMENT, fetch_runs, summary_html, write_file
 from pipeline.core.report import tables_settings as default_settings
 from pipeline.core.tracking import NOTE_TAG, environment_tags, init_store, tracking_uri
 
@@ -48,6 +48,7 @@ def build_tables(
             sections += report.sections(runs, new, settings)
         summary = "\n".join(sections)
         write_file(new / "summary.md", summary)
+        write_file(new / "summary.html", summary_html(summary, new))
         replace_folder(out, new)
     finally:
         shutil.rmtree(new, ignore_errors=True)

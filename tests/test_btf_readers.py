@@ -2,6 +2,9 @@
 
 import re
 import shutil
+import struct
+import subprocess
+import zipfile
 
 import numpy as np
 import OpenEXR
@@ -9,7 +12,14 @@ import pytest
 
 from pipeline.btf.synthetic import SyntheticBTF, write_synthetic_btf
 from pipeline.core.errors import ConfigError, DataError
-from pipeline.data.btf import count_btf_images, decode_btf_image, list_btf_files, load_btf
+from pipeline.core.stage import folder_fingerprint
+from pipeline.data.btf import (
+    archive_fingerprint,
+    count_btf_images,
+    decode_btf_image,
+    list_btf_files,
+    load_btf,
+)
 from pipeline.data.directions import btf_directions, parse_ubo2003_file_name, ubo2003_file_name
 from pipeline.data.images import (
     gamma_decode,
@@ -274,3 +284,121 @@ def test_nan_in_exr(damaged_copy):
     write_exr(victim, np.stack([channels[name] for name in "XYZ"], axis=-1), names="XYZ")
     with pytest.raises(DataError, match=re.escape(str(victim))):
         load_btf(root, "utia")
+
+
+# --- zip archives, read as downloaded ---------------------------------------------------
+
+
+def _zip_folder(folder, archive, prefix="", compression=zipfile.ZIP_DEFLATED):
+    """Python's zipfile: DOS times only (no extended-timestamp field)."""
+    with zipfile.ZipFile(archive, "w", compression) as opened:
+        for path in sorted(folder.rglob("*")):
+            if path.is_file():
+                opened.write(path, prefix + path.relative_to(folder).as_posix())
+    return archive
+
+
+@pytest.mark.parametrize("format, ext, prefix", [("ubo2003", "jpg", "WOOL/"), ("utia", "exr", "")])
+def test_a_zip_reads_bit_for_bit_as_its_folder(datasets, tmp_path, format, ext, prefix):
+    folder = datasets[(format, ext)]
+    archive = _zip_folder(folder, tmp_path / "m.zip", prefix)
+    zipped, unpacked = load_btf(archive, format), load_btf(folder, format)
+    np.testing.assert_array_equal(zipped.images, unpacked.images)
+    np.testing.assert_array_equal(zipped.directions, unpacked.directions)
+    relative = unpacked.paths[100].relative_to(folder).as_posix()
+    assert str(zipped.paths[100]) == f"{archive}/{prefix}{relative}"
+    assert count_btf_images(archive, format, views=[(30, 30)]) == (81, SIZE, SIZE)
+
+
+@pytest.mark.skipif(shutil.which("unzip") is None or shutil.which("zip") is None,
+                    reason="needs Info-ZIP zip and unzip")
+@pytest.mark.parametrize("maker", ["python", "info-zip"])
+def test_a_zips_fingerprint_is_that_of_the_folder_unzip_makes(datasets, tmp_path, maker):
+    """Python's zipfile records DOS times (local, 2 s steps); Info-ZIP's zip adds the
+    Unix time in an extended-timestamp field, which unzip restores instead."""
+    source = shutil.copytree(datasets[("ubo2003", "png")], tmp_path / "WOOL")
+    archive = tmp_path / "m.zip"
+    if maker == "python":
+        _zip_folder(source, archive, "WOOL/")
+    else:
+        subprocess.run(["zip", "-q", "-r", str(archive), "WOOL"], cwd=tmp_path, check=True)
+    subprocess.run(["unzip", "-q", str(archive), "-d", str(tmp_path / "out")], check=True)
+    assert archive_fingerprint(archive) == folder_fingerprint(tmp_path / "out" / "WOOL")
+
+
+def test_an_extended_timestamp_is_the_time_of_the_fingerprint(tmp_path):
+    info = zipfile.ZipInfo("tv000_pv000/a.png", date_time=(2001, 2, 3, 4, 5, 6))
+    info.extra = struct.pack("<HHBi", 0x5455, 5, 1, 1_600_000_000)  # "UT", flags, mtime
+    with zipfile.ZipFile(tmp_path / "m.zip", "w") as opened:
+        opened.writestr(info, b"12345")
+    fingerprint = archive_fingerprint(tmp_path / "m.zip")
+    assert fingerprint["mtime_ns"] == 1_600_000_000 * 10**9
+    assert (fingerprint["files"], fingerprint["bytes"]) == (1, 5)
+
+
+@pytest.mark.skipif(shutil.which("unzip") is None, reason="needs unzip")
+def test_the_load_stage_shares_one_entry_between_a_zip_and_its_unzipped_folder(datasets, tmp_path):
+    from helpers import compose_config
+
+    from pipeline.btf import stages
+    from pipeline.core.stage import Context
+
+    archive = _zip_folder(datasets[("ubo2003", "jpg")], tmp_path / "m.zip", "WOOL/")
+    subprocess.run(["unzip", "-q", str(archive), "-d", str(tmp_path / "out")], check=True)
+
+    def load(root):
+        cfg = compose_config("experiment=smoke", f"paths.runs={tmp_path / 'runs'}",
+                             "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null")
+        return stages.load(Context.from_config(cfg))
+
+    from_folder = load(tmp_path / "out" / "WOOL")
+    from_zip = load(archive)
+    assert from_zip.key == from_folder.key
+    np.testing.assert_array_equal(from_zip.array("images"), load_btf(archive).images)
+
+
+def test_a_zip_missing_an_image_names_it(datasets, tmp_path):
+    folder = datasets[("ubo2003", "jpg")]
+    victim = sorted((folder / "tv030_pv030").iterdir())[5]
+    archive = tmp_path / "m.zip"
+    with zipfile.ZipFile(archive, "w") as opened:
+        for path in sorted(folder.rglob("*.jpg")):
+            if path != victim:
+                opened.write(path, "WOOL/" + path.relative_to(folder).as_posix())
+    with pytest.raises(DataError, match=re.escape(f"{archive}/WOOL/tv030_pv030/{victim.name}")):
+        load_btf(archive)
+
+
+def test_a_damaged_member_names_the_archive_and_member(datasets, tmp_path):
+    archive = _zip_folder(datasets[("ubo2003", "png")], tmp_path / "m.zip",
+                          compression=zipfile.ZIP_STORED)
+    with zipfile.ZipFile(archive) as opened:
+        member = opened.getinfo("tv030_pv030/" + sorted(
+            name.rsplit("/", 1)[1] for name in opened.namelist() if name.startswith("tv030"))[9])
+    raw = bytearray(archive.read_bytes())
+    data_start = member.header_offset + 30 + len(member.filename.encode()) + len(member.extra)
+    raw[data_start + 40] ^= 0xFF  # the CRC no longer matches
+    archive.write_bytes(bytes(raw))
+    with pytest.raises(DataError, match=re.escape(f"{archive}/{member.filename}")):
+        load_btf(archive)
+
+
+def test_a_zip_with_view_folders_in_two_places(datasets, tmp_path):
+    archive = _zip_folder(datasets[("utia", "png")], tmp_path / "m.zip", "a/")
+    with zipfile.ZipFile(archive, "a") as opened:
+        opened.writestr("b/tv000_pv000/tl000_pl000_tv000_pv000.png", b"")
+    with pytest.raises(DataError, match=r"in 2 places \['a/', 'b/'\].*" + re.escape(str(archive))):
+        list_btf_files(archive, "utia")
+
+
+def test_a_zip_without_view_folders(tmp_path):
+    with zipfile.ZipFile(tmp_path / "m.zip", "w") as opened:
+        opened.writestr("readme.txt", b"hello")
+    with pytest.raises(DataError, match="no view folders.*" + re.escape(str(tmp_path / "m.zip"))):
+        load_btf(tmp_path / "m.zip")
+
+
+def test_a_file_named_zip_that_is_not_one(tmp_path):
+    (tmp_path / "m.zip").write_bytes(b"not a zip archive")
+    with pytest.raises(DataError, match="cannot read zip archive " + re.escape(str(tmp_path))):
+        load_btf(tmp_path / "m.zip")

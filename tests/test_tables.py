@@ -287,3 +287,16 @@ def test_a_new_set_of_tables_leaves_no_file_of_the_old_one(tmp_path, settings):
     build_tables(tmp_path, settings)
     assert not (out / "stale_table.md").exists() and (out / "table2_rmse.md").is_file()
     assert [p.name for p in tmp_path.iterdir() if "tables." in p.name] == []  # no temporaries
+
+
+def test_the_summary_page_shows_its_tables_and_figures_in_one_file(tmp_path, settings):
+    import base64
+    import re
+
+    _log_runs(tmp_path, RUNS)
+    out = build_tables(tmp_path, settings)
+    assert "![rmse_vs_k](rmse_vs_k.png)" in (out / "summary.md").read_text()
+    html = (out / "summary.html").read_text()
+    assert "<table>" in html and "src=\"rmse_vs_k.png\"" not in html
+    [png] = re.findall(r'alt="rmse_vs_k" src="data:image/png;base64,([^"]+)"', html)
+    assert base64.b64decode(png) == (out / "rmse_vs_k.png").read_bytes()

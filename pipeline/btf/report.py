@@ -109,8 +109,8 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
         from pipeline.btf.fig7 import draw_fig7
 
         files = draw_fig7(runs, OmegaConf.to_container(settings.fig7.pairs), out)
-        found.append("## Fig. 7\n\n" + "\n".join(f"- {p.name}" for p in files
-                                                 if p.suffix == ".png") + "\n")
+        found.append("## Fig. 7\n\n" + "\n\n".join(f"![{p.stem}]({p.name})" for p in files
+                                                   if p.suffix == ".png") + "\n")
     return found
 
 

@@ -36,7 +36,8 @@ def synthetic_folder(cfg: DictConfig) -> Path:
 
 
 def dataset_root(cfg: DictConfig) -> Path:
-    """The dataset folder; the built-in synthetic BTF is generated there on first use."""
+    """The dataset: a folder or its ``.zip`` archive (UBO2003, UTIA), or a ``.btf`` file
+    (UBO2014); the built-in synthetic BTF is generated into a folder on first use."""
     ds = cfg.dataset
     if ds.name == "synthetic" and ds.root is None:
         from pipeline.btf.synthetic import write_synthetic_btf
@@ -59,24 +60,48 @@ def dataset_root(cfg: DictConfig) -> Path:
     if ds.root is None:
         raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/the/dataset")
     root = Path(ds.root).expanduser()
-    if not root.is_dir():
-        raise DataError(f"dataset root does not exist or is not a folder: {root}")
+    if ds.format == "ubo2014":
+        if not root.is_file():
+            raise DataError(f"dataset root is not a UBO2014 .btf file: {root}")
+        return root
+    from pipeline.data.btf import is_archive
+
+    if not (root.is_dir() or is_archive(root)):
+        raise DataError(f"dataset root does not exist or is not a folder or .zip archive: {root}")
     return root
 
 
+def file_fingerprint(path: Path) -> dict:
+    """Name, size and modification time of one dataset file (a UBO2014 ``.btf``)."""
+    stat = path.stat()
+    return {"name": path.name, "bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+
+
 def load(ctx: Context) -> Entry:
-    """Decode the dataset once into a memory-mappable ``images.npy`` (n, H, W, 3)."""
-    from pipeline.data.btf import DEFAULT_LINEARIZE, check_linearize, count_btf_images, load_btf
+    """Decode the dataset once into a memory-mappable ``images.npy`` (n, H, W, 3).
+
+    The key holds the dataset's fingerprint, not its location: a folder, the ``.zip``
+    archive it was unpacked from and a copy that kept its file times share one entry
+    (the location is in the entry's summary)."""
+    from pipeline.data.btf import (
+        DEFAULT_LINEARIZE,
+        archive_fingerprint,
+        check_linearize,
+        count_btf_images,
+        is_archive,
+        load_btf,
+    )
 
     ds = ctx.cfg.dataset
+    if ds.format == "ubo2014":
+        return _load_ubo2014(ctx)
     linearize = check_linearize(ds.get("linearize"), ds.format)
     root = dataset_root(ctx.cfg).resolve()
     views = plain_settings(ds.views)
     settings = {
         "format": ds.format,
-        "root": str(root),
         "views": views,
-        "fingerprint": folder_fingerprint(root),
+        "fingerprint": archive_fingerprint(root) if is_archive(root) else folder_fingerprint(root),
         "linearize": linearize,
     }
     own_encoding = DEFAULT_LINEARIZE[ds.format]
@@ -97,9 +122,40 @@ def load(ctx: Context) -> Entry:
         images.flush()
         del images
         save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))
-        return {"n_images": n, "height": height, "width": width}
+        return {"n_images": n, "height": height, "width": width, "root": str(root)}
 
-    return ctx.run("load", settings, {}, compute, version="2")
+    return ctx.run("load", settings, {}, compute, version="3")
+
+
+def _load_ubo2014(ctx: Context) -> Entry:
+    """The load stage for a UBO2014 ``.btf`` file: only ``dataset.crop`` of the chosen
+    directions is decoded (from the factors), never the whole file."""
+    from pipeline.data.ubo2014 import count_ubo2014_images, describe, load_ubo2014, read_dfmf
+
+    ds = ctx.cfg.dataset
+    path = dataset_root(ctx.cfg).resolve()
+    views, lights = plain_settings(ds.views), plain_settings(ds.get("lights"))
+    crop_texels = plain_settings(ds.get("crop"))
+    settings = {
+        "format": "ubo2014",
+        "fingerprint": file_fingerprint(path),
+        "views": views,
+        "lights": lights,
+        "crop": crop_texels,
+    }
+
+    def compute(folder: Path) -> dict:
+        # Inside compute: a bad file raises here, and nothing is published.
+        n, height, width = count_ubo2014_images(path, views, lights, crop_texels)
+        images = reserved_memmap(folder / "images.npy", (n, height, width, 3), np.float32)
+        btf = load_ubo2014(path, views, lights, crop_texels, out=images)
+        images.flush()
+        del images
+        save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))
+        return {"n_images": n, "height": height, "width": width, "root": str(path),
+                **describe(read_dfmf(path))}
+
+    return ctx.run("load", settings, {}, compute, version="3")
 
 
 # --------------------------------------------------------------------------- crop
@@ -115,7 +171,7 @@ def crop(ctx: Context, loaded: Entry) -> Entry:
     if size < 1 or y0 < 0 or x0 < 0 or y0 + size > height or x0 + size > width:
         raise ConfigError(
             f"btf.crop.size={size} at crop.offset=[{y0}, {x0}] does not fit the texture "
-            f"of {height}x{width} texels ({loaded.manifest.get('settings', {}).get('root')})"
+            f"of {height}x{width} texels ({loaded.manifest.get('summary', {}).get('root')})"
         )
 
     def compute(folder: Path) -> dict:

@@ -113,3 +113,35 @@ def tables_settings() -> DictConfig:
     """The ``tables`` section of ``conf/tables.yaml``: the tables command's defaults, also
     read by a job that draws a table's figures for itself (method A's Fig. 7 pairs)."""
     return OmegaConf.load(CONF_DIR / "tables.yaml").tables
+
+
+def summary_html(summary: str, folder: Path) -> str:
+    """``summary`` (Markdown) as one self-contained HTML page: its tables as HTML tables and
+    every image it references from ``folder`` inlined as a data URI.
+
+    The MLflow UI shows an ``.html`` artifact rendered but a Markdown file as text, and an
+    artifact page cannot load a sibling file by a relative link: inlining is what makes the
+    figures appear there.
+    """
+    import base64
+    import re
+
+    import markdown
+
+    def inline(match: re.Match) -> str:
+        path = folder / match.group(2)
+        if not path.is_file():
+            return match.group(0)
+        data = base64.b64encode(path.read_bytes()).decode()
+        return f"![{match.group(1)}](data:image/png;base64,{data})"
+
+    body = re.sub(r"!\[([^\]]*)\]\(([^)\s]+\.png)\)", inline, summary)
+    html = markdown.markdown(body, extensions=["tables"], output_format="html")
+    style = ("body{font-family:sans-serif;max-width:1400px;margin:1em}"
+             "table{border-collapse:collapse;font-size:13px}"
+             "td,th{border:1px solid #ccc;padding:2px 6px;white-space:nowrap}"
+             "img{max-width:100%}div.wide{overflow-x:auto}")
+    html = html.replace("<table>", '<div class="wide"><table>').replace(
+        "</table>", "</table></div>")
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><style>{style}</style>"
+            f"</head><body>{html}</body></html>")

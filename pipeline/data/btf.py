@@ -17,6 +17,12 @@ Formats and their colour encodings:
     Some UTIA EXR files label their XYZ data R, G, B; when X, Y, Z are absent, R, G, B
     are read *as X, Y, Z*.
 
+A dataset may also be read straight from the ``.zip`` archive it was downloaded as (no
+unpacking): give the archive as the root. The view folders may sit at the archive's top
+level or inside one folder (``WOOL/tv000_pv000/...``); :func:`archive_fingerprint` is
+the same as the fingerprint of the folder ``unzip`` makes of it, and the images decode
+bit for bit the same.
+
 How 8-bit images are linearized is a setting (``linearize``): each layout's own
 convention by default (:data:`DEFAULT_LINEARIZE`), or ``"gamma2.2"``, ``"srgb"`` or
 ``"none"`` (keep the encoded values; the paper does not say whether its UBO2003 errors
@@ -32,7 +38,12 @@ Examples
 
 from __future__ import annotations
 
+import hashlib
+import re
+import struct
 import sys
+import time
+import zipfile
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
@@ -76,6 +87,11 @@ FORMAT_EXTENSIONS: dict[str, tuple[str, ...]] = {
     "utia": ("png", "exr"),
 }
 UBO2003_GAMMA = 2.2
+ARCHIVE_SUFFIX = ".zip"
+_VIEW_FOLDER = re.compile(r"^tv\d{3}_pv\d{3}$")
+# Folders never read as view folders: hidden ones, and the resource forks macOS adds to
+# the archives it makes.
+_MACOS_FORKS = "__MACOSX"
 # How 8-bit images are decoded to linear values: a layout's own convention and the choices.
 DEFAULT_LINEARIZE = {"ubo2003": "gamma2.2", "utia": "srgb"}
 LINEARIZE_CHOICES = ("gamma2.2", "srgb", "none")
@@ -104,12 +120,12 @@ class BTF:
         Linear RGB, in canonical order (view-major).
     directions : ndarray of shape (n_images, 4), float64
         (θ_light, φ_light, θ_view, φ_view) in radians, row ``i`` belonging to ``images[i]``.
-    paths : list of Path
+    paths : list of Path (or zipfile.Path, for an archive's members)
         Source file of each image.
-    view_folders : list of Path
+    view_folders : list of Path (or zipfile.Path)
         The view folders read, in canonical order.
     root : Path
-        The dataset folder.
+        The dataset folder (or its ``.zip`` archive).
     """
 
     images: np.ndarray
@@ -134,20 +150,120 @@ def _check_format(format: str) -> None:
         raise ConfigError(f"BTF format {format!r} is not one of {sorted(FORMAT_EXTENSIONS)}")
 
 
-def _parse_image_name(path: Path, format: str):
+def _parse_image_name(path, format: str):
+    # str(): the parsers take the name of a path, which a zipfile.Path is not.
     if format == "ubo2003":
-        return parse_ubo2003_file_name(path)
-    return parse_utia_file_name(path)
+        return parse_ubo2003_file_name(str(path))
+    return parse_utia_file_name(str(path))
+
+
+# --- zip archives ------------------------------------------------------------------------
+
+
+def is_archive(root: str | PathLike) -> bool:
+    """Whether ``root`` is a ``.zip`` file (a dataset read without unpacking)."""
+    root = Path(root)
+    return root.suffix.lower() == ARCHIVE_SUFFIX and root.is_file()
+
+
+def _open_archive(archive: Path) -> zipfile.ZipFile:
+    try:
+        return zipfile.ZipFile(archive)
+    except (zipfile.BadZipFile, OSError) as error:
+        raise DataError(f"cannot read zip archive {archive}: {error}") from None
+
+
+def _archive_prefix(names: list[str], archive: Path) -> str:
+    """The folder inside the archive holding the view folders: "" (the top) or "WOOL/"."""
+    prefixes = set()
+    for name in names:
+        parts = name.split("/")
+        if parts[0] == _MACOS_FORKS:
+            continue
+        for depth, part in enumerate(parts[:-1]):
+            if _VIEW_FOLDER.match(part):
+                prefixes.add("".join(f"{folder}/" for folder in parts[:depth]))
+                break
+    if not prefixes:
+        raise DataError(f"no view folders (tvTTT_pvPPP) in zip archive {archive}")
+    if len(prefixes) > 1:
+        raise DataError(
+            f"zip archive holds view folders in {len(prefixes)} places "
+            f"{sorted(prefix or '(top)' for prefix in prefixes)}; "
+            f"one dataset per archive: {archive}"
+        )
+    return prefixes.pop()
+
+
+def _open_root(root: str | PathLike):
+    """The dataset's top folder: ``root`` itself, or the folder of a ``.zip`` archive
+    holding the view folders (a :class:`zipfile.Path`, which lists and reads members
+    like a Path)."""
+    root = Path(root)
+    if root.is_dir():
+        return root
+    if not is_archive(root):
+        raise DataError(f"BTF root folder (or .zip archive) does not exist: {root}")
+    archive = _open_archive(root)
+    return zipfile.Path(archive, at=_archive_prefix(archive.namelist(), root))
+
+
+def _unzipped_mtime_ns(info: zipfile.ZipInfo) -> int:
+    """The modification time ``unzip`` gives a member's file, in whole seconds as ns: an
+    extended-timestamp field's Unix time, else an NTFS field's, else the DOS time (which
+    has no time zone: read as local time, as ``unzip`` does)."""
+    extra, position, ntfs = info.extra, 0, None
+    while position + 4 <= len(extra):
+        tag, size = struct.unpack_from("<HH", extra, position)
+        data = extra[position + 4 : position + 4 + size]
+        if tag == 0x5455 and len(data) >= 5 and data[0] & 1:  # "UT": flags, mtime
+            return struct.unpack_from("<i", data, 1)[0] * 10**9
+        if tag == 0x000A and len(data) >= 32 and struct.unpack_from("<H", data, 4)[0] == 1:
+            filetime = struct.unpack_from("<Q", data, 8)[0]  # 100 ns since 1601
+            ntfs = (filetime - 116_444_736_000_000_000) // 10**7 * 10**9
+        position += 4 + size
+    if ntfs is not None:
+        return ntfs
+    return int(time.mktime((*info.date_time, 0, 0, -1))) * 10**9
+
+
+def archive_fingerprint(archive: str | PathLike) -> dict:
+    """The fingerprint of a zipped dataset, from the archive's directory alone (nothing is
+    decompressed).
+
+    The same as :func:`pipeline.core.stage.folder_fingerprint` of the folder holding the
+    view folders once ``unzip`` has unpacked it (which restores the recorded times): file
+    count, total uncompressed size, newest modification time and a hash of the names
+    relative to that folder. The load stage's cache key carries it instead of the
+    location, so the archive and its unpacked folder share one cache entry.
+
+    Raises
+    ------
+    DataError
+        Naming the archive, if it is unreadable or holds no view folders.
+    """
+    archive = Path(archive)
+    with _open_archive(archive) as opened:
+        members = opened.infolist()
+    prefix = _archive_prefix([member.filename for member in members], archive)
+    files = [m for m in members if m.filename.startswith(prefix) and not m.is_dir()]
+    names = sorted(member.filename[len(prefix) :] for member in files)
+    return {
+        "files": len(files),
+        "bytes": sum(member.file_size for member in files),
+        "mtime_ns": max((_unzipped_mtime_ns(member) for member in files), default=0),
+        "names": hashlib.sha256("\n".join(names).encode()).hexdigest()[:16],
+    }
 
 
 def _expected_name_hint(
-    folder: Path,
+    folder,
     format: str,
     light: tuple[int, int],
     view: tuple[int, int],
     ext: str,
     number_bases: set[int],
-) -> Path:
+):
     """Best guess of the path of a missing image, for the error message.
 
     UBO2003 running numbers are not implied by the angles; when every present file of the
@@ -162,15 +278,18 @@ def _expected_name_hint(
     return folder / ubo2003_file_name(0, *light, *view, ext).replace("00000", "?????", 1)
 
 
-def _list_view_folder(folder: Path, view: tuple[int, int], format: str) -> list[BTFFile]:
+def _list_view_folder(folder, view: tuple[int, int], format: str) -> list[BTFFile]:
     """Parse and check the image names of one view folder; return them in light order."""
     allowed = FORMAT_EXTENSIONS[format]
     image_paths = sorted(
-        path
-        for path in folder.iterdir()
-        if path.is_file()
-        and not path.name.startswith(".")
-        and path.suffix.lower().lstrip(".") in allowed
+        (
+            path
+            for path in folder.iterdir()
+            if path.is_file()
+            and not path.name.startswith(".")
+            and path.suffix.lower().lstrip(".") in allowed
+        ),
+        key=str,
     )
     if not image_paths:
         raise DataError(f"view folder holds no {'/'.join(allowed)} images: {folder}")
@@ -215,8 +334,9 @@ def list_btf_files(root: str | PathLike, format: str = "ubo2003", views=None) ->
     Parameters
     ----------
     root : path-like
-        Dataset folder holding the view folders ``tvTTT_pvPPP``. Files at the top level
-        and hidden folders (starting with ``.``) are ignored.
+        Dataset folder holding the view folders ``tvTTT_pvPPP``, or a ``.zip`` archive of
+        it (read without unpacking). Files at the top level, hidden folders (starting
+        with ``.``) and ``__MACOSX`` are ignored.
     format : {"ubo2003", "utia"}
     views : sequence of (θ_view, φ_view) in degrees, or None
         Only these views (each must be on disk); None means every view folder present.
@@ -224,12 +344,14 @@ def list_btf_files(root: str | PathLike, format: str = "ubo2003", views=None) ->
     Returns
     -------
     list of BTFFile
-        In canonical order, ``n_views * 81`` entries.
+        In canonical order, ``n_views * 81`` entries; for an archive, each ``path`` is a
+        :class:`zipfile.Path` (its ``str`` is ``archive.zip/folder/name``).
 
     Raises
     ------
     DataError
-        Naming the path at fault: missing root, no view folders, an unparseable or
+        Naming the path at fault: missing root, an unreadable archive or one without
+        view folders, no view folders, an unparseable or
         off-grid folder or file name, view angles disagreeing with the folder, a
         requested view without a folder, a view folder lacking some of the 81 lights,
         two images of the same light, or image files of mixed extensions.
@@ -237,18 +359,21 @@ def list_btf_files(root: str | PathLike, format: str = "ubo2003", views=None) ->
         For an unknown ``format`` or a ``views`` entry off the grid.
     """
     _check_format(format)
-    root = Path(root)
-    if not root.is_dir():
-        raise DataError(f"BTF root folder does not exist: {root}")
+    root = _open_root(root)
     requested = None if views is None else canonical_views(views)
     folders = sorted(
-        path for path in root.iterdir() if path.is_dir() and not path.name.startswith(".")
+        (
+            path
+            for path in root.iterdir()
+            if path.is_dir() and not path.name.startswith(".") and path.name != _MACOS_FORKS
+        ),
+        key=str,
     )
     if not folders:
         raise DataError(f"no view folders (tvTTT_pvPPP) in BTF root {root}")
     folder_of_view: dict[tuple[int, int], Path] = {}
     for folder in folders:
-        view = parse_view_folder_name(folder)
+        view = parse_view_folder_name(str(folder))
         if not is_grid_direction(*view):
             raise DataError(f"view folder's angles are not one of the 81 grid directions: {folder}")
         folder_of_view[view] = folder
@@ -282,8 +407,9 @@ def decode_btf_image(
 
     Parameters
     ----------
-    path : path-like
-        A ``.jpg``/``.jpeg``/``.png`` (8-bit) or ``.exr`` (half float) file.
+    path : path-like or zipfile.Path
+        A ``.jpg``/``.jpeg``/``.png`` (8-bit) or ``.exr`` (half float) file, or such a
+        member of a zip archive.
     format : {"ubo2003", "utia"}
         Chooses the encoding (see the module docstring).
     linearize : {"gamma2.2", "srgb", "none"} or None
@@ -302,7 +428,7 @@ def decode_btf_image(
     """
     _check_format(format)
     linearize = check_linearize(linearize, format)
-    path = Path(path)
+    path = path if isinstance(path, zipfile.Path) else Path(path)
     if path.suffix.lower() == ".exr":
         if format == "ubo2003":
             return read_exr_channels(path, ("R", "G", "B"))
@@ -389,7 +515,7 @@ def load_btf(
     Parameters
     ----------
     root : path-like
-        Dataset folder holding the view folders ``tvTTT_pvPPP``.
+        Dataset folder holding the view folders ``tvTTT_pvPPP``, or its ``.zip`` archive.
     format : {"ubo2003", "utia"}
     views : sequence of (θ_view, φ_view) in degrees, or None
         Load only these views; None loads every view folder present (a subset of the 81

@@ -18,6 +18,9 @@ Colour conventions:
 
 from __future__ import annotations
 
+import io
+import zipfile
+import zlib
 from collections.abc import Sequence
 from os import PathLike
 from pathlib import Path
@@ -33,6 +36,24 @@ from pipeline.core.files import write_atomic
 # format), SyntaxError and ValueError (bad headers), DecompressionBombError (a header
 # that claims billions of pixels, e.g. a flipped bit in a JPEG's size).
 _DECODE_ERRORS = (OSError, ValueError, SyntaxError, EOFError, Image.DecompressionBombError)
+
+
+def _as_path(path):
+    """A member of a zip archive (:class:`zipfile.Path`) as it is; anything else as a Path."""
+    return path if isinstance(path, zipfile.Path) else Path(path)
+
+
+def _source(path):
+    """What the decoders open: a file name, or the bytes of a zip archive's member (a
+    :class:`zipfile.Path`, which neither Pillow nor OpenEXR opens by name) as a stream."""
+    if isinstance(path, zipfile.Path):
+        try:
+            return io.BytesIO(path.read_bytes())
+        except (zipfile.BadZipFile, KeyError, EOFError, OSError, zlib.error) as error:
+            # A damaged member (bad CRC, cut short) or one the listing named but is gone.
+            raise DataError(f"cannot read {path} from its zip archive: {error}") from None
+    return str(path) if isinstance(path, (str, PathLike)) else path
+
 
 # --- transfer functions ---------------------------------------------------------------
 
@@ -158,7 +179,7 @@ def read_image_8bit(path: str | PathLike) -> np.ndarray:
         Naming the file, if it is missing, truncated, corrupt or not 8 bits per channel.
     """
     try:
-        with Image.open(path) as image:
+        with Image.open(_source(path)) as image:
             if image.mode not in _EIGHT_BIT_MODES:
                 raise DataError(f"not an 8-bit image (Pillow mode {image.mode!r}): {path}")
             # Image.open only reads the header; load() forces the full decode so a
@@ -226,16 +247,16 @@ def image_size(path: str | PathLike) -> tuple[int, int]:
     DataError
         Naming the file, if it is missing or its header is unreadable.
     """
-    path = Path(path)
+    path = _as_path(path)
     if path.suffix.lower() == ".exr":
         try:
-            with OpenEXR.File(str(path), header_only=True) as exr_file:
+            with OpenEXR.File(_source(path), header_only=True) as exr_file:
                 low, high = exr_file.header()["dataWindow"]
         except Exception as error:  # OpenEXR raises RuntimeError or ValueError
             raise DataError(f"cannot read EXR header of {path}: {error}") from None
         return int(high[1] - low[1] + 1), int(high[0] - low[0] + 1)
     try:
-        with Image.open(path) as image:
+        with Image.open(_source(path)) as image:
             width, height = image.size
     except FileNotFoundError:
         raise DataError(f"image file missing: {path}") from None
@@ -266,13 +287,13 @@ def read_exr(path: str | PathLike) -> dict[str, np.ndarray]:
         Naming the file, if it is missing, truncated or corrupt, or if any channel
         holds NaN or Inf.
     """
-    path = Path(path)
+    path = _as_path(path)
     if not path.is_file():
         raise DataError(f"EXR file missing: {path}")
     try:
         # separate_channels=True keeps R, G, B as separate entries; without it the
         # binding merges them into one (H, W, 3) "RGB" channel.
-        with OpenEXR.File(str(path), separate_channels=True) as exr_file:
+        with OpenEXR.File(_source(path), separate_channels=True) as exr_file:
             channels = {
                 name: np.asarray(channel.pixels, dtype=np.float32)
                 for name, channel in exr_file.channels().items()
