@@ -192,38 +192,59 @@ def _blobs(seed: int = 0, per_blob: int = 20):
     return points[order].astype(np.float32), truth[order], centers
 
 
+def _no_clusters():
+    """Points without clear clusters, where the seeding decides the partition."""
+    return np.random.default_rng(11).normal(size=(60, 4)).astype(np.float32)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 5])
-def test_kmeans_pp_recovers_well_separated_blobs(seed):
-    """Catches k-means that mixes clearly separated clusters or returns inconsistent centers/inertia."""
-    points, truth, centers = _blobs(seed)
-    labels, found, inertia = kmeans_pp(points, 4, seed=seed)
-    assert labels.shape == truth.shape and labels.dtype == np.int32
-    # Labels equal the truth up to a permutation: the contingency table is a permutation matrix.
-    table = np.zeros((4, 4), dtype=int)
-    np.add.at(table, (truth, labels), 1)
-    assert sorted(table.max(axis=1)) == [20] * 4 and (table > 0).sum() == 4, table
-    perm = table.argmax(axis=1)
-    np.testing.assert_allclose(found[perm], centers, atol=0.5)
-    # Centers are the members' means; inertia is the sum of squared distances to them.
-    for c in range(4):
-        np.testing.assert_allclose(found[c], points[labels == c].mean(axis=0), atol=1e-4)
-    by_hand = float(np.sum((points.astype(np.float64) - found[labels]) ** 2))
-    assert inertia == pytest.approx(by_hand, rel=1e-4)
+@pytest.mark.parametrize("data", ["blobs", "no clusters"])
+def test_kmeans_pp_returns_a_converged_partition_with_its_centers_and_inertia(seed, data):
+    """Catches labels out of step with the texels or the centers (reordered, from another
+    fit), centers that are not their members' means, an inertia of something else, or a fit
+    stopped before it converged; checked in numpy, not against scikit-learn."""
+    points, truth, _ = _blobs(seed) if data == "blobs" else (_no_clusters(), None, None)
+    k = 4 if data == "blobs" else 5
+    labels, centers, inertia = kmeans_pp(points, k, seed=seed)
+    assert labels.shape == (len(points),) and labels.dtype == np.int32
+    assert centers.shape == (k, points.shape[1]) and centers.dtype == np.float32
+    assert isinstance(inertia, float)
+    assert set(labels.tolist()) == set(range(k))  # no empty cluster
+    points64 = points.astype(np.float64)
+    squared = np.sum((points64[:, None, :] - centers[None].astype(np.float64)) ** 2, axis=2)
+    # A converged Lloyd iteration: each texel in its nearest center's cluster, and each
+    # center the mean of its cluster.
+    np.testing.assert_array_equal(labels, squared.argmin(axis=1))
+    for c in range(k):
+        np.testing.assert_allclose(centers[c], points64[labels == c].mean(axis=0), atol=1e-5)
+    assert inertia == pytest.approx(squared[np.arange(len(points)), labels].sum(), rel=1e-5)
+    if truth is not None:  # well-separated blobs: the truth up to a renaming of clusters
+        table = np.zeros((k, k), dtype=int)
+        np.add.at(table, (truth, labels), 1)
+        assert (table > 0).sum() == k, table
 
 
-def test_kmeans_pp_agrees_with_scikit_learn_given_the_seed():
-    """Catches a change of seeding, init or seed plumbing away from scikit-learn's k-means++."""
-    from sklearn.cluster import KMeans
-
-    rng = np.random.default_rng(11)
-    points = rng.normal(size=(60, 4)).astype(np.float32)  # no clear clusters: init matters
-    for seed in (0, 3):
-        labels, centers, inertia = kmeans_pp(points, 5, seed=seed)
-        ref = KMeans(n_clusters=5, init="k-means++", n_init=1, max_iter=300,
-                     random_state=seed).fit(points)
-        np.testing.assert_array_equal(labels, ref.labels_)
-        np.testing.assert_allclose(centers, ref.cluster_centers_, rtol=1e-6)
-        assert inertia == pytest.approx(ref.inertia_)
+def test_kmeans_pp_takes_its_randomness_and_iterations_from_its_arguments():
+    """Catches a seed that does not reach the seeding (or randomness not taken from it),
+    and ``max_iter`` or ``n_init`` not passed on."""
+    points = _no_clusters()
+    seeds = range(6)
+    fits = {seed: kmeans_pp(points, 5, seed=seed) for seed in seeds}
+    again = kmeans_pp(points, 5, seed=3)  # the same seed, the same fit
+    np.testing.assert_array_equal(again[0], fits[3][0])
+    np.testing.assert_array_equal(again[1], fits[3][1])
+    assert again[2] == fits[3][2]
+    # Without clear clusters the seeding decides: different seeds, different partitions.
+    assert len({fit[2] for fit in fits.values()}) > 1
+    # Lloyd's iterations never raise the inertia from the same seeding: one iteration
+    # leaves it higher than running to convergence, for some seed at least.
+    one_step = {seed: kmeans_pp(points, 5, seed=seed, max_iter=1)[2] for seed in seeds}
+    assert all(one_step[seed] >= fits[seed][2] * (1 - 1e-6) for seed in seeds)
+    assert any(one_step[seed] > fits[seed][2] * (1 + 1e-3) for seed in seeds)
+    # The best of 8 restarts is no worse than one, and better for some seed.
+    restarts = {seed: kmeans_pp(points, 5, seed=seed, n_init=8)[2] for seed in seeds}
+    assert all(restarts[seed] <= fits[seed][2] * (1 + 1e-6) for seed in seeds)
+    assert any(restarts[seed] < fits[seed][2] * (1 - 1e-3) for seed in seeds)
 
 
 @pytest.mark.parametrize(

@@ -3,15 +3,19 @@ its fallback, the ops' checks, and the vector code against the plain loops. The 
 they make are checked against autograd in tests/test_fused.py."""
 
 import os
+import re
 import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 from torch.utils import cpp_extension
 
 from pipeline.btf.fast import kernels
-from pipeline.btf.fast.fused import DecoderStep
-from pipeline.btf.model import Decoder
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_kernels_build():
@@ -24,27 +28,53 @@ def test_kernels_build():
     assert kernels.available()
 
 
-def test_a_failed_build_falls_back_to_torch_ops(monkeypatch, caplog):
-    """Without a compiler the kernels' build fails: the step says so once and runs on torch
-    ops (the same gradient: tests/test_fused.py with fused_kernels=False), and refuses to
-    be asked for the kernels."""
-    def no_compiler(**kwargs):
-        raise RuntimeError("Error building extension 'pipeline_btf_kernels': [1/2] c++ ...\n"
-                           "kernels.cpp:16:10: fatal error: ATen/ATen.h: No such file\n"
-                           "ninja: build stopped: subcommand failed.")
+# A compiler that answers torch's version check and fails on every source file, as g++
+# without torch's headers would; it notes each compilation in ``compiled``.
+_FAILING_COMPILER = """#!/bin/sh
+case "$1" in --version|-dumpfullversion|-dumpversion) echo 12.2.0; exit 0;; esac
+echo compile >> "$(dirname "$0")/compiled"
+echo "kernels.cpp:16:10: fatal error: ATen/ATen.h: No such file or directory" >&2
+exit 1
+"""
 
-    monkeypatch.setattr(kernels, "_state", {})
-    monkeypatch.setattr(cpp_extension, "load", no_compiler)
-    with caplog.at_level("WARNING", logger="pipeline.btf.fast.kernels"):
-        assert not kernels.available()
-        assert not kernels.available()  # decided once per process
-    assert caplog.text.count("did not build") == 1
-    assert "fatal error: ATen/ATen.h: No such file" in caplog.text
-    step = DecoderStep(Decoder(), torch.rand(10, 4))
-    assert not step.fused_kernels
-    step.close()
-    with pytest.raises(ValueError, match=r"fused_kernels=True needs the C\+\+ kernels"):
-        DecoderStep(Decoder(), torch.rand(10, 4), fused_kernels=True)
+_FALLBACK_SCRIPT = """
+import logging, torch
+logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
+from pipeline.btf.fast import kernels
+from pipeline.btf.fast.fused import DecoderStep
+from pipeline.btf.model import Decoder
+print("available", kernels.available(), kernels.available())
+step = DecoderStep(Decoder(), torch.rand(10, 4))
+print("fused_kernels", step.fused_kernels)
+step.close()
+try:
+    DecoderStep(Decoder(), torch.rand(10, 4), fused_kernels=True)
+except ValueError as error:
+    print("refused", error)
+"""
+
+
+def test_a_failed_build_falls_back_to_torch_ops(tmp_path):
+    """Where the kernels' build fails (here: the compiler named by ``CXX`` cannot compile,
+    into an empty ``TORCH_EXTENSIONS_DIR``), the step says so once, with the compiler's
+    error, and runs on torch ops (the same gradient: tests/test_fused.py with
+    fused_kernels=False), and refuses to be asked for the kernels."""
+    compiler = tmp_path / "c++"
+    compiler.write_text(_FAILING_COMPILER)
+    compiler.chmod(0o755)
+    env = {key: value for key, value in os.environ.items() if key != "PIPELINE_KERNELS"}
+    env |= {"CXX": str(compiler), "TORCH_EXTENSIONS_DIR": str(tmp_path / "extensions"),
+            "TORCH_DONT_CHECK_COMPILER_ABI": "1"}
+    done = subprocess.run([sys.executable, "-c", _FALLBACK_SCRIPT], env=env, cwd=ROOT,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.splitlines()
+    assert lines[:2] == ["available False False", "fused_kernels False"], done.stdout
+    assert re.fullmatch(r"refused fused_kernels=True needs the C\+\+ kernels.*", lines[2])
+    # Tried once per process: one compilation, one warning naming the compiler's error.
+    assert (tmp_path / "compiled").read_text().splitlines() == ["compile"]
+    assert done.stderr.count("did not build") == 1, done.stderr
+    assert "fatal error: ATen/ATen.h: No such file" in done.stderr
 
 
 def test_kernels_refuse_mismatched_inputs():

@@ -206,7 +206,36 @@ def test_fit_outputs(grazing_removed):
     data, _, _ = grazing_removed
     settings = replace(FAST, n_theta_components=7, n_phi_components=9, max_outer_iter=2)
     fit = fit_microfacet_em(data, settings)
-    assert fit.n_parameters == 3 + 7 + 9 + 4 + 3 + 1
+    # Counted apart from the formula: the stored numbers that the reconstructed BRDF depends
+    # on, found by nudging each one in turn and seeing the evaluated values move.
+    light, view = data.light[::97], data.view[::97]
+    base = fit.evaluate(light, view)
+
+    def moves(fit_changes=None, param_changes=None):
+        changed = replace(fit, **(fit_changes or {}),
+                          params=replace(fit.params, **(param_changes or {})))
+        return not np.array_equal(changed.evaluate(light, view), base)
+
+    def nudge(value):
+        return value * 1.001 + 1e-3
+
+    def each_entry(name, array):  # one {name: array with entry i nudged} per entry
+        for i in range(np.size(array)):
+            nudged = np.array(array, dtype=np.float64)
+            nudged.flat[i] = nudge(nudged.flat[i])
+            yield {name: nudged}
+
+    count = sum(moves(fit_changes=c) for name in ("rho_s", "rho_d")
+                for c in each_entry(name, getattr(fit, name)))
+    count += moves(fit_changes={"rs": nudge(fit.rs)})
+    count += sum(moves(param_changes=c) for name in ("u", "v")
+                 for c in each_entry(name, getattr(fit.params, name)))
+    count += sum(moves(param_changes={name: nudge(getattr(fit.params, name))})
+                 for name in ("tau", "sigma", "gamma", "lam"))
+    assert count == fit.n_parameters
+    # ... and nothing else it stores moves them: Theta is the whole model.
+    assert not moves(fit_changes={"observed": np.zeros_like(fit.observed),
+                                  "cell_measured": ~fit.cell_measured})
     theta = fit.parameters()
     assert sum(np.size(value) for value in theta.values()) == fit.n_parameters
     assert fit.params.u.sum() == pytest.approx(1.0)
@@ -228,6 +257,11 @@ def test_ashikhmin_shirley_baseline_fits_measured_samples(grazing_removed):
     )
     assert fit.n_parameters == 9
     assert rmse(fit.evaluate(data.light, data.view), reference, data.measured) < 0.03
+    # phi0 and phi0 + pi are one fit; it is reported in [-pi/2, pi/2).
+    assert -0.5 * np.pi <= fit.phi0 < 0.5 * np.pi
+    turned = replace(fit, phi0=fit.phi0 + np.pi)
+    np.testing.assert_allclose(turned.evaluate(data.light, data.view),
+                               fit.evaluate(data.light, data.view), rtol=1e-9, atol=1e-12)
 
 
 def test_settings_are_checked(grazing_removed):

@@ -94,6 +94,8 @@ def fit_ashikhmin_shirley(
         rs=x[3:6].copy(),
         nu=float(np.exp(x[6])),
         nv=float(np.exp(x[7])),
-        phi0=float(x[8]),
+        # The lobe depends on phi - phi0 through cos^2 and sin^2 only: phi0 and phi0 + pi
+        # are one fit, reported in [-pi/2, pi/2) so that equal fits log equal values.
+        phi0=float(np.mod(x[8] + 0.5 * np.pi, np.pi) - 0.5 * np.pi),
         cost=float(best.cost),
     )

@@ -23,6 +23,7 @@ import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 
 from pipeline.data.brdf import half_vector_angles, to_unit_vectors
+from pipeline.data.brdf_models import ashikhmin_shirley_lobe, ashikhmin_shirley_normalization
 
 LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 
@@ -437,9 +438,11 @@ def ashikhmin_shirley_brdf(
     cos1, cos2 = np.cos(light[:, 0]), np.cos(view[:, 0])
     above = (cos1 > 0) & (cos2 > 0)
     theta_h, phi_h, cos_kh = half_vector_angles(light, view)
-    phi = phi_h - phi0
-    exponent = nu * np.cos(phi) ** 2 + nv * np.sin(phi) ** 2
-    lobe = np.sqrt((nu + 1.0) * (nv + 1.0)) / (8.0 * np.pi) * np.cos(theta_h) ** exponent
+    # The half vector in the frame whose tangent (the nu axis) lies at azimuth phi0.
+    phi, sin_h = phi_h - phi0, np.sin(theta_h)
+    lobe = ashikhmin_shirley_normalization(nu, nv) * ashikhmin_shirley_lobe(
+        np.cos(theta_h), sin_h * np.cos(phi), sin_h * np.sin(phi), nu, nv
+    )
     lobe = lobe / np.maximum(cos_kh * np.maximum(cos1, cos2), 1e-6)
     fresnel = rs + (1.0 - rs) * (1.0 - cos_kh[:, None]) ** 5
     c1 = np.clip(cos1, 0.0, 1.0)[:, None]

@@ -49,6 +49,7 @@ from tqdm import tqdm
 
 from pipeline.btf.materials import Material, get_material
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.data.brdf_models import ashikhmin_shirley_lobe, ashikhmin_shirley_normalization
 from pipeline.data.btf import encode_btf_image
 from pipeline.data.directions import (
     N_DIRECTIONS,
@@ -244,7 +245,7 @@ class SyntheticBTF:
         flat["exponent_across"] = across.astype(np.float32)
         # Ashikhmin–Shirley normalization times the yarn's specular weight.
         flat["specular_scale"] = (
-            per_texel("specular") * np.sqrt((along + 1) * (across + 1)) / (8 * np.pi)
+            per_texel("specular") * ashikhmin_shirley_normalization(along, across)
         ).astype(np.float32)
         return flat
 
@@ -300,14 +301,10 @@ class SyntheticBTF:
         t_dot_h = dot(halfway, maps["tangent"])
         b_dot_h = dot(halfway, maps["bitangent"])
 
-        # Ashikhmin–Shirley: (n·h)^((n_u (t·h)² + n_v (b·h)²) / (1 - (n·h)²)); in an
-        # orthonormal frame 1 - (n·h)² = (t·h)² + (b·h)², which stays finite at n = h.
-        along, across = maps["exponent_along"], maps["exponent_across"]
-        tangential = t_dot_h**2 + b_dot_h**2
-        exponent = (along * t_dot_h**2 + across * b_dot_h**2) / np.maximum(tangential, 1e-12)
-        exponent = np.where(tangential > 1e-12, exponent, along)
-        lobe = np.exp(exponent * np.log(np.maximum(n_dot_h, 1e-12)))
-        lobe = np.where(n_dot_h > 0, lobe, 0.0)
+        # The fibre tangent is the lobe's n_u axis; the normalization is in specular_scale.
+        lobe = ashikhmin_shirley_lobe(
+            n_dot_h, t_dot_h, b_dot_h, maps["exponent_along"], maps["exponent_across"]
+        )
         fresnel_at_normal = self.preset.fresnel_at_normal
         fresnel = fresnel_at_normal + (1 - fresnel_at_normal) * (1 - light_dot_half) ** 5
         # The 0.1 floor keeps the lobe finite where a texel turns edge-on to both.

@@ -47,6 +47,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.data.images import quantize_8bit, srgb_oetf
 from pipeline.data.light_stack import write_lp
 
 __all__ = [
@@ -305,14 +306,6 @@ def make_synthetic_scene(config: SyntheticStackConfig | None = None) -> Syntheti
 # --------------------------------------------------------------------------- writing
 
 
-def _linear_to_srgb(linear: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB encoding (inverse EOTF), for values in [0, 1]."""
-    linear = np.clip(linear, 0.0, 1.0)
-    return np.where(
-        linear <= 0.0031308, 12.92 * linear, 1.055 * np.power(linear, 1.0 / 2.4) - 0.055
-    )
-
-
 def _write_image(path: Path, linear_rgb: np.ndarray) -> None:
     if path.suffix == ".exr":
         import OpenEXR
@@ -326,7 +319,7 @@ def _write_image(path: Path, linear_rgb: np.ndarray) -> None:
     else:
         from PIL import Image
 
-        encoded = np.round(_linear_to_srgb(linear_rgb) * 255.0).astype(np.uint8)
+        encoded = quantize_8bit(srgb_oetf(linear_rgb))
         Image.fromarray(encoded, mode="RGB").save(path)
 
 
