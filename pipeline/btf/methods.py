@@ -9,7 +9,9 @@ from typing import TYPE_CHECKING
 
 from omegaconf import DictConfig, OmegaConf
 
+from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.methods import Method
+from pipeline.core.settings import schema
 
 if TYPE_CHECKING:
     from pipeline.core.stage import Context
@@ -71,6 +73,10 @@ def unused_by_pca(cfg: DictConfig) -> list[str]:
     return ["method.lr", *(f"train.{key}" for key in cfg.train)]
 
 
+# train.*: TrainSettings's fields and defaults; in the config, train.lr null means the method's.
+_SCHEMAS = (("schema", "train", schema(TrainSettings, "TrainSchema", lr=None)),)
+
+
 def _name_with_k(cfg: DictConfig) -> str:
     return f"{cfg.method.name} k={cfg.method.k} s{cfg.seed}"
 
@@ -78,13 +84,13 @@ def _name_with_k(cfg: DictConfig) -> str:
 NEURAL_BTF = Method(
     name="neural_btf", paper="A", run=run, description=_DESCRIPTION.format(what=""),
     headline=_HEADLINE, reports=_REPORTS, figures=figures, prepare=prepare,
-    unused=unused,
+    unused=unused, schemas=_SCHEMAS,
 )
 CLUSTERED = Method(
     name="clustered", paper="A", run=run,
     description=_DESCRIPTION.format(what=" with clustering: one latent per k-means cluster"),
     headline=_HEADLINE, reports=_REPORTS, figures=figures, prepare=prepare,
-    run_name=_name_with_k, unused=unused,
+    run_name=_name_with_k, unused=unused, schemas=_SCHEMAS,
 )
 PCA = Method(
     name="pca", paper="A", run=run,
@@ -95,4 +101,5 @@ PCA = Method(
         "values divided by the crop's maximum)."
     ),
     headline=_HEADLINE, reports=_REPORTS, prepare=prepare, unused=unused_by_pca,
+    schemas=_SCHEMAS,
 )

@@ -81,7 +81,8 @@ def _train_settings(cfg):
 
 # Settings that change how fast training runs but not what it computes (up to the order of
 # floating-point sums): not in the key.
-_SPEED_ONLY = {"threads", "chunk", "keep_awake", "omp_spin_count", "reuse_freed_memory"}
+_SPEED_ONLY = {"threads", "chunk", "keep_awake", "omp_spin_count", "reuse_freed_memory",
+               "backend"}
 
 
 def train_stage(

@@ -5,6 +5,10 @@ input ABRDF (its own for Neural BTF, its cluster's median for the clustered meth
 decodes ``queries_per_abrdf`` random training directions per texel (or all of them, in
 order, with -1) against its target values. An epoch visits every texel once in a seeded
 random order. The steps are deterministic for a seed and a number of threads.
+
+How a step computes its gradients is ``train.backend`` (:mod:`pipeline.btf.backends`);
+where its batches come from, the host or arrays kept on the device, is
+:mod:`pipeline.btf.batches`.
 """
 
 from __future__ import annotations
@@ -18,7 +22,14 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from pipeline.btf.fast.fused import Batch, DecoderStep
+from pipeline.btf.backends import make_step, resolve_backend
+from pipeline.btf.batches import (
+    DeviceBatches,
+    HostBatches,
+    Sampling,
+    fits_on_device,
+    resident_bytes,
+)
 from pipeline.btf.fast.tuning import training_tuning
 from pipeline.btf.model import Decoder, Encoder
 from pipeline.btf.preprocess import Normalization
@@ -97,7 +108,8 @@ def train(
 ) -> TrainResult:
     """Train encoder and decoder jointly.
 
-    The encoder runs under autograd; the decoder's forward and backward are computed by
+    The step is ``settings.backend``'s (:mod:`pipeline.btf.backends`): plain autograd, or
+    the encoder under autograd and the decoder's forward and backward by
     :class:`pipeline.btf.fast.fused.DecoderStep` (chunked, on ``settings.threads`` threads).
 
     Parameters
@@ -135,7 +147,6 @@ def train(
     train_dirs = np.asarray(train_dirs)
     all_queries = settings.queries_per_abrdf < 0 or settings.queries_per_abrdf >= len(train_dirs)
     q = len(train_dirs) if all_queries else settings.queries_per_abrdf
-    in_order = all_queries and np.array_equal(train_dirs, np.arange(n))  # no gather needed
     b = settings.batch_size
     steps_per_pass = m // b  # drop the last partial batch: batch-norm needs >= 2 samples
     # An epoch is one pass over the M texels, or epoch_texels texels whatever M is (so that
@@ -159,10 +170,14 @@ def train(
         # slower than float32 (docs/performance.md).
         log.warning("train.precision=bfloat16 on a CPU without bfloat16 support (no "
                     "AVX512-BF16 or AMX): expect training far slower than float32")
-    step_fn = DecoderStep(decoder, features, workers=workers,
-                          chunk=settings.chunk if device.type == "cpu" else 1 << 20,
-                          precision=settings.precision)
-    all_dirs = torch.from_numpy(np.tile(train_dirs, (b, 1))).to(device)
+    backend = resolve_backend(settings.backend, device)
+    sampling = Sampling(b, q, all_queries, train_dirs, n, target_from_source)
+    batches = _batches(abrdf, sources, source_of_texel, norm, sampling, rng, device, seed)
+    log.info("training on %s with the %s backend, %s, batches from the %s", device,
+             backend, settings.precision,
+             "device" if isinstance(batches, DeviceBatches) else "host")
+    step_fn = make_step(backend, encoder, decoder, features, settings.precision, workers,
+                        settings.chunk)
     curve = None
     if settings.curve_every > 0:
         curve = _Curve(abrdf, sources, source_of_texel, norm, features, train_dirs,
@@ -186,49 +201,30 @@ def train(
             if curve is not None:
                 measure(0)
             for epoch in range(-(-total // max(steps_per_pass, 1))):  # passes over M texels
-                order = rng.permutation(m)
+                batches.new_pass()
                 running, count = 0.0, 0
                 clock = time.perf_counter()
                 for first in range(0, steps_per_pass * b, b):
                     if step >= total:
                         break
-                    texels = np.sort(order[first : first + b])
-                    inputs = norm.encoder_input(sources[source_of_texel[texels]])
-                    x = torch.from_numpy(inputs).permute(0, 2, 1)
-                    rows = source_of_texel[texels] if target_from_source else texels
-                    values = (sources if target_from_source else abrdf)[rows]
-                    if all_queries:
-                        target = norm.target(values if in_order else values[:, train_dirs])
-                        directions = all_dirs
-                    else:
-                        queries = train_dirs[rng.integers(0, len(train_dirs), size=(b, q))]
-                        target = norm.target(np.take_along_axis(values, queries[:, :, None], 1))
-                        directions = torch.from_numpy(queries).to(device)
-                    # The encoder's convolutions use every core; the decoder's chunks run
-                    # one per thread on the step's workers, each op single-threaded.
-                    torch.set_num_threads(workers)
-                    latents = encoder(x.to(device))
-                    torch.set_num_threads(1)
-                    grads = step_fn(Batch(latents, directions,
-                                          torch.from_numpy(target).to(device)))
-                    torch.set_num_threads(workers)
+                    batch = batches.batch(first)
                     optimizer.zero_grad(set_to_none=True)
-                    step_fn.assign(grads)
-                    latents.backward(grads.latents)
+                    # A float, or a 0-d tensor left on the device: summed there, it is read
+                    # once per pass, so that a CUDA step does not wait for the device.
+                    running += step_fn(batch)
                     optimizer.step()
                     if schedule is not None:
                         schedule.step()
-                    running += grads.loss
                     count += 1
                     step += 1
                     bar.update(1)
                     if curve is not None and step % settings.curve_every == 0:
-                        seconds += time.perf_counter() - clock
+                        seconds += _elapsed(clock, device)
                         measure(epoch)
                         clock = time.perf_counter()
-                seconds += time.perf_counter() - clock
+                seconds += _elapsed(clock, device)
                 if count:
-                    losses.append(running / count)
+                    losses.append(float(running) / count)
                     bar.set_postfix(epoch=epoch, loss=f"{losses[-1]:.3g}")
                     if on_epoch is not None:
                         on_epoch(epoch, losses[-1], step)
@@ -244,6 +240,27 @@ def train(
              losses[-1] if losses else float("nan"))
     return TrainResult(encoder.cpu(), decoder.cpu(), losses, step, seconds, step * b * q,
                        curve.points if curve is not None else [])
+
+
+def _batches(abrdf, sources, source_of_texel, norm, sampling, rng, device, seed):
+    """The ABRDFs kept on a CUDA device where they fit (no per-step copies from the host),
+    batches gathered on the host otherwise (:mod:`pipeline.btf.batches`)."""
+    nbytes = resident_bytes(abrdf, sources, sampling.target_from_source)
+    if device.type == "cuda":
+        if fits_on_device(nbytes, device):
+            return DeviceBatches(abrdf, sources, source_of_texel, norm, sampling, rng,
+                                 device, seed)
+        log.info("the training ABRDFs (%.0f MiB) do not fit in the device's free memory: "
+                 "each batch is copied from the host", nbytes / 2**20)
+    return HostBatches(abrdf, sources, source_of_texel, norm, sampling, rng, device)
+
+
+def _elapsed(clock: float, device: torch.device) -> float:
+    """Seconds since ``clock``, once the device has finished the work queued meanwhile
+    (CUDA runs asynchronously)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter() - clock
 
 
 @torch.no_grad()

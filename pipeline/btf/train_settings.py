@@ -8,6 +8,7 @@ from pipeline.core.errors import ConfigError
 from pipeline.core.settings import check_fields
 
 PRECISIONS = ("float32", "bfloat16")  # train.precision
+BACKENDS = ("auto", "fused", "autograd")  # train.backend (pipeline.btf.backends)
 
 
 @dataclass(frozen=True)
@@ -24,6 +25,13 @@ class TrainSettings:
     queries_per_abrdf : direction queries per ABRDF per step; -1 for all training directions.
     max_steps : cap on the total number of steps, -1 for none.
     device : ``auto`` (CUDA when present), ``cpu`` or ``cuda``.
+    backend : how a step computes its gradients (speed only; :mod:`pipeline.btf.backends`):
+        ``autograd``, plain PyTorch (encoder, decoder, mean squared error,
+        ``loss.backward()``), always available and the reference; ``fused``, the encoder
+        under autograd and the decoder's forward and backward by the hand-written chunked
+        step tuned for CPU caches (``pipeline/btf/fast/fused.py``); ``auto``, fused on the
+        CPU where its C++ kernels build (autograd, with a warning, where they do not) and
+        autograd on CUDA.
     momentum : SGD momentum (the paper: plain SGD, 0).
     optimizer : ``sgd`` (the paper) or ``adam`` (converges in far fewer steps on a CPU).
     lr_half_life : epochs over which the learning rate halves (per step, exponentially);
@@ -44,7 +52,9 @@ class TrainSettings:
         idle threads (set when the job starts); glibc keeps freed buffers while training.
     precision : ``float32``, or ``bfloat16`` for the decoder's products (float32 master
         weights and optimizer; see ``pipeline/btf/fast/fused.py``); it pays on CPUs with
-        AMX or AVX512-BF16 (``python -m pipeline.bench`` prints which the CPU has).
+        AMX or AVX512-BF16 (``python -m pipeline.bench`` prints which the CPU has). With
+        the autograd backend it is ``torch.autocast`` around the decoder (on CUDA, and
+        on the CPU alike), which rounds the same products to bfloat16.
     """
 
     epochs: int = 1
@@ -62,6 +72,7 @@ class TrainSettings:
     threads: int | None = None
     chunk: int | None = None
     precision: str = "float32"
+    backend: str = "auto"
     keep_awake: bool = False
     omp_spin_count: int | None = None
     reuse_freed_memory: bool = False
@@ -98,3 +109,6 @@ class TrainSettings:
             raise ConfigError(f"train.precision={self.precision!r} must be float32 or bfloat16")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"train.device={self.device!r} must be auto, cpu or cuda")
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"train.backend={self.backend!r} must be one of "
+                              f"{', '.join(BACKENDS)}")

@@ -172,11 +172,16 @@ def schema(settings_class: type, class_name: str | None = None, **extra: object)
     The settings dataclass stays the one source of defaults and checks (it is frozen and
     checks itself when the job builds it; a structured config must be mutable, so this is
     a plain copy of its fields). ``extra`` adds fields the config group holds besides
-    (name: default); a dict default becomes an open ``dict[str, Any]`` field.
+    (name: default; a dict default becomes an open ``dict[str, Any]`` field), or gives a
+    field of the class another default in the config, which may then be null.
     """
     hints = typing.get_type_hints(settings_class)
     fields = []
     for f in dataclasses.fields(settings_class):
+        if f.name in extra:  # the config's own default, e.g. null for "the method's"
+            value = extra.pop(f.name)
+            fields.append((f.name, hints[f.name] | None, dataclasses.field(default=value)))
+            continue
         default = (dataclasses.field(default_factory=f.default_factory)
                    if f.default is dataclasses.MISSING else dataclasses.field(default=f.default))
         fields.append((f.name, hints[f.name], default))

@@ -5,11 +5,12 @@ Prints, in one run on one machine:
 - the float32 matrix-multiply peak (the yardstick), at the threads the figures use;
 - training throughput at the paper's batch (5 ABRDFs x all 6561 directions per step) of a
   naive autograd loop and of ``pipeline.btf.train.train`` on its default path (the fused,
-  chunked, threaded step with its C++ kernels, no machine tuning) and with the opt-in
+  chunked, threaded step with its C++ kernels, no machine tuning), with the opt-in
   tuning (``train.keep_awake``, ``train.omp_spin_count``, ``train.reuse_freed_memory``:
-  :mod:`pipeline.btf.fast.tuning`), each in a child process of its own
+  :mod:`pipeline.btf.fast.tuning`), and with ``train.backend=autograd`` (the plain
+  PyTorch step, :mod:`pipeline.btf.backends`), each in a child process of its own
   (:mod:`pipeline.btf.fast.bench_child`; the loops: :mod:`pipeline.btf.fast.bench_loops`),
-  in queries/s, GFLOP/s and as a share of the peak;
+  in queries/s, GFLOP/s, steps/s and as a share of the peak, and the two backends' ratio;
   the default path at the recipe ``experiment=paper_cpu`` uses (``conf/train/cpu.yaml``:
   32 ABRDFs x 256 directions); the decoder alone (autograd against the fused step, no
   encoder);
@@ -18,22 +19,31 @@ Prints, in one run on one machine:
   than float32's, and the bench skips them and says so;
 - encoder throughput (ABRDFs/s, forward and backward);
 - reconstruction throughput: Neural BTF (all M x N) and clustered (k x N decoded once);
-- with ``--paper-run``: time and peak resident memory of every stage of a paper-size run
+- with ``paper_run=STEPS``: time and peak resident memory of every stage of a paper-size run
   on the synthetic BTF (one Neural BTF and one clustered job, each in its own process);
-- with ``--load-size 256``: loading a 6561-file UBO2003 folder, decoded and cached.
+- with ``load_size=256``: loading a 6561-file UBO2003 folder, decoded and cached.
+
+With ``device=cuda``, only the training loops, on the GPU: ``pipeline.btf.train.train`` at
+the paper's batch with the autograd backend in float32 and in bfloat16 (autocast) and with
+the fused step (torch ops, one chunk), against the GPU's matmul peaks; then
+``paper_run`` and ``load_size`` when asked.
 
 The last line is one JSON object, also logged to MLflow (experiment ``bench`` under
-``--runs``). Timings are medians of repeats; compare them as ratios within one run, never
+``paths.runs``). Timings are medians of repeats; compare them as ratios within one run, never
 across runs on a shared machine. A measurement tool, not a test. Its keys:
 
 - ``matmul_gflops`` (``_rounds``: each round's), ``matmul_gflops_bf16`` (``_rounds``);
 - each loop's ``queries_per_s``, ``gflops``, ``steps_per_s``, ``share_of_peak`` (and
   ``share_of_bf16_peak`` for bfloat16 loops), under ``train_naive``, ``train_default``
-  (``train_fused``: the same figures), ``train_tuned``, ``train_paper_recipe``,
-  ``decoder_naive``, ``decoder_fused``, and with ``_bf16`` ``train_default_bf16``
-  (``train_fused_bf16``), ``train_tuned_bf16``, ``decoder_fused_bf16``;
+  (``train_fused``: the same figures), ``train_tuned``, ``train_autograd``,
+  ``train_paper_recipe``, ``decoder_naive``, ``decoder_fused``, and with ``_bf16``
+  ``train_default_bf16`` (``train_fused_bf16``), ``train_tuned_bf16``,
+  ``decoder_fused_bf16``; with ``device=cuda`` ``train_autograd``,
+  ``train_autograd_bf16`` and ``train_fused`` only;
 - the ratios ``train_speedup`` (default / naive), ``tuning_speedup`` (tuned / default),
-  ``decoder_speedup`` (fused / autograd), each also with ``_bf16``;
+  ``decoder_speedup`` (fused / autograd), each also with ``_bf16``, ``backend_speedup``
+  (fused backend / autograd backend); with ``device=cuda`` ``backend_speedup`` and
+  ``bf16_speedup`` (autograd bfloat16 / float32);
 - ``tuning``: what the opt-in tuning does here (``keep_awake_processes``, spinning
   processes, 0 where none start; ``omp_spin_count``; ``reuse_freed_memory``: glibc found);
   ``kernels``: whether the C++ kernels built; ``cpu_bf16``: the CPU's native bfloat16
@@ -41,16 +51,18 @@ across runs on a shared machine. A measurement tool, not a test. Its keys:
   ``_bf16`` keys are missing, where they are;
 - ``encoder_abrdfs_per_s``, ``reconstruct_queries_per_s``, ``reconstruct_neural_btf_s``,
   ``reconstruct_clustered_k2000_s``; ``paper_run.<variant>.*`` and ``load_*`` with
-  ``--paper-run`` and ``--load-size``; ``device``, ``threads``, ``machine``, ``torch``,
+  ``paper_run`` and ``load_size``; ``device``, ``threads``, ``machine``, ``torch``,
   ``decoder_parameters``, ``encoder_channels``.
 
-    python -m pipeline.bench [--threads 2] [--steps 30] [--paper-run 200] [--load-size 256]
-                             [--runs runs]
+    python -m pipeline.bench [threads=2] [steps=30] [device=cuda] [paper_run=200]
+                             [load_size=256] [paths.runs=runs] [mlflow=false]
+
+Its settings (``python -m pipeline.bench --help``) are read without torch:
+:mod:`pipeline.btf.fast.bench_settings`.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -72,6 +84,7 @@ from pipeline.btf.fast.bench_loops import (
     paper_channels,
     pipeline_training,
 )
+from pipeline.btf.fast.bench_settings import PROG, BenchSettings, parse_args
 from pipeline.btf.model import Decoder, Encoder, parameter_count
 
 M_PAPER = 10_000
@@ -80,20 +93,30 @@ DECODER_MACS = 12 * 106 + 2 * 106 * 106 + 106 * 3
 TRAIN_FLOPS_PER_QUERY = 3 * 2 * DECODER_MACS  # forward + backward ~ 3x forward
 
 
-def _median_seconds(fn, repeats: int) -> float:
-    fn()  # warm-up
+def _median_seconds(fn, repeats: int, device: str = "cpu") -> float:
+    def timed():
+        fn()
+        if device == "cuda":  # the work queued on the GPU, not just its launch
+            torch.cuda.synchronize()
+
+    timed()  # warm-up
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
-        fn()
+        timed()
         times.append(time.perf_counter() - start)
     return float(np.median(times))
 
 
-def matmul_peak(size: int = 2048, repeats: int = 5, dtype=torch.float32) -> float:
-    """GFLOP/s of a square matrix product (float32, or bfloat16 for the bfloat16 loops)."""
-    a, b = torch.randn(size, size, dtype=dtype), torch.randn(size, size, dtype=dtype)
-    return 2 * size**3 / _median_seconds(lambda: a @ b, repeats) / 1e9
+def matmul_peak(size: int | None = None, repeats: int = 5, dtype=torch.float32,
+                device: str = "cpu") -> float:
+    """GFLOP/s of a square matrix product (float32, or bfloat16 for the bfloat16 loops) on
+    ``device``; ``size`` None: 2048 on the CPU, 8192 on CUDA (a GPU needs the larger to
+    reach its peak)."""
+    size = size or (8192 if device == "cuda" else 2048)
+    a = torch.randn(size, size, dtype=dtype, device=device)
+    b = torch.randn(size, size, dtype=dtype, device=device)
+    return 2 * size**3 / _median_seconds(lambda: a @ b, repeats, device) / 1e9
 
 
 def cpu_bfloat16_support() -> str:
@@ -115,12 +138,12 @@ def _rates(queries_per_step: float, seconds_per_step: float) -> dict:
 
 
 def interleaved(loops: dict, queries_per_step: dict, steps: int, bf16: bool,
-                rounds: int = 3) -> dict:
+                rounds: int = 3, device: str = "cpu") -> dict:
     """Time the loops in turn, ``rounds`` times after one warm-up each, so that a machine
     that slows down or speeds up meanwhile affects all of them alike; medians per loop.
     The float32 matmul peak (and with ``bf16`` the bfloat16 one) is measured in every round
     too (``matmul_gflops``, ``matmul_gflops_bf16``: the medians; ``..._rounds``: each
-    round's), so the shares of them compare like with like."""
+    round's), so the shares of them compare like with like; on ``device``."""
     for run in loops.values():
         run()
     times = {name: [] for name in loops}
@@ -128,7 +151,7 @@ def interleaved(loops: dict, queries_per_step: dict, steps: int, bf16: bool,
     for _ in range(rounds):
         for key, rounds_of_key in peaks.items():
             rounds_of_key.append(matmul_peak(dtype=torch.bfloat16 if "bf16" in key
-                                             else torch.float32))
+                                             else torch.float32, device=device))
         for name, run in loops.items():
             times[name].append(run() / steps)
     figures = {name: _rates(queries_per_step[name], float(np.median(t)))
@@ -156,9 +179,10 @@ def reconstruction_seconds(latents: int, repeats: int = 3) -> float:
     return _median_seconds(lambda: decode_all(decoder, z, directions), repeats)
 
 
-def paper_run(runs: str, steps: int, threads: int) -> dict:
+def paper_run(runs: str, steps: int, threads: int, device: str = "cpu") -> dict:
     """Per-stage seconds and peak RSS of paper-size jobs on the synthetic BTF (128 x 128,
-    crop 100 x 100), one process per job, with ``steps`` training steps each."""
+    crop 100 x 100), one process per job, with ``steps`` training steps each on
+    ``device`` (``train.device``; the backend: ``train.backend=auto``'s)."""
     import mlflow
 
     from pipeline.core.tracking import use_store
@@ -168,6 +192,7 @@ def paper_run(runs: str, steps: int, threads: int) -> dict:
     for variant in ("neural_btf", "k1000"):
         command = [sys.executable, "-m", "pipeline", "experiment=paper", f"variant={variant}",
                    f"train.max_steps={steps}", f"train.threads={threads}",
+                   f"train.device={device}",
                    f"paths.runs={root}", "tracking.experiment=bench_paper"]
         start = time.perf_counter()
         subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
@@ -176,12 +201,12 @@ def paper_run(runs: str, steps: int, threads: int) -> dict:
         run = mlflow.search_runs(experiment_names=["bench_paper"], output_format="list",
                                  order_by=["attributes.start_time DESC"], max_results=1)[0]
         metrics = run.data.metrics
-        row = {"wall_s": wall, "peak_rss_mb": metrics["peak_rss_mb"],
+        row = {"wall_s": wall, "peak_rss_mb": metrics["memory/peak_rss_mb"],
                "train_queries_per_s": metrics["train_queries"] / metrics["train_seconds"]}
-        for name, value in metrics.items():
-            for prefix in ("seconds_", "peak_rss_mb_"):
-                if name.startswith(prefix):
-                    row[f"{name[len(prefix):]}_{prefix.rstrip('_')}"] = value
+        for name, value in metrics.items():  # time/<stage>_seconds, memory/<stage>_peak_rss_mb
+            group, _, stage_metric = name.partition("/")
+            if group in ("time", "memory") and stage_metric != "peak_rss_mb":
+                row[stage_metric] = value
         figures[variant] = row
     return figures
 
@@ -254,7 +279,8 @@ def training_figures(steps: int, threads: int, channels, recipe, bf16: bool) -> 
     decoder step in this one."""
     paper = {"train_naive": Isolated("naive", steps, threads),
              "train_default": Isolated("train", steps, threads),
-             "train_tuned": Isolated("train", steps, threads, tuned=True)}
+             "train_tuned": Isolated("train", steps, threads, tuned=True),
+             "train_autograd": Isolated("train", steps, threads, backend="autograd")}
     if bf16:
         paper |= {"train_default_bf16": Isolated("train", steps, threads, precision="bfloat16"),
                   "train_tuned_bf16": Isolated("train", steps, threads, tuned=True,
@@ -330,6 +356,10 @@ def print_training(figures: dict, recipe, bf16_skipped: str | None) -> None:
               "without")
     _print_training("naive autograd loop (5 x all N)", figures["train_naive"], peak)
     _print_paths(figures, "float32")
+    _print_training("pipeline loop, float32, train.backend=autograd (5 x all N)",
+                    figures["train_autograd"], peak)
+    _ratio(figures, "backend_speedup", "train_default", "train_autograd",
+           "the fused backend over the autograd backend, same run")
     if bf16_skipped is None:
         print(f"bfloat16 matmul peak: {figures['matmul_gflops_bf16']:.1f} GFLOP/s (median of "
               f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_bf16_rounds'])}); "
@@ -350,41 +380,100 @@ def print_training(figures: dict, recipe, bf16_skipped: str | None) -> None:
                     f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
 
 
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(
-        prog="python -m pipeline.bench", description=__doc__.splitlines()[0].replace("``", ""),
-        epilog="Timings are medians of interleaved rounds; compare them as ratios within one "
-               "run. bfloat16 loops only where oneDNN supports bfloat16 on the CPU.")
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
-    parser.add_argument("--steps", type=int, default=30, help="training steps per timing")
-    parser.add_argument("--runs", default="runs", help="paths.runs holding mlflow.db")
-    parser.add_argument("--no-mlflow", action="store_true")
-    parser.add_argument("--paper-run", type=int, default=0, metavar="STEPS",
-                        help="also run paper-size jobs with this many training steps and "
-                             "report each stage's time and peak RSS")
-    parser.add_argument("--load-size", type=int, default=0,
-                        help="also time loading a 6561-file UBO2003 folder of this texture size "
-                             "(256 = the real datasets; generated once under --runs)")
-    args = parser.parse_args(argv)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+def cuda_figures(steps: int, channels) -> dict:
+    """``pipeline.btf.train.train`` at the paper's batch on the GPU, timed in turn
+    (:func:`interleaved`): the autograd backend in float32 and in bfloat16 (autocast) and
+    the fused step (torch ops, one chunk), against the GPU's matmul peaks."""
+    loops = {"train_autograd": pipeline_training(5, -1, steps, channels, 1,
+                                                 backend="autograd", device="cuda"),
+             "train_autograd_bf16": pipeline_training(5, -1, steps, channels, 1,
+                                                      precision="bfloat16",
+                                                      backend="autograd", device="cuda"),
+             "train_fused": pipeline_training(5, -1, steps, channels, 1, backend="fused",
+                                              device="cuda")}
+    return interleaved(loops, dict.fromkeys(loops, 5 * N_PAPER), steps, bf16=True,
+                       device="cuda")
+
+
+def print_cuda(figures: dict) -> None:
+    """The GPU's training lines; adds ``backend_speedup`` and ``bf16_speedup``."""
+    peak, peak_bf16 = figures["matmul_gflops"], figures["matmul_gflops_bf16"]
+    print(f"matmul peak on {figures['device']}: float32 {peak:.0f} GFLOP/s, bfloat16 "
+          f"{peak_bf16:.0f} GFLOP/s (medians of one per round of the training loops)")
+    _print_training("pipeline loop on the GPU, train.backend=autograd, float32 (5 x all N)",
+                    figures["train_autograd"], peak)
+    _print_training("pipeline loop on the GPU, train.backend=autograd, bfloat16 (5 x all N)",
+                    figures["train_autograd_bf16"], peak, peak_bf16)
+    _ratio(figures, "bf16_speedup", "train_autograd_bf16", "train_autograd",
+           "bfloat16 over float32, autograd backend")
+    _print_training("pipeline loop on the GPU, train.backend=fused, float32 (5 x all N)",
+                    figures["train_fused"], peak)
+    _ratio(figures, "backend_speedup", "train_fused", "train_autograd",
+           "the fused backend over the autograd backend, same run")
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """``python -m pipeline.bench key=value ...`` (:mod:`pipeline.btf.fast.bench_settings`)."""
+    return run(parse_args(argv))
+
+
+def run(settings: BenchSettings) -> dict:
+    """Measure, print and record the figures (the module's docstring); returns them."""
+    if settings.threads:
+        torch.set_num_threads(settings.threads)
     threads = torch.get_num_threads()
     channels = paper_channels()
-    device = "cuda" if torch.cuda.is_available() else "cpu"
-    bf16_skipped = bfloat16_skip_reason()
-    figures: dict = {"device": f"{device} ({torch.cuda.get_device_name()})" if device == "cuda"
+    on_cuda = settings.device == "cuda"
+    if on_cuda and not torch.cuda.is_available():
+        print(f"{PROG}: error: device=cuda but torch sees no CUDA device", file=sys.stderr)
+        raise SystemExit(2)
+    bf16_skipped = None if on_cuda else bfloat16_skip_reason()
+    figures: dict = {"device": f"cuda ({torch.cuda.get_device_name()})" if on_cuda
                      else "cpu", "threads": threads,
                      "machine": platform.processor() or platform.machine(),
                      "torch": torch.__version__, "cpu_bf16": cpu_bfloat16_support(),
-                     # Built here, once, before the child processes load them.
-                     "kernels": kernels.available(), "tuning": tuning_in_effect(threads),
                      "decoder_parameters": parameter_count(Decoder()),
                      "encoder_channels": list(channels)}
-    if bf16_skipped is not None:
-        figures["bf16_skipped"] = bf16_skipped
-    recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
-    figures |= training_figures(args.steps, threads, channels, recipe, bf16_skipped is None)
-    print_training(figures, recipe, bf16_skipped)
+    if on_cuda:
+        figures |= cuda_figures(settings.steps, channels)
+        print_cuda(figures)
+    else:
+        # Built here, once, before the child processes load them.
+        figures |= {"kernels": kernels.available(), "tuning": tuning_in_effect(threads)}
+        if bf16_skipped is not None:
+            figures["bf16_skipped"] = bf16_skipped
+        recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
+        figures |= training_figures(settings.steps, threads, channels, recipe,
+                                    bf16_skipped is None)
+        print_training(figures, recipe, bf16_skipped)
+        other_figures(figures, channels)
+    if settings.paper_run:
+        figures["paper_run"] = paper_run(settings.runs, settings.paper_run, threads,
+                                         settings.device)
+        for variant, row in figures["paper_run"].items():
+            print(f"paper-size run, {variant} ({settings.paper_run} training steps on "
+                  f"{settings.device}): {row['wall_s']:.0f} s wall, peak RSS "
+                  f"{row['peak_rss_mb']:.0f} MiB, training {row['train_queries_per_s'] / 1e6:.3f}"
+                  " M queries/s")
+            for stage in ("load", "crop", "preprocess", "pca", "kmeans", "representatives",
+                          "train", "evaluate"):
+                if f"{stage}_seconds" in row:
+                    print(f"  {stage:16s} {row[f'{stage}_seconds']:8.1f} s "
+                          f"{row[f'{stage}_peak_rss_mb']:8.0f} MiB")
+    if settings.load_size:
+        figures.update(load_times(settings.runs, settings.load_size))
+        cold = "cold page cache" if figures["load_cold"] else "page cache NOT dropped"
+        print(f"load {figures['load_images']} JPEGs of {settings.load_size}^2: decode "
+              f"{figures['load_decode_s']:.1f} s ({cold}), from the stage cache "
+              f"{figures['load_cached_s']:.2f} s")
+    if settings.mlflow:
+        _record(settings.runs, figures)
+    print(json.dumps(figures))
+    return figures
+
+
+def other_figures(figures: dict, channels) -> None:
+    """The encoder's and the reconstruction's throughput on the CPU, added and printed."""
     figures["encoder_abrdfs_per_s"] = encoder_throughput(32, channels)
     print(f"encoder: {figures['encoder_abrdfs_per_s']:.0f} ABRDFs/s (forward + backward)")
     seconds = reconstruction_seconds(256)
@@ -394,26 +483,6 @@ def main(argv=None) -> dict:
     print(f"reconstruction: {figures['reconstruct_queries_per_s'] / 1e6:.3f} M queries/s; "
           f"Neural BTF, all {M_PAPER} x {N_PAPER}: {figures['reconstruct_neural_btf_s']:.0f} s; "
           f"clustered k = 2000 (decoded once): {figures['reconstruct_clustered_k2000_s']:.1f} s")
-    if args.paper_run:
-        figures["paper_run"] = paper_run(args.runs, args.paper_run, threads)
-        for variant, row in figures["paper_run"].items():
-            print(f"paper-size run, {variant} ({args.paper_run} training steps): "
-                  f"{row['wall_s']:.0f} s wall, peak RSS {row['peak_rss_mb']:.0f} MiB")
-            for stage in ("load", "crop", "preprocess", "pca", "kmeans", "representatives",
-                          "train", "evaluate"):
-                if f"{stage}_seconds" in row:
-                    print(f"  {stage:16s} {row[f'{stage}_seconds']:8.1f} s "
-                          f"{row[f'{stage}_peak_rss_mb']:8.0f} MiB")
-    if args.load_size:
-        figures.update(load_times(args.runs, args.load_size))
-        cold = "cold page cache" if figures["load_cold"] else "page cache NOT dropped"
-        print(f"load {figures['load_images']} JPEGs of {args.load_size}^2: decode "
-              f"{figures['load_decode_s']:.1f} s ({cold}), from the stage cache "
-              f"{figures['load_cached_s']:.2f} s")
-    if not args.no_mlflow:
-        _record(args.runs, figures)
-    print(json.dumps(figures))
-    return figures
 
 
 def _flatten(figures: dict, prefix: str = "") -> dict:

@@ -27,15 +27,17 @@ OPENMP_SPIN_VARIABLES = ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")
 
 class Isolated:
     """One loop timed in a child process (``loop``: ``naive``, ``decoder_naive``, or
-    ``train``, the pipeline's training loop at the paper's batch, with the opt-in tuning
-    when ``tuned``). Calling it runs ``steps`` steps there and returns their seconds, like
-    the callables of the loops the bench runs in its own process."""
+    ``train``, the pipeline's training loop at the paper's batch with ``train.backend``
+    ``backend``, with the opt-in tuning when ``tuned``). Calling it runs ``steps`` steps
+    there and returns their seconds, like the callables of the loops the bench runs in its
+    own process."""
 
     def __init__(self, loop: str, steps: int, threads: int, tuned: bool = False,
-                 precision: str = "float32"):
+                 precision: str = "float32", backend: str = "fused"):
         env = {k: v for k, v in os.environ.items() if k not in OPENMP_SPIN_VARIABLES}
         command = [sys.executable, "-m", "pipeline.btf.fast.bench_child", loop,
-                   "--steps", str(steps), "--threads", str(threads), "--precision", precision]
+                   "--steps", str(steps), "--threads", str(threads), "--precision", precision,
+                   "--backend", backend]
         if tuned:
             command.append("--tuned")
         self.process = subprocess.Popen(command, env=env, text=True, stdin=subprocess.PIPE,
@@ -61,6 +63,7 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, required=True)
     parser.add_argument("--threads", type=int, required=True)
     parser.add_argument("--precision", default="float32")
+    parser.add_argument("--backend", default="fused")
     parser.add_argument("--tuned", action="store_true")
     args = parser.parse_args(argv)
     if args.tuned:
@@ -80,7 +83,7 @@ def main(argv=None) -> None:
         run = loops.decoder_training(False, args.steps, args.threads)
     else:
         run = loops.pipeline_training(5, -1, args.steps, loops.paper_channels(), args.threads,
-                                      precision=args.precision,
+                                      precision=args.precision, backend=args.backend,
                                       tuning=TUNED if args.tuned else None)
     for _ in sys.stdin:
         print(f"seconds {run()!r}", flush=True)

@@ -99,12 +99,14 @@ def decoder_training(fused: bool, steps: int, threads: int, precision: str = "fl
 
 def pipeline_training(batch: int, queries: int, steps: int, channels, threads: int,
                       precision: str = "float32", optimizer: str = "sgd", lr: float = 0.05,
-                      tuning: dict | None = None):
+                      tuning: dict | None = None, backend: str = "fused",
+                      device: str = "cpu"):
     """The project's training loop (``pipeline.btf.train.train``) on random ABRDFs: data
-    handling, normalization, encoder, fused decoder step and optimizer (by default the
-    paper's plain SGD, as in the naive loop), as in a real run, with the opt-in machine
-    tuning ``tuning`` asks for (``TrainSettings`` fields; ``omp_spin_count`` takes effect
-    only where it was set before torch loaded: :mod:`pipeline.btf.fast.bench_child`).
+    handling, normalization, encoder, the ``backend``'s step (``train.backend``; by
+    default the fused decoder step) and optimizer (by default the paper's plain SGD, as in
+    the naive loop), as in a real run on ``device``, with the opt-in machine tuning
+    ``tuning`` asks for (``TrainSettings`` fields; ``omp_spin_count`` takes effect only
+    where it was set before torch loaded: :mod:`pipeline.btf.fast.bench_child`).
     Returns a callable that runs ``steps`` steps and returns their training seconds."""
     from pipeline.btf.preprocess import fit_normalization
     from pipeline.btf.train import train
@@ -117,7 +119,8 @@ def pipeline_training(batch: int, queries: int, steps: int, channels, threads: i
     features = rng.random((N_PAPER, 4), dtype=np.float32) * 2 - 1
     settings = TrainSettings(epochs=10**6, batch_size=batch, queries_per_abrdf=queries,
                              max_steps=steps, optimizer=optimizer, lr=lr, threads=threads,
-                             device="cpu", precision=precision, **(tuning or {}))
+                             device=device, precision=precision, backend=backend,
+                             **(tuning or {}))
 
     def run() -> float:
         return train(abrdf, abrdf, np.arange(m), norm, features, np.arange(N_PAPER), settings,

@@ -12,8 +12,9 @@ several (``pipeline.btf.fast.fused`` uses them when :func:`available`):
 They are compiled with ``torch.utils.cpp_extension`` (g++ and ninja, which the project
 installs) for this machine's CPU, once per machine (its duration: docs/performance.md):
 the build lands under ``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``).
-Where the build fails (no compiler), the step falls back to plain torch ops and says so
-once. On a CPU with AVX-512 the kernels run on 16-lane vectors (bfloat16 ones also need
+Where the build fails (no compiler), ``train.backend=auto`` trains with the autograd
+backend instead (:mod:`pipeline.btf.backends`) and the fused step, where asked for, falls
+back to plain torch ops; a warning says so once. On a CPU with AVX-512 the kernels run on 16-lane vectors (bfloat16 ones also need
 its bfloat16 instructions); elsewhere on what the compiler makes of plain loops
 (``tests/test_kernels.py`` compares the two).
 """
@@ -83,8 +84,8 @@ def _load() -> bool:
         lines = str(error).strip().splitlines() or [type(error).__name__]
         # The compiler's first error, else the last line (ninja's own lines come last).
         reason = next((line for line in lines if "error:" in line), lines[-1])
-        log.warning("the decoder's C++ kernels did not build in %s (%s); the step uses plain "
-                    "torch ops, which are slower", build_dir, reason.strip())
+        log.warning("the decoder's C++ kernels did not build in %s (%s); the fused step "
+                    "would use plain torch ops, which are slower", build_dir, reason.strip())
         return False
     finally:
         os.environ["PATH"] = path

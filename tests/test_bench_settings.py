@@ -1,0 +1,72 @@
+"""``python -m pipeline.bench key=value ...``: its settings, read and refused without torch."""
+
+import json
+import subprocess
+import sys
+from dataclasses import fields
+
+import pytest
+from helpers import ROOT
+
+from pipeline.btf.fast.bench_settings import KEYS, BenchSettings, parse, parse_args, usage
+from pipeline.core.errors import ConfigError
+
+
+def test_key_value_arguments_set_the_bench():
+    settings = parse(["steps=2", "threads=1", "device=cuda", "paths.runs=/tmp/r",
+                      "mlflow=false", "paper_run=200", "load_size=256"])
+    assert settings == BenchSettings(steps=2, threads=1, device="cuda", runs="/tmp/r",
+                                     mlflow=False, paper_run=200, load_size=256)
+    assert parse([]) == BenchSettings()
+    assert parse(["threads=null"]).threads is None
+
+
+@pytest.mark.parametrize("argument, named", [
+    ("--steps", "'--steps' is not a setting of the bench"),
+    ("steps", "'steps' is not a setting"),
+    ("runs=x", "'runs=x' is not a setting"),  # the key is paths.runs, as elsewhere
+    ("steps=abc", "steps='abc' must be an integer >= 1"),
+    ("steps=0", "steps=0 must be an integer >= 1"),
+    ("steps=1.5", "steps=1.5 must be an integer"),
+    ("threads=0", "threads=0 must be an integer >= 1 or null"),
+    ("device=gpu", "device='gpu' must be one of cpu, cuda"),
+    ("mlflow=maybe", "mlflow='maybe' must be one of True, False"),
+    ("paper_run=-1", "paper_run=-1 must be an integer >= 0"),
+    ("paths.runs=", "paths.runs=None must be a non-empty string"),
+])
+def test_a_bad_argument_is_refused_naming_it(argument, named):
+    with pytest.raises(ConfigError, match=named.replace(".", r"\.").replace("[", r"\[")):
+        parse([argument])
+
+
+def test_help_lists_every_setting_with_its_default(capsys):
+    with pytest.raises(SystemExit) as done:
+        parse_args(["steps=3", "--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
+    assert text == usage() + "\n"
+    for key in KEYS:
+        assert f"  {key}=" in text, key
+    assert "  steps=30\n" in text and "  threads=null\n" in text and "  mlflow=true\n" in text
+    assert sorted(field for field, _, _ in KEYS.values()) == sorted(
+        f.name for f in fields(BenchSettings))
+
+
+def test_a_bad_argument_is_answered_before_torch_loads():
+    """The command's error (exit 2, as argparse's) and its --help come before the seconds
+    torch takes to import."""
+    code = ("import json, sys\n"
+            "from pipeline.bench import main\n"
+            "codes = []\n"
+            "for argv in (['steps=abc'], ['--help']):\n"
+            "    try:\n"
+            "        main(argv)\n"
+            "    except SystemExit as stop:\n"
+            "        codes.append(stop.code)\n"
+            "print(json.dumps({'codes': codes, 'torch': 'torch' in sys.modules}))\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert json.loads(done.stdout.strip().splitlines()[-1]) == {"codes": [2, 0],
+                                                               "torch": False}
+    assert "python -m pipeline.bench: error: steps='abc' must be" in done.stderr
