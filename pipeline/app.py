@@ -8,6 +8,7 @@ metrics).
 from __future__ import annotations
 
 import logging
+import re
 import tempfile
 from pathlib import Path
 
@@ -122,9 +123,11 @@ def log_headlines(uri: str, parent_id: str) -> None:
         spec = child.data.params.get("method.spec")
         if child.info.status != "FINISHED" or not spec:
             continue
+        # MLflow takes letters, digits and "_-. :/" in a metric's name.
+        job = re.sub(r"[^\w\-. :/]", "_", child.info.run_name or child.info.run_id)
         for name in resolve(spec).headline:
             if name in child.data.metrics:
-                values.append(Metric(f"{child.info.run_name}/{name}", child.data.metrics[name],
+                values.append(Metric(f"{job}/{name}", child.data.metrics[name],
                                      child.info.end_time or 0, 0))
     if values:
         client.log_batch(parent_id, metrics=values)

@@ -321,6 +321,7 @@ def _train_arguments(monkeypatch, runs, method: str, run_training: bool = False)
     # Two views (N = 2 x 81 directions) keep generating the built-in BTF quick.
     cfg = compose_config("experiment=smoke", f"method={method}", f"paths.runs={runs}",
                          "dataset.views=[[0,0],[15,0]]", "train.max_steps=3",
+                         "btf.model.encoder_channels=[8,16,32]",
                          "train.curve_every=0")
     ctx = Context.from_config(cfg)
     captured: dict = {}

@@ -10,7 +10,7 @@ from pipeline.btf.interpolation import (
     training_directions,
 )
 from pipeline.btf.model import stereographic
-from pipeline.data.directions import btf_directions
+from pipeline.data.directions import btf_directions, grid_81
 
 
 def _linear_field(directions):
@@ -44,7 +44,7 @@ def test_interpolants_return_the_measured_values_at_measured_directions():
 
 def test_heldout_lights_are_removed_from_training_for_every_view():
     cfg = OmegaConf.create({"btf": {"interpolation": {"holdout_lights": 5, "seed": 0}}})
-    heldout = heldout_light_indices(cfg)
+    heldout = heldout_light_indices(cfg, grid_81())
     assert len(heldout) == 5 and 0 not in heldout
     directions = btf_directions(views=[(0, 0), (30, 90)])
     train = training_directions(directions, heldout)

@@ -9,15 +9,15 @@ from pipeline.app import run_job
 from pipeline.core.errors import ConfigError
 from pipeline.core.settings import Integer, ListOf, OneOf, Real, check_settings
 
+# train.* is a structured config (pipeline.btf.train_settings.TrainSettings): Hydra refuses
+# a value of the wrong type as it composes, naming the key.
+BAD_TYPES = ["train.lr=abc", "train.epochs=nan", "train.batch_size=nan",
+             "train.queries_per_abrdf=nan", "train.epoch_texels=nan", "train.epochs=1.5",
+             "train.epochs=true"]
 BAD = [
-    ("train.lr=abc", "train.lr='abc' must be a finite number"),
     ("train.lr=nan", "train.lr=nan must be a finite number"),
-    ("train.epochs=nan", "train.epochs=nan must be an integer"),
-    ("train.batch_size=nan", "train.batch_size=nan must be an integer"),
-    ("train.queries_per_abrdf=nan", "train.queries_per_abrdf=nan must be an integer"),
-    ("train.epoch_texels=nan", "train.epoch_texels=nan must be an integer"),
-    ("train.epochs=1.5", "train.epochs=1.5 must be an integer"),
-    ("train.epochs=true", "train.epochs=True must be an integer"),
+    ("train.lr=-1", "train.lr=-1.0 must be a finite number > 0"),
+    ("train.batch_size=1", "train.batch_size=1 must be >= 2"),
     ("btf.sizes.weight_dtype=foo", "btf.sizes.weight_dtype='foo' must be one of float32, float16"),
     ("method.k=true", "method.k=True must be an integer >= 1 or null"),
     ("btf.kmeans.n_init=0", "btf.kmeans.n_init=0 must be an integer >= 1"),
@@ -35,6 +35,15 @@ def test_a_bad_setting_is_refused_before_any_stage(smoke_cfg, override, message)
     cache = Path(cfg.paths.cache)
     assert not cache.exists() or not [p for p in cache.glob("*/*") if not p.name.startswith(".")]
     assert not Path(cfg.paths.data).exists()  # the built-in data was not even generated
+
+
+@pytest.mark.parametrize("override", BAD_TYPES)
+def test_a_value_of_the_wrong_type_is_refused_as_the_config_is_composed(smoke_cfg, override):
+    from hydra.errors import ConfigCompositionException
+
+    with pytest.raises(ConfigCompositionException) as error:
+        smoke_cfg(override)
+    assert f"full_key: {override.split('=')[0]}" in str(error.value.__cause__ or error.value)
 
 
 def test_the_pca_arm_checks_its_own_settings(smoke_cfg):

@@ -3,7 +3,9 @@
 RMSE is taken over all texels x directions x channels in the normalized space of the
 paper (values divided by alpha, so the data lie in [0, 1]). The clustered method decodes
 its k latents at the N directions once and indexes the result with the list, so it never
-decodes M x N queries.
+decodes M x N queries. A model is scored as stored: :func:`as_stored` rounds its decoder
+weights and latents to ``btf.sizes.weight_dtype``, ``reconstruction_error`` its per-texel
+scale to ``extra_dtype``, so that a float16 model's RMSE is the float16 model's.
 """
 
 from __future__ import annotations
@@ -13,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pipeline.btf.model import Decoder, parameter_count
+from pipeline.btf.model import LATENT_DIM, Decoder, parameter_count
 
 DTYPE_BYTES = {"float32": 4, "float16": 2, "int32": 4, "uint16": 2}
+FLOAT_TYPES = ("float32", "float16")  # storage types of weights, latents and the scale
 
 
 @dataclass
@@ -39,7 +42,7 @@ class Reconstruction:
 def decode_all(
     decoder: Decoder, latents: np.ndarray, dir_features: np.ndarray, chunk: int = 32
 ) -> np.ndarray:
-    """Decode every latent at every direction: (R, 8) x (N, 4) -> (R, N, 3) float32."""
+    """Decode every latent at every direction: (R, latent) x (N, 4) -> (R, N, 3) float32."""
     out = np.empty((latents.shape[0], dir_features.shape[0], 3), dtype=np.float32)
     features = torch.from_numpy(np.asarray(dir_features, dtype=np.float32))
     decoder.eval()
@@ -47,6 +50,36 @@ def decode_all(
         z = torch.from_numpy(np.asarray(latents[start : start + chunk], dtype=np.float32))
         out[start : start + len(z)] = decoder.decode_grid(z, features).numpy()
     return out
+
+
+def round_to(values: np.ndarray, dtype: str) -> np.ndarray:
+    """``values`` (any shape) as float32 holding exactly what storing them in ``dtype``
+    (float32 or float16, rounded to nearest even) keeps."""
+    if dtype not in FLOAT_TYPES:
+        raise ValueError(f"storage type {dtype!r} must be one of {list(FLOAT_TYPES)}")
+    values = np.asarray(values, dtype=np.float32)
+    return values if dtype == "float32" else values.astype(dtype).astype(np.float32)
+
+
+@torch.no_grad()
+def as_stored(decoder: Decoder, latents: np.ndarray, weight_dtype: str
+              ) -> tuple[Decoder, np.ndarray]:
+    """The model as its compressed file holds it: a copy of ``decoder`` whose parameters
+    are rounded to ``weight_dtype``, and ``latents`` (R, latent) rounded to it, as float32;
+    float32: the same decoder.
+
+    The evaluation scores what is stored (Table 1's bytes), not the float32 model that
+    training left (:mod:`pipeline.btf.compressed` writes the same rounded values).
+    """
+    latents = round_to(latents, weight_dtype)
+    if weight_dtype == "float32":
+        return decoder, latents
+    import copy
+
+    rounded = copy.deepcopy(decoder)
+    for parameter in rounded.parameters():
+        parameter.copy_(parameter.to(getattr(torch, weight_dtype)).to(parameter.dtype))
+    return rounded, latents
 
 
 def texel_scales(target: np.ndarray, pred: np.ndarray, mode: str) -> np.ndarray:
@@ -76,15 +109,18 @@ def reconstruction_error(
     dir_features: np.ndarray,
     texel_scale: str = "none",
     chunk: int = 64,
+    scale_dtype: str = "float32",
 ) -> Reconstruction:
     """RMSE of the reconstruction against the measured ABRDFs.
 
     Parameters
     ----------
-    latents : ndarray of shape (R, 8); R = M (Neural BTF) or k (clustered).
+    latents : ndarray of shape (R, latent); R = M (Neural BTF) or k (clustered).
     latent_of_texel : ndarray of shape (M,): identity, or the cluster list.
     abrdf : ndarray of shape (M, N, 3), raw values (a memory map is read chunk by chunk).
     texel_scale : ``none``, ``lstsq`` or ``luminance`` (clustered only).
+    scale_dtype : the per-texel scale is rounded to it (``btf.sizes.extra_dtype``) before
+        it is applied: the "with scale" error is that of the scale as stored.
     """
     m, n, _ = abrdf.shape
     clustered = latents.shape[0] != m or not np.array_equal(latent_of_texel, np.arange(m))
@@ -98,7 +134,7 @@ def reconstruction_error(
         if clustered:
             pred = decoded[latent_of_texel[start:stop]]
             mode = texel_scale if texel_scale != "none" else "lstsq"
-            scales[start:stop] = texel_scales(target, pred, mode)
+            scales[start:stop] = round_to(texel_scales(target, pred, mode), scale_dtype)
             diff_scaled = pred * scales[start:stop, None, None] - target
             sq_dir_scaled += np.square(diff_scaled, dtype=np.float64).sum(axis=(0, 2))
         else:
@@ -143,9 +179,10 @@ def storage_sizes(
     weight_dtype: str = "float32",
     list_dtype: str = "int32",
     extra_dtype: str | None = None,
-    latent_dim: int = 8,
+    latent_dim: int = LATENT_DIM,
 ) -> dict[str, int | float]:
-    """Exact stored bytes (the keys are the MLflow metric names users rely on).
+    """Exact stored bytes (the keys are the MLflow metric names users rely on);
+    ``latent_dim`` values per latent (``btf.model.latent``).
 
     ``compression_ratio`` = bytes_original / bytes_total with the original stored as
     float32 RGB (M x N x 3 x 4 bytes), as in the paper's "751 MB".

@@ -6,7 +6,9 @@ N directions, then a fully connected layer to an 8-dimensional latent. The paper
 block order but not the activation; a ReLU after each convolution is the usual choice.
 ReLU and max-pool commute (the maximum of three values is monotone in each), so each block
 pools first and applies the ReLU to a third as many values: the same values and gradients.
-``Encoder.forward`` runs the blocks on a channels-last 2-D layout (see there);
+In training (with gradients, on the CPU) ``Encoder.forward`` runs the blocks by hand, a few
+ABRDFs at a time (:mod:`pipeline.btf.fast.encoder_step`); otherwise, and in
+``Encoder.forward_layers``, as autograd layers on a channels-last 2-D layout (see there).
 ``Encoder.reference`` is the plain 1-D form of the same layers.
 
 Decoder: 12 -> 106 -> 106 -> 106 -> 3 with ReLU, fed the latent plus the light and view
@@ -23,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from pipeline.btf.fast.encoder_step import encode_for_training
 from pipeline.btf.stereographic import direction_features, stereographic  # noqa: F401
 from pipeline.core.errors import ConfigError
 
@@ -71,6 +74,17 @@ class Encoder(nn.Module):
         self.fc = nn.Linear(previous * length, latent)
 
     def forward(self, abrdf: torch.Tensor) -> torch.Tensor:
+        """ABRDFs (batch, 3, N) -> latents (batch, 8). Training on the CPU with gradients
+        takes :func:`pipeline.btf.fast.encoder_step.encode_for_training` (the blocks chunk by
+        chunk, forward and backward written out; faster, docs/performance.md); anything else
+        :meth:`forward_layers`. Both compute :meth:`reference`'s function and gradients, up
+        to rounding (``tests/test_encoder_speed.py``)."""
+        if self.training and torch.is_grad_enabled() and abrdf.device.type == "cpu":
+            blocks = list(self.features)
+            return encode_for_training(blocks[0::4], blocks[3::4], self.fc, abrdf)
+        return self.forward_layers(abrdf)
+
+    def forward_layers(self, abrdf: torch.Tensor) -> torch.Tensor:
         """The blocks on (batch, C, 1, L) tensors, convolved and pooled in channels-last
         memory (the (batch, N, 3) memory of an input handed over as ``x.permute(0, 2, 1)``
         already is, so it is not copied), with the layers' own parameters: the 3 x 1
@@ -146,7 +160,9 @@ def parameter_count(module: nn.Module) -> int:
 
 
 def load_decoder(path) -> Decoder:
-    """A trained decoder from the ``decoder.pt`` state dict a train stage wrote."""
-    decoder = Decoder()
-    decoder.load_state_dict(torch.load(path, weights_only=True))
+    """A trained decoder from the ``decoder.pt`` state dict a train stage wrote, its latent
+    size (``btf.model.latent``) read from the first layer's inputs (latent + 4)."""
+    state = torch.load(path, weights_only=True)
+    decoder = Decoder(latent=state["net.0.weight"].shape[1] - 4)
+    decoder.load_state_dict(state)
     return decoder.eval()

@@ -14,7 +14,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 from omegaconf import OmegaConf
 
-from pipeline.btf import tables
+from pipeline.btf import rate_distortion, tables
 from pipeline.btf.curves import curves_section
 from pipeline.core.report import runs_of, save_figure, write_table
 
@@ -111,6 +111,7 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
         files = draw_fig7(runs, OmegaConf.to_container(settings.fig7.pairs), out)
         found.append("## Fig. 7\n\n" + "\n\n".join(f"![{p.stem}]({p.name})" for p in files
                                                    if p.suffix == ".png") + "\n")
+    found.append(rate_distortion.section(runs, out, alpha=float(settings.alpha)))
     return found
 
 

@@ -26,6 +26,7 @@ from pipeline.core.cache import Entry, save_arrays, save_json
 from pipeline.core.errors import ConfigError
 from pipeline.core.settings import Integer, ListOf, OneOf, Real, check_settings
 from pipeline.core.stage import Context, plain_settings
+from pipeline.data.directions import direction_sets
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +44,7 @@ CONSTRAINTS = {
     "btf.kmeans.n_init": Integer(1),
     "btf.kmeans.max_iter": Integer(1),
     "btf.model.encoder_channels": ListOf(Integer(1)),
+    "btf.model.latent": Integer(2, 16),
     "btf.sizes.weight_dtype": OneOf(*STORAGE_TYPES),
     "btf.sizes.list_dtype": OneOf("int32", "uint16"),
     "btf.sizes.extra_dtype": OneOf(*STORAGE_TYPES),
@@ -67,15 +69,12 @@ def check_settings_at_the_door(cfg) -> None:
 
 
 def _train_settings(cfg):
-    from dataclasses import fields
-
+    """``train.*`` as :class:`TrainSettings` (which checks the values; the structured config
+    of ``conf/train/default.yaml`` has refused unknown keys); lr null: the method's."""
     from pipeline.btf.train_settings import TrainSettings
 
     settings = plain_settings(cfg.train)
     lr = settings.pop("lr", None)
-    unknown = set(settings) - {f.name for f in fields(TrainSettings)}
-    if unknown:
-        raise ConfigError(f"unknown train settings: {sorted(unknown)}")
     return TrainSettings(lr=cfg.method.lr if lr is None else lr, **settings)
 
 
@@ -92,12 +91,14 @@ def train_stage(
     cfg = ctx.cfg
     method = cfg.method
     settings = _train_settings(cfg)
-    heldout = interpolation.heldout_light_indices(cfg)
+    # Indices into the data's own light set (the 81-grid's canonical order for UBO2003).
+    lights = direction_sets(cropped.array("directions", mmap=False)).lights
+    heldout = interpolation.heldout_light_indices(cfg, lights)
     stage_settings = {
         "method": method.name,
         "target": method.get("target", "texel"),
         "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY},
-        "model": plain_settings(cfg.btf.model),
+        "model": _model_key(cfg.btf.model),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),
     }
@@ -140,6 +141,7 @@ def train_stage(
             settings,
             seed=cfg.seed,
             encoder_channels=tuple(cfg.btf.model.encoder_channels),
+            latent=int(cfg.btf.model.latent),
             target_from_source=stage_settings["target"] == "representative",
             on_epoch=on_epoch,
             on_curve=on_curve,
@@ -160,6 +162,17 @@ def train_stage(
     return ctx.run("train", stage_settings, inputs, compute, version="3")
 
 
+def _model_key(model) -> dict:
+    """``btf.model`` as the train stage's key holds it: ``latent`` left out at the paper's
+    8, so that the models trained before it was a setting keep their keys."""
+    from pipeline.btf.model import LATENT_DIM
+
+    settings = plain_settings(model)
+    if settings.get("latent") == LATENT_DIM:
+        del settings["latent"]
+    return settings
+
+
 def log_curve_point(point: dict) -> None:
     """One point of the RMSE-versus-time curve, as MLflow metrics keyed by step."""
     mlflow.log_metrics({"curve_rmse": point["rmse"], "curve_seconds": point["seconds"],
@@ -167,7 +180,9 @@ def log_curve_point(point: dict) -> None:
 
 
 def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) -> Entry:
-    """RMSE (eq. 10), per-direction RMSE, sizes, and interpolation errors."""
+    """RMSE (eq. 10), per-direction RMSE, sizes, and interpolation errors, of the model as
+    stored: decoder weights and latents rounded to ``btf.sizes.weight_dtype``, the per-texel
+    scale to ``extra_dtype``."""
     cfg = ctx.cfg
     method = cfg.method
     clustered = method.name == "clustered"
@@ -176,22 +191,30 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         "texel_scale": texel_scale,
         "sizes": plain_settings(cfg.btf.sizes),
         "interpolation": plain_settings(cfg.btf.interpolation),
-        "dataset": (plain_settings(cfg.dataset) if cfg.dataset.name == "synthetic" else None),
+        "dataset": (evaluated_dataset(cfg.dataset) if cfg.dataset.name == "synthetic" else None),
     }
 
     def compute(folder: Path) -> dict:
-        from pipeline.btf.evaluate import mean_abrdf_rmse, reconstruction_error, storage_sizes
+        from pipeline.btf.evaluate import (
+            as_stored,
+            mean_abrdf_rmse,
+            reconstruction_error,
+            storage_sizes,
+        )
         from pipeline.btf.model import load_decoder
 
         abrdf = cropped.array("abrdf")
         directions = cropped.array("directions", mmap=False)
         norm = stages.normalization(prep)
-        decoder = load_decoder(trained.file("decoder.pt"))
-        latents = trained.array("latents", mmap=False)
+        sizes_settings = cfg.btf.sizes
+        decoder, latents = as_stored(load_decoder(trained.file("decoder.pt")),
+                                     trained.array("latents", mmap=False),
+                                     sizes_settings.weight_dtype)
         latent_of_texel = trained.array("latent_of_texel", mmap=False)
         recon = reconstruction_error(
             decoder, latents, latent_of_texel, abrdf, norm.alpha,
             direction_features(directions), texel_scale=texel_scale,
+            scale_dtype=sizes_settings.extra_dtype,
         )
         m, n, _ = abrdf.shape
         sizes = storage_sizes(
@@ -203,6 +226,7 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
             weight_dtype=cfg.btf.sizes.weight_dtype,
             list_dtype=cfg.btf.sizes.list_dtype,
             extra_dtype=cfg.btf.sizes.extra_dtype if texel_scale != "none" else None,
+            latent_dim=latents.shape[1],
         )
         metrics = {"rmse": recon.rmse, **sizes, "rmse_mean_abrdf": mean_abrdf_rmse(abrdf, norm.alpha)}
         if recon.rmse_unscaled is not None:
@@ -224,7 +248,17 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         return {"rmse": recon.rmse}
 
     inputs = {"crop": cropped, "preprocess": prep, "train": trained}
-    return ctx.run("evaluate", settings, inputs, compute, version="4")
+    return ctx.run("evaluate", settings, inputs, compute, version="5")
+
+
+def evaluated_dataset(dataset) -> dict:
+    """``dataset`` settings as the evaluate stage's key holds them: the generator's
+    direction-set settings left out at their defaults
+    (:func:`pipeline.btf.synthetic.generator_settings`)."""
+    from pipeline.btf.synthetic import generator_settings
+
+    settings = plain_settings(dataset)
+    return {**settings, "synthetic": generator_settings(settings["synthetic"])}
 
 
 def run(ctx: Context) -> dict[str, float]:
@@ -323,8 +357,11 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     m, n = cropped.manifest["summary"]["M"], cropped.manifest["summary"]["N"]
     n_components = method.n_components
     if method.get("match_clustered_k"):
-        budget = storage_sizes(Decoder(), int(method.match_clustered_k), m, n, True,
-                               list_dtype=ctx.cfg.btf.sizes.list_dtype)["bytes_total"]
+        # What clustered k stores with this run's model and storage settings.
+        latent, sizes = int(ctx.cfg.btf.model.latent), ctx.cfg.btf.sizes
+        budget = storage_sizes(Decoder(latent=latent), int(method.match_clustered_k), m, n,
+                               True, weight_dtype=sizes.weight_dtype,
+                               list_dtype=sizes.list_dtype, latent_dim=latent)["bytes_total"]
         n_components = components_for_budget(budget, m, n, method.dtype)
     settings = {"n_components": n_components, "dtype": method.dtype, "seed": ctx.cfg.seed}
 

@@ -28,9 +28,13 @@ log = logging.getLogger(__name__)
 def synthetic_folder(cfg: DictConfig) -> Path:
     """Where the built-in BTF of these settings is (or will be) written: named by a hash of
     the generator's settings and views."""
+    from pipeline.btf.synthetic import generator_settings
+
     ds = cfg.dataset
     gen = plain_settings(ds.synthetic)
-    named = {"gen": gen, "views": plain_settings(ds.views)}
+    # A UBO2014 file holds every view of its set: its reader picks dataset.views.
+    views = None if ds.format == "ubo2014" else plain_settings(ds.views)
+    named = {"gen": generator_settings(gen), "views": views}
     tag = hashlib.sha256(canonical_json(named).encode()).hexdigest()
     return Path(cfg.paths.data) / f"synthetic_btf-{ds.format}-{gen['ext']}-{tag[:10]}"
 
@@ -53,9 +57,12 @@ def dataset_root(cfg: DictConfig) -> Path:
             seed=gen["seed"],
             format=ds.format,
             ext=gen["ext"],
-            views=views,
+            views=None if ds.format == "ubo2014" else views,
             quality=gen["quality"],
             material=gen["material"],
+            directions=gen["directions"],
+            n_lights=gen["n_lights"],
+            n_views=gen["n_views"],
         )
     if ds.root is None:
         raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/the/dataset")
@@ -298,7 +305,7 @@ def truth_floor(ctx: Context, cropped: Entry, prep: Entry) -> Entry | None:
     cfg = ctx.cfg
     if not built_in(cfg):
         return None
-    from pipeline.btf.synthetic import SyntheticBTF
+    from pipeline.btf.synthetic import SyntheticBTF, generator_settings
 
     gen = plain_settings(cfg.dataset.synthetic)
     size = int(cfg.btf.crop.size)
@@ -314,6 +321,6 @@ def truth_floor(ctx: Context, cropped: Entry, prep: Entry) -> Entry | None:
                                truth_of, prep.json("alpha"))
         return {"rmse_data_vs_truth": rmse}
 
-    settings = {"synthetic": gen, "crop": plain_settings(cfg.btf.crop)}
+    settings = {"synthetic": generator_settings(gen), "crop": plain_settings(cfg.btf.crop)}
     return ctx.run("truth_floor", settings, {"crop": cropped, "preprocess": prep}, compute,
                    version="1")

@@ -85,11 +85,14 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     label = np.where(precision == "float32", label, label + " (" + precision + ")")
     # A run trained for another number of epochs than most runs of its dataset (say, a 4x
     # longer convergence check) is another model, not another seed.
-    epochs = param(runs, "train.epochs", "")
-    usual = epochs.groupby(runs["dataset"]).transform(lambda e: e.mode().iloc[0])
+    # PCA trains nothing and logs no train.* (its "" is left out of the usual count).
+    epochs = param(runs, "train.epochs", "").replace("None", "")
+    usual = epochs.where(epochs != "").groupby(runs["dataset"]).transform(
+        lambda e: e.mode().iloc[0] if e.notna().any() else "")
     runs["base_model"] = label
     runs["epochs"] = _num(epochs)
-    label = np.where(epochs != usual, label + " (" + epochs + " epochs)", label)
+    label = np.where((epochs != "") & (epochs != usual), label + " (" + epochs + " epochs)",
+                     label)
     runs["model"] = label
     # A clustered family (Table 2's k columns of one recipe but k), for the k verdict.
     runs["family"] = np.where(method == "clustered",

@@ -31,7 +31,7 @@ from pipeline.btf.batches import (
     resident_bytes,
 )
 from pipeline.btf.fast.tuning import training_tuning
-from pipeline.btf.model import Decoder, Encoder
+from pipeline.btf.model import LATENT_DIM, Decoder, Encoder
 from pipeline.btf.preprocess import Normalization
 from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.errors import ConfigError
@@ -102,6 +102,7 @@ def train(
     settings: TrainSettings,
     seed: int,
     encoder_channels: tuple[int, ...] = (16, 32, 64),
+    latent: int = LATENT_DIM,
     target_from_source: bool = False,
     on_epoch: Callable[[int, float, int], None] | None = None,
     on_curve: Callable[[dict], None] | None = None,
@@ -124,6 +125,8 @@ def train(
     dir_features : ndarray of shape (N, 4), stereographic light and view coordinates.
     train_dirs : ndarray of int
         Indices of the directions training may query (held-out ones excluded).
+    latent : values per latent (``btf.model.latent``), the encoder's output and the
+        decoder's input besides the 4 direction coordinates.
     target_from_source : train against the representative's values instead of the texel's.
     on_curve : called with each point of the RMSE-versus-time curve.
     """
@@ -133,8 +136,8 @@ def train(
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     m, n, _ = abrdf.shape
-    encoder = Encoder(n, encoder_channels).to(device)
-    decoder = Decoder().to(device)
+    encoder = Encoder(n, encoder_channels, latent=latent).to(device)
+    decoder = Decoder(latent=latent).to(device)
     params = list(encoder.parameters()) + list(decoder.parameters())
     # fused: one kernel for all parameters instead of a loop of small ops over each
     # (docs/performance.md). Adam's step differs in the last bit; SGD's is identical.
@@ -267,7 +270,8 @@ def _elapsed(clock: float, device: torch.device) -> float:
 def encode(
     encoder: Encoder, sources: np.ndarray, norm: Normalization, chunk: int = 256
 ) -> np.ndarray:
-    """Latents of every source ABRDF: (R, N, 3) -> (R, 8) float32 (batch-norm in eval mode)."""
+    """Latents of every source ABRDF: (R, N, 3) -> (R, latent) float32 (batch-norm in eval
+    mode)."""
     encoder.eval()
     out = np.empty((sources.shape[0], encoder.fc.out_features), dtype=np.float32)
     for start in range(0, sources.shape[0], chunk):

@@ -45,6 +45,8 @@ NOT_RECIPE: dict[str, str] = {
     "train.curve_every": "how often the RMSE-versus-time curve is sampled (a log, not a result)",
     "train.curve_texels": "how many texels that curve samples (a log, not a result)",
     "btf.render.*": "how a model is rendered: the render recipe (render_recipe_id)",
+    "rd.*": ("a rate-distortion sweep's grid and index (conf/experiment/rate_distortion.yaml): "
+             "read only through the settings it selects, which are logged and in the recipe"),
 }
 RENDER = "btf.render.*"
 RECIPE_TAG = "tags.recipe"

@@ -1,4 +1,5 @@
-"""The 81 standard directions of UBO2003 and UTIA BTFs, and the file names that encode them.
+"""The 81 standard directions of UBO2003 and UTIA BTFs, the file names that encode them,
+and the light and view sets of any other BTF's direction pairs.
 
 Both databases sample light and view on the same hemisphere grid of 81 directions: rings
 of constant elevation θ, each sampled at equal azimuth steps φ::
@@ -16,6 +17,11 @@ lights of the second view, and so on, with views and lights each in canonical or
 
 All angle steps are whole degrees, so the angles written into file names are exact.
 
+Other BTFs (UBO2014's 151 x 151 directions, the built-in BTF on a Fibonacci set) sample
+light and view on sets of their own. :func:`direction_sets` finds the light and the view
+set of any list of (light, view) pairs, so that the chain never needs the 81-grid;
+:func:`fibonacci_hemisphere` makes such a set.
+
 File and folder names::
 
     UBO2003:  tv030_pv030/00008 tl000 pl000 tv030 pv030.jpg
@@ -29,6 +35,9 @@ Examples
 '00008 tl000 pl000 tv030 pv030.jpg'
 >>> parse_ubo2003_file_name("00008 tl000 pl000 tv030 pv030.jpg")
 ImageName(number=8, theta_light=0, phi_light=0, theta_view=30, phi_view=30, ext='jpg')
+>>> sets = direction_sets(btf_directions([(0, 0), (30, 90)]))
+>>> len(sets.lights), len(sets.views), sets.is_product()
+(81, 2, True)
 """
 
 from __future__ import annotations
@@ -183,6 +192,141 @@ def btf_directions(views=None) -> np.ndarray:
     lights = np.tile(grid, (n_views, 1))
     view_radians = np.repeat(np.deg2rad(view_degrees), N_DIRECTIONS, axis=0)
     return np.concatenate([lights, view_radians], axis=1)
+
+
+# --- any direction set ----------------------------------------------------------------
+
+# Two angles within this many radians are one direction in :func:`direction_sets`: far
+# below any sampling step, far above the float32 rounding of angles read from a file.
+SAME_DIRECTION_RADIANS = 1e-7
+
+
+class DirectionSets(NamedTuple):
+    """The light and view sets of a BTF's direction pairs (:func:`direction_sets`).
+
+    Attributes
+    ----------
+    lights : ndarray of shape (L, 2), float64
+        (θ, φ) radians of each distinct light direction, ordered by θ, then φ in [0, 2π)
+        (for UBO2003 and UTIA data: the canonical order of the 81-grid).
+    views : ndarray of shape (V, 2), float64
+        The same for the view directions.
+    light_of, view_of : ndarray of shape (N,), int64
+        Index into ``lights`` (``views``) of each pair's light (view).
+    """
+
+    lights: np.ndarray
+    views: np.ndarray
+    light_of: np.ndarray
+    view_of: np.ndarray
+
+    def is_product(self) -> bool:
+        """Whether every light appears under every view exactly once (N = L · V)."""
+        pairs = self.light_of * len(self.views) + self.view_of
+        return len(pairs) == len(self.lights) * len(self.views) == len(np.unique(pairs))
+
+
+def _distinct_directions(angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct directions of ``angles`` (n, 2) radians, sorted by (θ, φ mod 2π), and
+    the index of each row among them. φ is ignored at the normal (θ = 0), where every φ is
+    one direction."""
+    step = SAME_DIRECTION_RADIANS
+    theta = np.round(angles[:, 0] / step).astype(np.int64)
+    phi = np.round(np.mod(angles[:, 1], 2 * np.pi) / step).astype(np.int64)
+    phi[(phi == round(2 * np.pi / step)) | (theta == 0)] = 0
+    keys = np.column_stack([theta, phi])
+    _, first, index = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    # The data's own values (the first occurrence), not the rounded keys.
+    return angles[first], index.reshape(-1)
+
+
+def direction_sets(directions: np.ndarray) -> DirectionSets:
+    """Split (light, view) pairs into the set of light and the set of view directions.
+
+    Parameters
+    ----------
+    directions : array_like of shape (N, 4)
+        (θ_light, φ_light, θ_view, φ_view) in radians, any order; directions within
+        :data:`SAME_DIRECTION_RADIANS` of each other (in θ and in φ) are one.
+
+    Returns
+    -------
+    DirectionSets
+        Whether the pairs are a full product L × V is :meth:`DirectionSets.is_product`.
+
+    Raises
+    ------
+    DataError
+        If ``directions`` is not of shape (N, 4), N >= 1, or holds NaN or Inf.
+    """
+    directions = np.asarray(directions, dtype=np.float64)
+    if directions.ndim != 2 or directions.shape[1] != 4 or len(directions) == 0:
+        raise DataError(f"directions must have shape (N, 4), N >= 1, not {directions.shape}")
+    if not np.isfinite(directions).all():
+        raise DataError("directions hold NaN or Inf values")
+    lights, light_of = _distinct_directions(directions[:, :2])
+    views, view_of = _distinct_directions(directions[:, 2:])
+    return DirectionSets(lights, views, light_of, view_of)
+
+
+def fibonacci_hemisphere(count: int, max_theta_degrees: float = 80.0) -> np.ndarray:
+    """``count`` directions spread evenly (in solid angle) over a cap of the hemisphere.
+
+    A Fibonacci spiral: point ``i`` at cos θ = 1 - (i + ½) / count · (1 - cos θ_max) and
+    φ = i times the golden angle, so each point stands for an equal share of the cap's
+    solid angle and no two share a ring, as the UBO2003 grid's do.
+
+    Parameters
+    ----------
+    count : int, >= 3
+    max_theta_degrees : float in (0, 90]
+        The cap's polar radius; the outermost point lies a little inside it.
+
+    Returns
+    -------
+    ndarray of shape (count, 2), float64
+        (θ, φ) radians, θ increasing; φ in [0, 2π).
+
+    Raises
+    ------
+    ConfigError
+        For fewer than 3 directions (no triangle to interpolate in) or a cap outside
+        (0, 90] degrees.
+
+    Examples
+    --------
+    >>> np.degrees(fibonacci_hemisphere(4, 60.0)[:, 0]).round(1)
+    array([20.4, 35.7, 46.6, 55.8])
+    """
+    if isinstance(count, bool) or not isinstance(count, int | np.integer) or count < 3:
+        raise ConfigError(f"a Fibonacci direction set needs an integer count >= 3, not {count!r}")
+    if not 0.0 < float(max_theta_degrees) <= 90.0:
+        raise ConfigError(f"max_theta_degrees={max_theta_degrees!r} must lie in (0, 90]")
+    cos_max = np.cos(np.radians(float(max_theta_degrees)))
+    index = np.arange(count, dtype=np.float64)
+    theta = np.arccos(1.0 - (index + 0.5) / count * (1.0 - cos_max))
+    golden_angle = np.pi * (3.0 - np.sqrt(5.0))
+    return np.column_stack([theta, np.mod(index * golden_angle, 2 * np.pi)])
+
+
+def product_directions(lights: np.ndarray, views: np.ndarray) -> np.ndarray:
+    """Every light under every view, view-major as the readers order a BTF's images.
+
+    Parameters
+    ----------
+    lights : ndarray of shape (L, 2); views : ndarray of shape (V, 2)
+        (θ, φ) radians.
+
+    Returns
+    -------
+    ndarray of shape (V · L, 4), float64
+        Row ``v * L + l`` is (light ``l``, view ``v``).
+    """
+    lights = np.asarray(lights, dtype=np.float64).reshape(-1, 2)
+    views = np.asarray(views, dtype=np.float64).reshape(-1, 2)
+    return np.concatenate(
+        [np.tile(lights, (len(views), 1)), np.repeat(views, len(lights), axis=0)], axis=1
+    )
 
 
 # --- names ----------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Method A's render stages: Fig. 8 and Tables 3-4 of the clustering paper.
 
-    crop   -> render_reference   the measured BTF, interpolated between its 81 x 81 directions
+    crop   -> render_reference   the measured BTF, interpolated between its directions (L x V)
     crop   -> render_truth       the built-in material's analytic generator (when the data is
                                  the built-in synthetic BTF): the truth, at every direction
     export -> render             the run's compressed BTF (Neural BTF or clustered), scored
@@ -34,10 +34,12 @@ sample of every pixel on cloth that a light sees: no background, floor, shadow o
 silhouette), the darkest and the brightest by mean luminance. The same crops score every
 comparison of a run.
 
-Directions beyond the grid (theta past the 75-degree ring). Without a truth (measured
-data), every model is queried through :class:`pipeline.btf.render.surfaces.GridClamped`:
-grazing light and view are clamped onto the ring for every material alike, as the
-measured reference and the PCA baseline do by construction, so that a render differs from
+Directions beyond the grid (beyond the polygon of the outermost measured directions, for
+UBO2003 the 75-degree ring; the light and the view set each have their own). Without a
+truth (measured data), every model is queried through
+:class:`pipeline.btf.render.surfaces.GridClamped`: grazing light and view are clamped onto
+that edge for every material alike, as the measured reference and the PCA baseline do by
+construction, so that a render differs from
 the reference by its reconstruction of the measured domain only; a neural decoder's
 extrapolation, which no measurement can check, is not scored. Samples beyond the grid
 stay in the crops and the cloth RMSE (leaving them out would move the dark crop, which
@@ -64,7 +66,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.cache import Entry, save_arrays, save_json
-from pipeline.core.errors import ConfigError
+from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.stage import Context, plain_settings
 
 log = logging.getLogger(__name__)
@@ -297,17 +299,16 @@ def reference_stage(ctx: Context, cropped: Entry) -> Entry:
         values = cropped.array("abrdf")
         directions = cropped.array("directions", mmap=False)
         side = math.isqrt(values.shape[0])
-        if len(directions) != 81 * 81:
-            raise ConfigError(
-                f"the render's reference interpolates all 81 x 81 measured directions, but the "
-                f"crop has {len(directions)}: render a dataset with every view (dataset.views=null)"
-            )
         crop_size = (side, values.shape[0] // side)
+        try:
+            reference = MeasuredMaterial(values, crop_size, directions)
+        except DataError as error:
+            raise DataError(f"the render's reference interpolates the crop's {len(directions)} "
+                            f"measured direction pairs, but: {error}") from None
         scene = _scene(settings)
-        stats = _render_every_spp(scene, MeasuredMaterial(values, crop_size, directions),
-                                  settings, folder, "reference")
+        stats = _render_every_spp(scene, reference, settings, folder, "reference")
         top = settings["spp"][-1]
-        indicator, _ = render_with_stats(scene, BeyondGridIndicator(crop_size), top,
+        indicator, _ = render_with_stats(scene, BeyondGridIndicator(crop_size, directions), top,
                                          settings["seed"])
         save_arrays(folder, **{f"beyond_grid_spp{top}": indicator})
         return {"spp": stats}
@@ -362,14 +363,15 @@ def linear_material(fitted: Entry, cropped: Entry, prep: Entry):
     )
 
 
-def model_stage(ctx: Context, inputs: dict[str, Entry], material, reference: Entry,
-                truth: Entry | None = None) -> Entry:
+def model_stage(ctx: Context, cropped: Entry, inputs: dict[str, Entry], material,
+                reference: Entry, truth: Entry | None = None) -> Entry:
     """Render a model at every spp and score it against the reference, and the truth when
     given (:func:`scores`); the crops are chosen on the truth, else on the reference.
 
     ``inputs`` are the entries the model comes from (they key the stage) and ``material()``
     builds it from them, called only when the render is not in the cache. Without a truth,
-    the model is queried through :class:`~pipeline.btf.render.surfaces.GridClamped`.
+    the model is queried through :class:`~pipeline.btf.render.surfaces.GridClamped`, at the
+    edge of the crop's (``cropped``) measured directions.
     """
     settings = render_settings(ctx.cfg)
     beyond = "as is" if truth is not None else "clamped to the grid"
@@ -377,7 +379,8 @@ def model_stage(ctx: Context, inputs: dict[str, Entry], material, reference: Ent
     def compute(folder: Path) -> dict:
         from pipeline.btf.render.surfaces import GridClamped
 
-        material_ = material() if truth is not None else GridClamped(material())
+        material_ = (material() if truth is not None
+                     else GridClamped(material(), cropped.array("directions", mmap=False)))
         stats = _render_every_spp(_scene(settings), material_, settings, folder, "model")
         top = settings["spp"][-1]
         target = truth if truth is not None else reference
@@ -444,7 +447,7 @@ def run(ctx: Context) -> dict[str, float]:
             return compressed_material(exported)
     reference = reference_stage(ctx, cropped)
     truth = truth_stage(ctx, cropped) if has_truth(ctx.cfg) else None
-    rendered = model_stage(ctx, inputs, material, reference, truth)
+    rendered = model_stage(ctx, cropped, inputs, material, reference, truth)
     metrics = rendered.json("metrics")
     if mlflow.active_run() is not None:
         top = render_settings(ctx.cfg)["spp"][-1]

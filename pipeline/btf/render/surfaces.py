@@ -4,7 +4,7 @@ PCA baseline, a compressed BTF file and the built-in material's generator.
 Each is a :class:`pipeline.render.materials.Material`: batched queries
 ``evaluate(texels, directions)`` (the conventions are in that module).
 
-- :class:`MeasuredMaterial`: the measured 81 x 81 directions, interpolated (the reference).
+- :class:`MeasuredMaterial`: the measured directions, interpolated (the reference).
 - :class:`LinearMaterial`: the PCA baseline's reconstruction, interpolated the same way.
 - :class:`CompressedMaterial`: a compressed BTF file (``pipeline.btf.compressed``).
 - :class:`AnalyticMaterial`: the built-in material's generator (``pipeline.btf.synthetic``),
@@ -13,28 +13,35 @@ Each is a :class:`pipeline.render.materials.Material`: batched queries
 - :class:`BeyondGridIndicator`: 1 where a query lies beyond the grid, to measure how much of a
   render the grid does not cover.
 
+The "grid" is whatever light and view directions the data holds: the UBO2003 81 x 81, a
+UBO2014 file's 151 x 151, or any other product of a light and a view set; each class takes
+the data's direction pairs (N, 4), and None means the UBO2003 grid.
+
 Directions beyond the grid
 --------------------------
-The measured directions end at the theta = 75 degree ring. A query beyond the polygon of
-that ring's 24 directions (:func:`beyond_grid`) has no measured neighbours: the measured
-BTF and the PCA baseline, which store values at the grid only, answer it with their value
-clamped onto the ring (:func:`clamp_to_grid`: theta lowered, phi kept), while a neural
+The measured directions end at the outermost ones of each set (for UBO2003, the theta = 75
+degree ring). A query beyond the polygon they span in stereographic coordinates
+(:class:`pipeline.btf.interpolation.DirectionHull`; for UBO2003 the polygon of the ring's 24
+directions; :func:`beyond_grid`) has no measured neighbours: the measured BTF and the PCA
+baseline, which store values at the measured directions only, answer it with their value
+clamped onto that polygon (:func:`clamp_to_grid`: theta lowered, phi kept), while a neural
 decoder would extrapolate. Where a render has no truth (measured data), every material is
 queried through the same clamp (:class:`GridClamped`), so that renders differ by their
 reconstruction of the measured domain only, never by an extrapolation that nothing can
 check; the share of samples beyond the grid is reported with each render. Where the
 generator is at hand (the built-in material), the truth is evaluated unclamped and each
-model as it is.
+model as it is. Light and view are clamped each onto its own set's polygon.
 """
 
 from __future__ import annotations
 
 import os
+from functools import lru_cache
 
 import numpy as np
 
-from pipeline.btf.interpolation import ProductInterpolator
-from pipeline.data.directions import RINGS_DEGREES, btf_directions
+from pipeline.btf.interpolation import DirectionHull, ProductInterpolator
+from pipeline.data.directions import btf_directions, direction_sets, grid_81
 from pipeline.render.materials import Material, check_crop_size
 
 # Queries answered at once by MeasuredMaterial and AnalyticMaterial (bounds their temporaries).
@@ -140,64 +147,100 @@ class AnalyticMaterial(Material):
         return out
 
 
+def direction_hulls(directions: np.ndarray | None = None) -> tuple[DirectionHull, DirectionHull]:
+    """The polygons covered by the light and by the view directions of measured pairs.
+
+    Parameters
+    ----------
+    directions : ndarray of shape (N, 4), radians, or None
+        The data's direction pairs; None: the UBO2003 grid (both polygons the 75-degree
+        ring's).
+
+    Returns
+    -------
+    (light hull, view hull) : two :class:`~pipeline.btf.interpolation.DirectionHull`
+    """
+    if directions is None:
+        return _ubo2003_hulls()
+    sets = direction_sets(directions)
+    return DirectionHull(sets.lights), DirectionHull(sets.views)
+
+
+@lru_cache(maxsize=1)
+def _ubo2003_hulls() -> tuple[DirectionHull, DirectionHull]:
+    hull = DirectionHull(grid_81())
+    return hull, hull
+
+
 class GridClamped(Material):
     """``material`` queried at directions clamped onto the measured grid
-    (:func:`clamp_to_grid`, light and view alike): the rule for directions beyond the grid
-    where a render has no truth (module docstring). The measured and PCA materials clamp
-    already, so for them this changes nothing.
+    (:func:`clamp_to_grid`; the light onto the light set's polygon, the view onto the view
+    set's): the rule for directions beyond the grid where a render has no truth (module
+    docstring). The measured and PCA materials clamp already, so for them this changes
+    nothing.
 
     Parameters
     ----------
     material : :class:`Material`
+    directions : ndarray of shape (N, 4), radians, or None
+        The measured direction pairs; None: the UBO2003 grid.
     """
 
-    def __init__(self, material: Material):
+    def __init__(self, material: Material, directions: np.ndarray | None = None):
         if not callable(getattr(material, "evaluate", None)):
             raise ValueError(f"{material!r} has no evaluate(texels, directions) method")
         self.crop_size = check_crop_size(material.crop_size)
         self.material = material
+        self._light_hull, self._view_hull = direction_hulls(directions)
 
     def _evaluate(self, texels, directions):
         clamped = np.column_stack(
-            [clamp_to_grid(directions[:, :2]), clamp_to_grid(directions[:, 2:])]
+            [self._light_hull.clamp(directions[:, :2]), self._view_hull.clamp(directions[:, 2:])]
         )
         return np.asarray(self.material.evaluate(texels, clamped), dtype=np.float32)
 
 
 class BeyondGridIndicator(Material):
     """Marks the queries beyond the measured grid: RGB = (light or view beyond, light
-    beyond, 1) (:func:`beyond_grid`), whatever the texel.
+    beyond, 1) (:func:`beyond_grid`, each against its own set), whatever the texel.
 
     Rendered with the same samples as the models, channel 0 over channel 2 is, per pixel,
     the share of its (camera sample, light) pairs whose light or view lies beyond the grid,
     each pair weighted by the light's irradiance there (the renderer multiplies every
     material value by it; with one light the weights vary little across a pixel or crop);
     channel 1 over channel 2 the same for the light alone.
+
+    Parameters
+    ----------
+    crop_size : (rows, cols)
+    directions : ndarray of shape (N, 4), radians, or None
+        The measured direction pairs; None: the UBO2003 grid.
     """
 
-    def __init__(self, crop_size):
+    def __init__(self, crop_size, directions: np.ndarray | None = None):
         self.crop_size = check_crop_size(crop_size)
+        self._light_hull, self._view_hull = direction_hulls(directions)
 
     def _evaluate(self, texels, directions):
-        light = beyond_grid(directions[:, :2])
-        either = light | beyond_grid(directions[:, 2:])
+        light = self._light_hull.beyond(directions[:, :2])
+        either = light | self._view_hull.beyond(directions[:, 2:])
         return np.column_stack([either, light, np.ones(len(texels))]).astype(np.float32)
 
 
 class MeasuredMaterial(Material):
-    """The measured BTF, interpolated piecewise-linearly between its 81 x 81 directions.
+    """The measured BTF, interpolated piecewise-linearly between its measured directions.
 
     The interpolant is the "linear" one of :class:`pipeline.btf.interpolation.
     ProductInterpolator` (whose table of columns and :class:`~pipeline.btf.interpolation.
     Barycentric` weights it uses): barycentric weights in a Delaunay triangulation of the
-    81 light directions (stereographic coordinates) times those of the 81 view directions,
-    9 measured values per query. At a grid direction pair it returns the measured value
-    exactly (weights within ``1e-7`` of a corner are snapped onto it).
+    data's L light directions (stereographic coordinates) times those of its V view
+    directions, 9 measured values per query. At a measured direction pair it returns the
+    measured value exactly (weights within ``1e-7`` of a corner are snapped onto it).
 
-    Directions beyond the grid's outermost ring (theta = 75 degrees) are clamped onto it:
-    theta is lowered, phi kept, to the edge of the triangulation (the polygon of the 24
-    directions of the 75-degree ring, which lies at most 75 degrees from the normal). Grazing
-    light and view are therefore rendered as if they came from the 75-degree ring.
+    Directions beyond the outermost measured ones are clamped onto the edge of the
+    triangulation (:class:`~pipeline.btf.interpolation.DirectionHull`): theta is lowered,
+    phi kept. For the UBO2003 grid that edge is the polygon of the 24 directions of the
+    75-degree ring, so grazing light and view are rendered as if they came from that ring.
 
     Parameters
     ----------
@@ -207,8 +250,15 @@ class MeasuredMaterial(Material):
     crop_size : (rows, cols)
     directions : ndarray of shape (N, 4), radians, or None
         The direction pair of each column of ``values``; None means
-        :func:`pipeline.data.directions.btf_directions` (N = 6561). They must be the
-        full 81 x 81 product grid.
+        :func:`pipeline.data.directions.btf_directions` (N = 6561). Any light and view
+        sets, but every light under every view (N = L · V), and each set must surround the
+        normal (:class:`~pipeline.btf.interpolation.DirectionHull`).
+
+    Raises
+    ------
+    ValueError
+        For arrays of the wrong shapes; :class:`~pipeline.core.errors.DataError` (a
+        ValueError) for directions that are not a full product or surround no normal.
     """
 
     def __init__(self, values: np.ndarray, crop_size, directions: np.ndarray | None = None):
@@ -231,13 +281,11 @@ class MeasuredMaterial(Material):
         self._set_grid(directions)
 
     def _set_grid(self, directions: np.ndarray) -> None:
-        """The interpolation over ``directions`` (N, 4), the full 81 x 81 product grid."""
-        try:
-            self._interpolator = ProductInterpolator(directions, np.arange(len(directions)))
-        except KeyError as error:
-            raise ValueError(f"directions hold a pair off the 81-direction grid: {error}") from None
-        if len(self._interpolator.lights) != 81 or len(self._interpolator.views) != 81:
-            raise ValueError("directions must hold all 81 x 81 light and view grid directions")
+        """The interpolation over ``directions`` (N, 4), a full product of light and view
+        sets, and the polygons each set covers."""
+        self._interpolator = ProductInterpolator(directions, np.arange(len(directions)))
+        self._light_hull = DirectionHull(self._interpolator.light_dirs)
+        self._view_hull = DirectionHull(self._interpolator.view_dirs)
 
     def _gather(self, texels: np.ndarray, columns: np.ndarray) -> np.ndarray:
         """Stored RGB of texel ``texels[i]`` at direction pair ``columns[i]``: (n, 3)."""
@@ -255,10 +303,10 @@ class MeasuredMaterial(Material):
         # The exhaustive search is much faster than scipy's walk for queries scattered
         # over the hemisphere, as a render's are.
         light_ids, light_w = interp.light_weights(
-            clamp_to_grid(directions[:, :2]), bruteforce=True, snap=_SNAP
+            self._light_hull.clamp(directions[:, :2]), bruteforce=True, snap=_SNAP
         )
         view_ids, view_w = interp.view_weights(
-            clamp_to_grid(directions[:, 2:]), bruteforce=True, snap=_SNAP
+            self._view_hull.clamp(directions[:, 2:]), bruteforce=True, snap=_SNAP
         )
         # Each query gathers its own texel's 9 values (ProductInterpolator.predict would
         # interpolate every texel at every query).
@@ -331,30 +379,14 @@ class LinearMaterial(MeasuredMaterial):
         )
 
 
-_OUTER_THETA, _OUTER_COUNT = np.radians(RINGS_DEGREES[-1][0]), RINGS_DEGREES[-1][1]
-# A direction this far (radians) outside the grid's polygon counts as beyond it: grid
-# directions on the 75-degree ring itself are inside, whatever their rounding.
-_BEYOND_TOLERANCE = 1e-9
-
-
-def _edge_theta(phi: np.ndarray, shrink: float = 1.0) -> np.ndarray:
-    """Theta of the grid's outer polygon at azimuth ``phi`` (its radius times ``shrink``).
-
-    The 24 directions of the 75-degree ring span, in stereographic coordinates (radius
-    tan(theta / 2)), a regular polygon; outside it the triangulation has no triangle.
-    """
-    step = 2.0 * np.pi / _OUTER_COUNT
-    offset = np.mod(phi, step) - step / 2.0  # azimuth from the middle of the polygon's edge
-    edge_radius = np.tan(_OUTER_THETA / 2.0) * np.cos(step / 2.0) / np.cos(offset)
-    return 2.0 * np.arctan(edge_radius * shrink)
-
-
-def beyond_grid(angles: np.ndarray) -> np.ndarray:
-    """Whether each direction lies beyond the measured grid's outer polygon.
+def beyond_grid(angles: np.ndarray, hull: DirectionHull | None = None) -> np.ndarray:
+    """Whether each direction lies beyond a measured set's polygon.
 
     Parameters
     ----------
     angles : ndarray of shape (n, 2), (theta, phi) in radians.
+    hull : :class:`~pipeline.btf.interpolation.DirectionHull` or None
+        The set's polygon (:func:`direction_hulls`); None: the UBO2003 grid's.
 
     Returns
     -------
@@ -366,21 +398,20 @@ def beyond_grid(angles: np.ndarray) -> np.ndarray:
     >>> beyond_grid(np.radians([[75.0, 0.0], [75.0, 7.5], [74.0, 7.5], [80.0, 30.0]]))
     array([False,  True, False,  True])
     """
-    angles = np.asarray(angles, dtype=np.float64)
-    return angles[:, 0] > _edge_theta(angles[:, 1]) + _BEYOND_TOLERANCE
+    return (_ubo2003_hulls()[0] if hull is None else hull).beyond(angles)
 
 
-def clamp_to_grid(angles: np.ndarray) -> np.ndarray:
-    """Lower theta onto the grid's outer polygon where a direction lies beyond it.
+def clamp_to_grid(angles: np.ndarray, hull: DirectionHull | None = None) -> np.ndarray:
+    """Lower theta onto a measured set's polygon where a direction lies beyond it.
 
     Parameters
     ----------
     angles : ndarray of shape (n, 2), (theta, phi) in radians.
+    hull : :class:`~pipeline.btf.interpolation.DirectionHull` or None
+        The set's polygon (:func:`direction_hulls`); None: the UBO2003 grid's.
 
     Returns
     -------
     ndarray of shape (n, 2): theta clamped to the polygon (slightly inside it), phi kept.
     """
-    theta, phi = angles[:, 0], angles[:, 1]
-    theta_max = _edge_theta(phi, shrink=1.0 - 1e-9)
-    return np.column_stack([np.where(theta > theta_max, theta_max, theta), phi])
+    return (_ubo2003_hulls()[0] if hull is None else hull).clamp(angles)

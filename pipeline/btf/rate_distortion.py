@@ -1,0 +1,299 @@
+"""Rate-distortion of method A: which model, at which setting, has the lowest error at a
+byte budget (``experiment=rate_distortion``)?
+
+A **point** is one recipe (:mod:`pipeline.core.recipe`) on one dataset: its seeds pooled
+(mean ± sample std of ``rmse``, n seeds) at its ``bytes_total`` (Table 1's bytes, equal for
+every seed). Runs of different recipes are never one point. An **arm** is a method and the
+types it stores (``PCA (float16)``, ``clustered (float32, list uint16, +scale float16)``,
+``Neural BTF (float32)``); a **line** joins the points of an arm that differ only in the
+arm's size setting (PCA's components, clustered's k, Neural BTF's latent size), other recipe
+differences naming the line apart (:func:`pipeline.core.recipe.recipe_suffixes`).
+
+What the report gives, per dataset: RMSE against bytes (log x) with the Pareto front, the
+best point at each budget against the best point of another method (is the win beyond the
+seeds' noise?), and the bytes each line needs to reach a few RMSE levels.
+
+Pure functions of labelled runs (:func:`pipeline.btf.tables.label_runs`), tested on
+hand-made runs; :func:`section` writes the files.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+
+from pipeline.core.recipe import RECIPE_TAG, recipe_suffixes
+from pipeline.core.report import param, safe_stem, save_figure, write_file, write_table
+
+BUDGETS_KB = (64, 128, 256, 512)  # KB = 1024 bytes, as Table 1's "ratio (paper)"
+N_LEVELS = 4  # RMSE levels of the bytes-to-reach table, per dataset
+# The size setting of each method: what a line varies (left out of its recipe comparison).
+AXES = {"pca": ["method.n_components", "method.match_clustered_k"],
+        "clustered": ["method.k"], "neural_btf": ["btf.model.latent"]}
+METHOD_NAMES = {"pca": "PCA", "clustered": "clustered", "neural_btf": "Neural BTF"}
+
+
+def _num(series: pd.Series) -> pd.Series:
+    return pd.to_numeric(series, errors="coerce")
+
+
+def arms(runs: pd.DataFrame) -> pd.DataFrame:
+    """Labelled runs with ``arm`` (method and storage types), ``setting`` (``c = 4``,
+    ``k = 500``, ``latent 8``), ``size`` (that number) and ``line`` (the arm plus the recipe
+    settings, other than the size setting, in which its runs differ)."""
+    runs = runs.copy()
+    method = runs["params.method.name"]
+    weights = param(runs, "btf.sizes.weight_dtype", "float32")
+    pca_type = param(runs, "method.dtype", "float32")
+    listing = param(runs, "btf.sizes.list_dtype", "int32")
+    scale = param(runs, "method.texel_scale", "none")
+    extra = param(runs, "btf.sizes.extra_dtype", "float32")
+    storage = np.where(method == "pca", pca_type, weights)
+    storage = np.where(method == "clustered", storage + ", list " + listing, storage)
+    storage = np.where((method == "clustered") & (scale != "none"),
+                       storage + ", +scale " + extra, storage)
+    runs["arm"] = method.map(METHOD_NAMES).fillna(method) + " (" + storage + ")"
+    components = _num(runs.get("metrics.n_components", pd.Series(np.nan, index=runs.index)))
+    latent = _num(param(runs, "btf.model.latent", "8"))
+    size = np.where(method == "pca", components, np.where(method == "clustered", runs["k"],
+                                                          latent))
+    runs["size"] = size
+    prefix = np.where(method == "pca", "c = ", np.where(method == "clustered", "k = ",
+                                                        "latent "))
+    runs["setting"] = prefix + pd.Series(size, index=runs.index).map(
+        lambda v: "?" if pd.isna(v) else str(int(v)))
+    runs["line"] = runs["arm"]
+    for name, ignore in AXES.items():
+        rows = method == name
+        if rows.any():
+            runs.loc[rows, "line"] = runs.loc[rows, "arm"] + recipe_suffixes(
+                runs[rows], ["dataset", "arm"], ignore=ignore)
+    return runs
+
+
+def points(runs: pd.DataFrame) -> pd.DataFrame:
+    """One row per (dataset, recipe) of labelled runs that logged ``rmse`` and
+    ``bytes_total``: dataset, method, arm, line, setting, size, bytes, rmse_mean, rmse_std
+    (sample std; NaN for one seed), n (seeds), seeds, rmse_mean_abrdf, heldout (lights
+    held out of training: that RMSE is over the training directions only)."""
+    needed = ["metrics.rmse", "metrics.bytes_total", "params.method.name", RECIPE_TAG]
+    if runs.empty or any(column not in runs for column in needed):
+        return pd.DataFrame()
+    runs = runs.dropna(subset=["metrics.rmse", "metrics.bytes_total"])
+    if runs.empty:
+        return pd.DataFrame()
+    runs = arms(runs)
+    baseline = runs.get("metrics.rmse_mean_abrdf", pd.Series(np.nan, index=runs.index))
+    runs = runs.assign(_baseline=_num(baseline),
+                       _heldout=_num(param(runs, "btf.interpolation.holdout_lights", "0")))
+    rows = []
+    for (dataset, _), group in runs.groupby(["dataset", RECIPE_TAG], sort=False):
+        first = group.iloc[0]
+        rmse = _num(group["metrics.rmse"])
+        rows.append({
+            "dataset": dataset, "method": first["params.method.name"], "arm": first["arm"],
+            "line": first["line"], "setting": first["setting"], "size": first["size"],
+            "bytes": int(round(_num(group["metrics.bytes_total"]).mean())),
+            "rmse_mean": float(rmse.mean()),
+            "rmse_std": float(rmse.std(ddof=1)) if len(rmse) > 1 else np.nan,
+            "n": len(rmse), "seeds": ",".join(str(int(s)) for s in sorted(group["seed"])),
+            "rmse_mean_abrdf": float(group["_baseline"].mean()),
+            "heldout": bool((group["_heldout"].fillna(0) > 0).any()),
+        })
+    table = pd.DataFrame(rows)
+    table["label"] = table["line"] + " " + table["setting"]
+    return table.sort_values(["dataset", "line", "bytes"]).reset_index(drop=True)
+
+
+def pareto_front(points_of_dataset: pd.DataFrame) -> pd.Series:
+    """True for the points no other point beats in both bytes and mean RMSE (fewer or
+    equal bytes and a lower RMSE, or fewer bytes and an equal one)."""
+    ordered = points_of_dataset.sort_values(["bytes", "rmse_mean"])
+    best = np.inf
+    front = pd.Series(False, index=points_of_dataset.index)
+    for index, rmse in ordered["rmse_mean"].items():
+        if rmse < best:
+            front[index] = True
+            best = rmse
+    return front
+
+
+def welch_interval(a: pd.Series, b: pd.Series, alpha: float = 0.05
+                   ) -> tuple[float, float, float] | None:
+    """Difference of means ``b - a`` of two points with its (1 - alpha) Welch interval, from
+    rows with rmse_mean, rmse_std and n; None when a point has a single seed (no spread)."""
+    from scipy import stats
+
+    if a["n"] < 2 or b["n"] < 2:
+        return None
+    difference = b["rmse_mean"] - a["rmse_mean"]
+    va, vb = a["rmse_std"] ** 2 / a["n"], b["rmse_std"] ** 2 / b["n"]
+    se = np.sqrt(va + vb)
+    if se == 0:  # no spread on either side: the difference is exact
+        return difference, difference, difference
+    df = (va + vb) ** 2 / (va**2 / (a["n"] - 1) + vb**2 / (b["n"] - 1))
+    half = stats.t.ppf(1 - alpha / 2, df) * se
+    return difference, difference - half, difference + half
+
+
+def best_at_budgets(table: pd.DataFrame, budgets_kb=BUDGETS_KB, alpha: float = 0.05
+                    ) -> pd.DataFrame:
+    """Per dataset and budget: the point with the lowest mean RMSE among those with at most
+    the budget's bytes, and the best point of every other method within the budget, with
+    the difference of means, its Welch interval and whether the win is beyond seed noise
+    (the interval excludes 0)."""
+    rows = []
+    level = f"{100 * (1 - alpha):g} %"
+    for dataset, group in table.groupby("dataset", sort=False):
+        for kb in budgets_kb:
+            budget = int(kb) * 1024
+            row = {"dataset": dataset, "budget [KB]": int(kb), "budget [B]": budget}
+            fits = group[group["bytes"] <= budget]
+            if fits.empty:
+                smallest = group.loc[group["bytes"].idxmin()]
+                row["best"] = (f"nothing fits (smallest: {smallest['label']}, "
+                               f"{smallest['bytes']} B)")
+                rows.append(row)
+                continue
+            best = fits.loc[fits["rmse_mean"].idxmin()]
+            row.update({"best": best["label"], "method": best["method"],
+                        "bytes": int(best["bytes"]), "RMSE mean": best["rmse_mean"],
+                        "RMSE std": best["rmse_std"], "seeds": int(best["n"])})
+            others = fits[fits["method"] != best["method"]]
+            if others.empty:
+                row["verdict"] = "no other method fits this budget"
+                rows.append(row)
+                continue
+            other = others.loc[others["rmse_mean"].idxmin()]
+            row.update({"best other method": other["label"], "its bytes": int(other["bytes"]),
+                        "its RMSE mean": other["rmse_mean"], "its RMSE std": other["rmse_std"],
+                        "its seeds": int(other["n"]),
+                        "difference": other["rmse_mean"] - best["rmse_mean"]})
+            found = welch_interval(best, other, alpha)
+            if found is None:
+                row["verdict"] = "untested: a point has 1 seed (run seed=0,1,2)"
+            else:
+                _, low, high = found
+                row[f"{level} interval"] = f"[{low:.4g}, {high:.4g}]"
+                row["verdict"] = ("wins beyond seed noise" if low > 0
+                                  else "within seed noise")
+            rows.append(row)
+    table = pd.DataFrame(rows)
+    floats = table.select_dtypes("float").columns
+    table[floats] = table[floats].round(6)
+    return table
+
+
+def rmse_levels(group: pd.DataFrame, count: int = N_LEVELS) -> list[float]:
+    """``count`` RMSE levels between a dataset's worst and best mean RMSE (geometric,
+    endpoints left out), at two significant digits."""
+    low, high = group["rmse_mean"].min(), group["rmse_mean"].max()
+    if not (np.isfinite(low) and np.isfinite(high)) or low <= 0 or high <= low:
+        return []
+    inner = np.geomspace(high, low, count + 2)[1:-1]
+    return sorted({float(f"{v:.2g}") for v in inner}, reverse=True)
+
+
+def bytes_to_reach(table: pd.DataFrame, count: int = N_LEVELS) -> pd.DataFrame:
+    """Per dataset and line: the fewest bytes of a point whose mean RMSE is at or below
+    each level (:func:`rmse_levels`); "–" where no point of the line reaches it."""
+    rows = []
+    for dataset, group in table.groupby("dataset", sort=False):
+        levels = rmse_levels(group, count)
+        for line, of_line in group.groupby("line", sort=False):
+            row = {"dataset": dataset, "line": line}
+            for level in levels:
+                reached = of_line[of_line["rmse_mean"] <= level]
+                row[f"RMSE ≤ {level:g}"] = ("–" if reached.empty else
+                                            f"{int(reached['bytes'].min())} "
+                                            f"({reached.loc[reached['bytes'].idxmin(), 'setting']})")
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def plot(group: pd.DataFrame, dataset: str, path: Path, budgets_kb=BUDGETS_KB) -> Path:
+    """RMSE (mean ± std over seeds) against bytes (log) of one dataset's points, one line
+    per line, the Pareto front circled and joined, the budgets as dotted verticals."""
+    fig = Figure(figsize=(7.5, 4.8))
+    ax = fig.subplots()
+    for line, of_line in group.sort_values("bytes").groupby("line", sort=False):
+        ax.errorbar(of_line["bytes"], of_line["rmse_mean"], yerr=of_line["rmse_std"].fillna(0),
+                    marker="o", markersize=4, capsize=3, label=line)
+    front = group[pareto_front(group)].sort_values("bytes")
+    ax.plot(front["bytes"], front["rmse_mean"], linestyle="--", color="black", linewidth=0.8,
+            marker="o", markersize=11, markerfacecolor="none", label="Pareto front")
+    for kb in budgets_kb:
+        ax.axvline(kb * 1024, color="grey", linestyle=":", linewidth=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("stored bytes (bytes_total); dotted: budgets " +
+                  ", ".join(f"{kb} KB" for kb in budgets_kb))
+    ax.set_ylabel("RMSE (eq. 10, normalized)")
+    ax.set_title(dataset, fontsize=9)
+    ax.legend(fontsize=6, loc="best")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def missing(table: pd.DataFrame) -> list[str]:
+    """What the points lack for a curve or a verdict, per dataset."""
+    notes = []
+    for dataset, group in table.groupby("dataset", sort=False):
+        absent = [METHOD_NAMES[m] for m in METHOD_NAMES if m not in set(group["method"])]
+        if absent:
+            notes.append(f"{dataset}: no run of {', '.join(absent)}")
+        for line, of_line in group.groupby("line", sort=False):
+            if len(of_line) < 2:
+                notes.append(f"{dataset}: {line} has 1 point (no curve)")
+        single = group[group["n"] < 2]
+        if not single.empty:
+            notes.append(f"{dataset}: {len(single)} of {len(group)} points have 1 seed "
+                         "(no seed spread; add seed=0,1,2)")
+        if group["heldout"].any():
+            notes.append(f"{dataset}: some neural runs held lights out of training "
+                         "(btf.interpolation.holdout_lights): their RMSE is over the "
+                         "training directions, PCA's over all")
+    return notes
+
+
+def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05,
+            budgets_kb=BUDGETS_KB) -> str:
+    """Write ``rate_distortion_<dataset>.png``, ``rate_distortion_points.csv``,
+    ``rate_distortion_budget.{md,csv,tex}`` and ``rate_distortion_reach.{md,csv,tex}`` into
+    ``out`` from labelled runs; return the Markdown section."""
+    table = points(runs)
+    if table.empty:
+        return ("## Rate-distortion\n\nNo run with `rmse` and `bytes_total`: "
+                "`python -m pipeline -m experiment=rate_distortion seed=0,1,2`.\n")
+    write_file(out / "rate_distortion_points.csv", table.to_csv(index=False))
+    parts = ["## Rate-distortion: RMSE against stored bytes\n",
+             "One point per recipe (its seeds pooled: mean ± std, the error bars), one line "
+             "per method and storage types (PCA over its components, clustered over k, Neural "
+             "BTF over its latent size), every model scored as stored. Circled and dashed: "
+             "the Pareto front. Points: `rate_distortion_points.csv`.\n"]
+    for dataset, group in table.groupby("dataset", sort=False):
+        path = plot(group, dataset, out / f"rate_distortion_{safe_stem(dataset)}.png",
+                    budgets_kb)
+        parts.append(f"![{path.stem}]({path.name})\n")
+    budget = best_at_budgets(table, budgets_kb, alpha)
+    parts.append(write_table(
+        budget, out, "rate_distortion_budget", "Best model at a byte budget",
+        f"best: the lowest mean RMSE among the points with at most the budget's bytes (KB = "
+        f"1024 B). best other method: the best point of another method within the budget; "
+        f"difference = its mean RMSE - the best's, with a {100 * (1 - alpha):g} % Welch "
+        f"interval over the seeds of both; 'wins beyond seed noise' when that interval "
+        f"excludes 0. Seeds: n of each point."))
+    reach = bytes_to_reach(table)
+    if not reach.empty and reach.shape[1] > 2:
+        parts.append(write_table(
+            reach, out, "rate_distortion_reach", "Bytes to reach an RMSE",
+            "The fewest stored bytes (and the setting) at which a line's mean RMSE is at or "
+            "below each level; levels spread geometrically between the dataset's worst and "
+            "best points. –: no point of the line reaches it. Means only: see the error bars "
+            "for the spread."))
+    notes = missing(table)
+    parts.append("### Missing from the rate-distortion grid\n\n" + (
+        "\n".join(f"- {n}" for n in notes) if notes else "Nothing.") + "\n")
+    return "\n".join(parts)
