@@ -1,45 +1,43 @@
 """``python -m pipeline.cache``: list, verify and clean up the stage cache.
 
-    python -m pipeline.cache ls [--entries]   # entries and size per stage (--entries: each)
-    python -m pipeline.cache verify [--fix]   # every file's hash; exit status 1 if any damaged
-    python -m pipeline.cache gc [--dry-run]   # remove what no finished run uses
+    python -m pipeline.cache ls [entries=true]    # entries and size per stage (entries: each)
+    python -m pipeline.cache verify [fix=true]    # every file's hash; exit status 1 if any damaged
+    python -m pipeline.cache gc [dry_run=true]    # remove what no finished run uses
 
-``--runs`` (default ``runs``) says where the MLflow store is (``MLFLOW_TRACKING_URI`` wins,
-as for the jobs), ``--cache`` (default ``<runs>/cache``) where the cache is.
+Settings are ``key=value``, as for ``python -m pipeline``: ``paths.runs`` (default ``runs``)
+says where the MLflow store is (``MLFLOW_TRACKING_URI`` wins, as for the jobs),
+``paths.cache`` (default ``<paths.runs>/cache``) where the cache is::
+
+    python -m pipeline.cache gc dry_run=true paths.runs=/data/runs
+
+An unknown key is refused, naming the closest real one. The older spellings ``--runs``,
+``--cache``, ``--entries``, ``--fix`` and ``--dry-run`` are still accepted.
 
 ``gc`` keeps every entry whose key a FINISHED run records (its tags ``cache.<stage>``,
 :func:`pipeline.app.run_job`), the entries those were computed from (each manifest lists
 its inputs' keys), and anything used since the oldest RUNNING run started (a job records
 its keys when it ends; :class:`~pipeline.core.cache.StageCache` marks each hit on the
 manifest's mtime). Keys are matched whatever the stage. It removes nothing when the store
-cannot be read, nor when the store knows none of the entries (the wrong ``--runs``).
+cannot be read, nor when the store knows none of the entries (the wrong ``paths.runs``).
 A RUNNING run whose process is gone from this machine (killed with ``kill -9``) is not
-running: ``gc`` marks it FAILED first (``ls`` and ``--dry-run`` only leave it out).
+running: ``gc`` marks it FAILED first (``ls`` and ``dry_run`` only leave it out).
+
+The command line is read before anything heavy (MLflow, Hydra, pandas) is imported, so
+that a mistyped setting is answered at once.
 """
 
 from __future__ import annotations
 
-import argparse
+import difflib
 import sys
 import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from tqdm import tqdm
-
-from pipeline.core.cache import StageCache, folder_bytes, last_used
-from pipeline.core.digests import is_hashed, listed_files
-from pipeline.core.errors import StoreError
-from pipeline.core.files import human
-from pipeline.core.tracking import (
-    all_pages,
-    check_sqlite_store,
-    fail_dead_runs,
-    process_gone,
-    sqlite_path,
-    tracking_uri,
-)
+if TYPE_CHECKING:
+    from pipeline.core.cache import StageCache
 
 # Hosts of a shared cache may disagree on the time by this much (seconds).
 CLOCK_SKEW_S = 600
@@ -74,11 +72,21 @@ def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
     """The keys that FINISHED runs of the store of ``runs`` record, over all experiments.
     RUNNING runs whose process is gone from this machine count as ended (``fail_dead``:
     they are marked FAILED in the store)."""
+    from pipeline.core.errors import StoreError
+    from pipeline.core.tracking import (
+        all_pages,
+        check_sqlite_store,
+        fail_dead_runs,
+        process_gone,
+        sqlite_path,
+        tracking_uri,
+    )
+
     uri = tracking_uri(runs)
     db = sqlite_path(uri)
     if db is not None:
         if not db.is_file():  # MLflow would create an empty store, which uses nothing
-            raise StoreError(f"there is no MLflow store at {db} (see --runs)")
+            raise StoreError(f"there is no MLflow store at {db} (see paths.runs)")
         check_sqlite_store(db)  # nor may it write its tables into another program's file
     try:
         from mlflow.entities import ViewType
@@ -110,9 +118,10 @@ def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
     return usage
 
 
-
 def scan(cache: StageCache) -> list[Row]:
     """Every folder under a stage of ``cache``, with its size and manifest's facts."""
+    from pipeline.core.cache import folder_bytes, last_used
+
     rows = []
     for stage in cache.stages():
         for key in cache.keys(stage):
@@ -150,6 +159,10 @@ def _when(seconds: float | None) -> str:
 
 
 def ls(cache: StageCache, runs: Path, entries: bool) -> int:
+    from pipeline.core.cache import folder_bytes
+    from pipeline.core.errors import StoreError
+    from pipeline.core.files import human
+
     rows = scan(cache)
     why: dict[str, str] | None = None
     if entries and rows:
@@ -177,6 +190,12 @@ def verify(cache: StageCache, fix: bool) -> int:
     """Check every entry's files, sizes and hashes, and its lineage; an entry computed
     from a damaged one is damaged too. ``fix``: remove them all (unless a job is
     computing them again)."""
+    from tqdm import tqdm
+
+    from pipeline.core.cache import folder_bytes
+    from pipeline.core.digests import is_hashed, listed_files
+    from pipeline.core.files import human
+
     started = time.time()
     folders = [(stage, key) for stage in cache.stages() for key in cache.keys(stage)]
     total = sum(folder_bytes(cache.entry_path(*f)) for f in folders)
@@ -220,6 +239,10 @@ def verify(cache: StageCache, fix: bool) -> int:
 
 
 def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
+    from pipeline.core.cache import folder_bytes
+    from pipeline.core.errors import StoreError
+    from pipeline.core.files import human
+
     started = time.time()
     try:
         usage = read_usage(runs, fail_dead=not dry_run)
@@ -233,7 +256,7 @@ def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
     why = kept(rows, usage)
     if rows and not why:
         print(f"gc: no finished run in {usage.uri} ({usage.n_finished} finished) uses any of "
-              f"the {len(rows)} entries under {cache.root}; nothing removed (is --runs right? "
+              f"the {len(rows)} entries under {cache.root}; nothing removed (is paths.runs right? "
               f"to empty the cache, delete the folder)", file=sys.stderr)
         return 2
     verb = "would remove" if dry_run else "removed"
@@ -260,33 +283,147 @@ def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
     return 0
 
 
+# ------------------------------------------------------------------ the command line
+
+COMMANDS = {"ls": "entries and size per stage", "verify": "check every file's hash",
+            "gc": "remove entries no finished run uses"}
+ALL = tuple(COMMANDS)
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One ``key=value`` of the command line: the commands it applies to, whether it is
+    true/false (else a path), and what it means."""
+
+    commands: tuple[str, ...]
+    boolean: bool
+    help: str
+
+
+SETTINGS = {
+    "paths.runs": Setting(ALL, False, "the runs folder (MLflow store: <runs>/mlflow.db); "
+                                      "default runs"),
+    "paths.cache": Setting(ALL, False, "the cache folder; default <paths.runs>/cache"),
+    "entries": Setting(("ls",), True, "one line per entry: key, size, created, whether a run "
+                                      "uses it"),
+    "fix": Setting(("verify",), True, "remove the damaged entries"),
+    "dry_run": Setting(("gc",), True, "list what would be removed, remove nothing"),
+}
+# The spellings of before, still accepted: flag -> key (a flag of a true/false key is true).
+OLD_FLAGS = {"--runs": "paths.runs", "--cache": "paths.cache", "--entries": "entries",
+             "--fix": "fix", "--dry-run": "dry_run"}
+TRUE, FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+
+
+class UsageError(Exception):
+    """A bad command line; the message names the word at fault."""
+
+
+@dataclass(frozen=True)
+class Options:
+    command: str
+    runs: Path
+    cache: Path
+    flags: dict[str, bool]  # entries, fix, dry_run: those of the command
+
+
+def usage() -> str:
+    lines = [f"usage: python -m pipeline.cache {{{','.join(COMMANDS)}}} [key=value ...]", ""]
+    lines += [f"  {name:<8} {text}" for name, text in COMMANDS.items()]
+    lines += ["", "settings (key=value):"]
+    spelled = {key: f"{key}={'true|false' if s.boolean else 'PATH'}" for key, s in SETTINGS.items()}
+    width = max(map(len, spelled.values()))
+    for key, setting in SETTINGS.items():
+        where = "" if setting.commands == ALL else f" ({', '.join(setting.commands)})"
+        lines.append(f"  {spelled[key]:<{width}}  {setting.help}{where}")
+    return "\n".join(lines)
+
+
+def _closest(word: str, choices) -> str:
+    found = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.5)
+    return f" (did you mean {found[0]}?)" if found else ""
+
+
+def parse(argv: list[str]) -> Options:
+    """Read ``argv`` (without the program's name) into :class:`Options`; a
+    :class:`UsageError` names the first word at fault and, for a misspelt key or
+    command, the closest real one."""
+    command = None
+    given: dict[str, str] = {}
+    words = list(argv)
+    while words:
+        word = words.pop(0)
+        if word.startswith("--"):
+            flag, _, attached = word.partition("=")
+            key = OLD_FLAGS.get(flag)
+            if key is None:
+                hint = _closest(flag.lstrip("-").replace("-", "_"), SETTINGS)
+                raise UsageError(f"unknown option {flag}{hint}; settings are key=value: "
+                                 f"{', '.join(SETTINGS)}")
+            if SETTINGS[key].boolean:
+                value = attached or "true"
+            elif attached:
+                value = attached
+            elif words and not words[0].startswith("-"):
+                value = words.pop(0)
+            else:
+                raise UsageError(f"{flag} needs a value (or write {key}=...)")
+            word = f"{key}={value}"
+        if "=" not in word:
+            if word not in COMMANDS:
+                raise UsageError(f"unknown command {word!r}{_closest(word, COMMANDS)}; "
+                                 f"commands: {', '.join(COMMANDS)}")
+            if command is not None:
+                raise UsageError(f"two commands, {command} and {word}: give one")
+            command = word
+            continue
+        key, _, value = word.partition("=")
+        if key not in SETTINGS:
+            raise UsageError(f"unknown setting {key!r}{_closest(key, SETTINGS)}; settings: "
+                             f"{', '.join(SETTINGS)}")
+        if key in given:
+            raise UsageError(f"{key} is given twice ({key}={given[key]} and {word})")
+        given[key] = value
+    if command is None:
+        raise UsageError(f"no command: give one of {', '.join(COMMANDS)}")
+    flags = {}
+    for key, value in given.items():
+        setting = SETTINGS[key]
+        if command not in setting.commands:
+            raise UsageError(f"{key} is a setting of {' and '.join(setting.commands)}, "
+                             f"not of {command}")
+        if setting.boolean:
+            if value.lower() not in TRUE + FALSE:
+                raise UsageError(f"{key}={value!r} must be true or false")
+            flags[key] = value.lower() in TRUE
+        elif not value:
+            raise UsageError(f"{key}= needs a folder")
+    for key, setting in SETTINGS.items():
+        if setting.boolean and command in setting.commands:
+            flags.setdefault(key, False)
+    runs = Path(given.get("paths.runs", "runs"))
+    return Options(command, runs, Path(given.get("paths.cache", runs / "cache")), flags)
+
+
 def main(argv: list[str] | None = None) -> int:
-    # --runs/--cache are accepted before or after the command.
-    where = argparse.ArgumentParser(add_help=False)
-    where.add_argument("--runs", type=Path, default=argparse.SUPPRESS,
-                       help="the runs folder (MLflow store: <runs>/mlflow.db); default runs")
-    where.add_argument("--cache", type=Path, default=argparse.SUPPRESS,
-                       help="the cache folder; default <runs>/cache")
-    parser = argparse.ArgumentParser(prog="python -m pipeline.cache", parents=[where],
-                                     description=__doc__.split("\n\n")[0])
-    commands = parser.add_subparsers(dest="command", required=True)
-    listing = commands.add_parser("ls", parents=[where], help="entries and size per stage")
-    listing.add_argument("--entries", action="store_true",
-                         help="one line per entry: key, size, created, whether a run uses it")
-    checking = commands.add_parser("verify", parents=[where], help="check every file's hash")
-    checking.add_argument("--fix", action="store_true", help="remove the damaged entries")
-    collecting = commands.add_parser("gc", parents=[where],
-                                     help="remove entries no finished run uses")
-    collecting.add_argument("--dry-run", action="store_true",
-                            help="list what would be removed, remove nothing")
-    args = parser.parse_args(argv)
-    runs = getattr(args, "runs", Path("runs"))
-    cache = StageCache(getattr(args, "cache", runs / "cache"))
-    if args.command == "ls":
-        return ls(cache, runs, args.entries)
-    if args.command == "verify":
-        return verify(cache, args.fix)
-    return gc(cache, runs, args.dry_run)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if {"-h", "--help", "help"} & set(argv):
+        print(f"python -m pipeline.cache: list, verify and clean up the stage cache.\n\n{usage()}")
+        return 0
+    try:
+        options = parse(argv)
+    except UsageError as err:
+        print(f"{usage().splitlines()[0]}\npython -m pipeline.cache: error: {err}",
+              file=sys.stderr)
+        return 2
+    from pipeline.core.cache import StageCache
+
+    cache = StageCache(options.cache)
+    if options.command == "ls":
+        return ls(cache, options.runs, options.flags["entries"])
+    if options.command == "verify":
+        return verify(cache, options.flags["fix"])
+    return gc(cache, options.runs, options.flags["dry_run"])
 
 
 if __name__ == "__main__":

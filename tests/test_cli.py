@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from mlflow.tracking import MlflowClient
 
 from pipeline.core.tracking import tracking_uri
@@ -73,3 +74,66 @@ def test_bad_input_exits_non_zero_with_the_path(tmp_path):
                 "dataset=ubo2003", f"dataset.root={missing}")
     assert done.returncode != 0
     assert str(missing) in done.stderr
+
+
+# ------------------------------------------------------------- python -m pipeline.cache
+
+
+def _one_entry(cache_dir: Path) -> None:
+    import numpy as np
+
+    from pipeline.core.cache import StageCache, save_arrays
+
+    StageCache(cache_dir).run("load", "1", {}, {}, lambda folder: save_arrays(folder, x=np.ones(2)))
+
+
+def test_the_cache_command_takes_key_value_settings_like_the_jobs(tmp_path, capsys):
+    from pipeline.cache import main
+
+    _one_entry(tmp_path / "runs" / "cache")
+    _one_entry(tmp_path / "elsewhere")
+    assert main(["ls", f"paths.runs={tmp_path / 'runs'}"]) == 0
+    assert f"cache {tmp_path / 'runs' / 'cache'}" in capsys.readouterr().out
+    # paths.cache wins over <paths.runs>/cache, in any order with the command.
+    assert main([f"paths.cache={tmp_path / 'elsewhere'}", "ls", "entries=false"]) == 0
+    assert f"cache {tmp_path / 'elsewhere'}" in capsys.readouterr().out
+    assert main(["verify", f"paths.cache={tmp_path / 'elsewhere'}", "fix=true"]) == 0
+    assert "0 damaged" in capsys.readouterr().out
+    # The older spelling reads the same.
+    assert main(["ls", "--runs", str(tmp_path / "runs")]) == 0
+    assert f"cache {tmp_path / 'runs' / 'cache'}" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["ls", "paths.run=x"], "unknown setting 'paths.run' (did you mean paths.runs?)"),
+    (["gc", "dry-run=true"], "unknown setting 'dry-run' (did you mean dry_run?)"),
+    (["lss"], "unknown command 'lss' (did you mean ls?)"),
+    (["ls", "fix=true"], "fix is a setting of verify, not of ls"),
+    (["ls", "entries=maybe"], "entries='maybe' must be true or false"),
+    (["ls", "paths.runs=a", "paths.runs=b"], "paths.runs is given twice"),
+    (["paths.runs=a"], "no command: give one of ls, verify, gc"),
+    (["gc", "--dryrun"], "unknown option --dryrun (did you mean dry_run?)"),
+    (["ls", "gc"], "two commands, ls and gc"),
+])
+def test_the_cache_command_refuses_a_bad_word_naming_it(argv, said, capsys):
+    from pipeline.cache import main
+
+    assert main(argv) == 2
+    assert said in capsys.readouterr().err
+
+
+def test_the_cache_command_answers_a_bad_setting_before_importing_mlflow(tmp_path):
+    """A typo is answered before MLflow, torch, Hydra or pandas is imported (seconds each),
+    and ``--help`` lists every setting."""
+    probe = ("import sys\nfrom pipeline.cache import main\ncode = main(['gc', 'bogus=1'])\n"
+             "print(sorted(m for m in ('mlflow', 'torch', 'hydra', 'pandas') if m in sys.modules))\n"
+             "sys.exit(code)\n")
+    done = subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2
+    assert "unknown setting 'bogus'" in done.stderr
+    assert done.stdout.strip() == "[]"
+    helped = _run("pipeline.cache", "--help", cwd=tmp_path)
+    assert helped.returncode == 0
+    for key in ("paths.runs=", "paths.cache=", "entries=", "fix=", "dry_run="):
+        assert key in helped.stdout

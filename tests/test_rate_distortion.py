@@ -212,12 +212,12 @@ def test_pca_scores_what_it_stores():
 def test_float16_storage_and_latent_size_keys():
     """Storage types are not in the train stage's key (a float16 arm reuses the float32
     model); the latent size is, but at the paper's 8 it leaves the key as it was."""
-    from pipeline.btf.runner import _model_key
+    from pipeline.btf.runner import model_key
 
     cfg = compose_config("experiment=smoke")
-    assert "latent" not in _model_key(cfg.btf.model)
+    assert "latent" not in model_key(cfg.btf.model)
     cfg.btf.model.latent = 4
-    assert _model_key(cfg.btf.model)["latent"] == 4
+    assert model_key(cfg.btf.model)["latent"] == 4
 
 
 @pytest.mark.parametrize("latent", [1, 17])

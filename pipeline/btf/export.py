@@ -92,6 +92,7 @@ def log_compressed(entry: Entry, log_model: bool = True) -> None:
     (its metadata naming the run) and, with ``log_model``, an MLflow pyfunc model
     ``compressed_btf`` around it::
 
+        mlflow.set_tracking_uri(pipeline.tracking_uri(runs))  # the jobs' paths.runs
         model = mlflow.pyfunc.load_model(f"runs:/{run_id}/compressed_btf")
         rgb = model.predict(df)   # columns texel, theta_light, phi_light, theta_view,
                                   # phi_view (one query a row) -> columns R, G, B

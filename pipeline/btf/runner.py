@@ -98,7 +98,7 @@ def train_stage(
         "method": method.name,
         "target": method.get("target", "texel"),
         "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY},
-        "model": _model_key(cfg.btf.model),
+        "model": model_key(cfg.btf.model),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),
     }
@@ -162,7 +162,7 @@ def train_stage(
     return ctx.run("train", stage_settings, inputs, compute, version="3")
 
 
-def _model_key(model) -> dict:
+def model_key(model) -> dict:
     """``btf.model`` as the train stage's key holds it: ``latent`` left out at the paper's
     8, so that the models trained before it was a setting keep their keys."""
     from pipeline.btf.model import LATENT_DIM
