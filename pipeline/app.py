@@ -108,7 +108,10 @@ class SweepRun(SweepParentRun):
 
 def log_headlines(uri: str, parent_id: str) -> None:
     """Log each finished child run's headline metrics to the sweep's parent run, as
-    ``<child run name>/<metric>``: the parent shows what the sweep found."""
+    ``<job>/<metric>``: the parent shows what the sweep found. ``<job>`` is the child's run
+    name, followed by its swept settings where two children share a name."""
+    from collections import Counter
+
     from mlflow.entities import Metric
     from mlflow.tracking import MlflowClient
 
@@ -116,16 +119,20 @@ def log_headlines(uri: str, parent_id: str) -> None:
 
     client = MlflowClient(uri)
     parent = client.get_run(parent_id)
-    children = client.search_runs(
+    swept = {key for key, value in parent.data.params.items() if "," in value}  # a list
+    children = [child for child in client.search_runs(
         [parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent_id}'")
+        if child.info.status == "FINISHED" and child.data.params.get("method.spec")]
+    names = Counter(child.info.run_name for child in children)
     values = []
     for child in children:
-        spec = child.data.params.get("method.spec")
-        if child.info.status != "FINISHED" or not spec:
-            continue
+        job = child.info.run_name or child.info.run_id
+        if names[child.info.run_name] > 1:
+            job += " " + " ".join(o for o in child.data.tags.get("overrides", "").split()
+                                  if o.split("=")[0] in swept and not o.startswith("seed="))
         # MLflow takes letters, digits and "_-. :/" in a metric's name.
-        job = re.sub(r"[^\w\-. :/]", "_", child.info.run_name or child.info.run_id)
-        for name in resolve(spec).headline:
+        job = re.sub(r"[^\w\-. :/]", "_", job.strip())
+        for name in resolve(child.data.params["method.spec"]).headline:
             if name in child.data.metrics:
                 values.append(Metric(f"{job}/{name}", child.data.metrics[name],
                                      child.info.end_time or 0, 0))

@@ -4,9 +4,10 @@
 
 Starts ``mlflow ui`` on a free port of 127.0.0.1 on the store ``<runs>/mlflow.db``, opens
 in Debian's Chromium (``apt-get install chromium``) the experiment's runs view, and for the
-latest sweep of the experiment: its parent run's ``tables/summary.md`` and, for each child
-run, its first figure under ``figures/`` and its ``config/resolved.yaml``, and saves each as
-a PNG in ``--out``. Prints one line per screenshot (file and URL) and stops the server.
+latest sweep of the experiment: its parent run's overview (description, headline metrics)
+and ``tables/summary.html`` (figures inlined) and ``summary.md``, the first child run's
+overview (its metrics, results first), and for each child run its first figure under
+``figures/`` and its ``config/resolved.yaml``, and saves each as a PNG in ``--out``. Prints one line per screenshot (file and URL) and stops the server.
 
 The MLflow UI is a single-page app: Chromium's ``--screenshot`` with a virtual-time budget
 lets its scripts fetch and draw before the picture is taken. The flags that keep Chromium
@@ -75,8 +76,14 @@ def pages(client: MlflowClient, experiment: str) -> list[tuple[str, str]]:
         raise SystemExit(f"experiment {experiment!r} has no sweep (no child runs)")
     parent = children[0].data.tags["mlflow.parentRunId"]
     sweep = [r for r in children if r.data.tags.get("mlflow.parentRunId") == parent]
-    if "tables/summary.md" in artifact_files(client, parent, "tables"):
-        shots.append(("parent_tables", f"#/experiments/{e}/runs/{parent}/artifacts/tables/summary.md"))
+    shots.append(("parent_overview", f"#/experiments/{e}/runs/{parent}"))
+    tables = artifact_files(client, parent, "tables")
+    for page in ("summary.html", "summary.md"):
+        if f"tables/{page}" in tables:
+            shots.append((f"parent_tables_{page.replace('.', '_')}",
+                          f"#/experiments/{e}/runs/{parent}/artifacts/tables/{page}"))
+    first = min(sweep, key=lambda r: r.info.start_time)
+    shots.append(("child_overview", f"#/experiments/{e}/runs/{first.info.run_id}"))
     for run in sorted(sweep, key=lambda r: r.info.start_time):
         name = run.info.run_name.replace(" ", "_").replace("=", "")
         files = artifact_files(client, run.info.run_id)
@@ -115,7 +122,9 @@ def main(argv: list[str] | None = None) -> int:
         for name, fragment in pages(MlflowClient(uri), args.experiment):
             png = out / f"{name}.png"
             with tempfile.TemporaryDirectory() as profile:
-                subprocess.run([chromium, *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
+                # An overview's metrics sit below its tags and description: a taller page.
+                tall = ["--window-size=1600,2600"] if name.endswith("overview") else []
+                subprocess.run([chromium, *CHROMIUM_FLAGS, *tall, f"--user-data-dir={profile}",
                                 f"--screenshot={png}", base + fragment + VIEW],
                                check=True, capture_output=True, timeout=180)
             print(f"{png}  {base}{fragment}{VIEW}")

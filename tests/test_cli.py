@@ -47,6 +47,11 @@ def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_templ
     # on its runs (not on MLflow's GenAI overview).
     assert parents[0].data.params["method.k"] == "4,8"
     assert parents[0].data.params["seed"] == "0,1"
+    # ... and carries a description and each job's headline metrics (names made legal).
+    assert "Hydra sweep" in parents[0].data.tags["mlflow.note.content"]
+    for child in children:
+        job = child.info.run_name.replace("=", "_")
+        assert parents[0].data.metrics[f"{job}/rmse"] == child.data.metrics["rmse"]
     # The parent names its process, so that a later start ends it if the sweep was killed.
     assert parents[0].data.tags["pid"].isdigit() and parents[0].data.tags["host"]
     assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
