@@ -219,3 +219,18 @@ def reserved_memmap(path: str | os.PathLike, shape: tuple[int, ...], dtype) -> n
     finally:
         os.close(fd)
     return array
+
+
+def output_array(out: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    """``out`` checked to be a writeable float32 array of ``shape`` (a reader's caller may
+    hand one in, e.g. a memory map), or a new one when None."""
+    from pipeline.core.errors import ConfigError
+
+    if out is None:
+        return np.empty(shape, dtype=np.float32)
+    if out.shape != shape or out.dtype != np.float32 or not out.flags.writeable:
+        raise ConfigError(
+            f"out array has shape {out.shape}, dtype {out.dtype}, "
+            f"writeable={out.flags.writeable}; need shape {shape}, float32, writeable"
+        )
+    return out

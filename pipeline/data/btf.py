@@ -53,6 +53,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.files import output_array
 from pipeline.data.directions import (
     N_DIRECTIONS,
     canonical_views,
@@ -546,13 +547,7 @@ def load_btf(
     files = list_btf_files(root, format, views)
     height, width = image_size(files[0].path)
     shape = (len(files), height, width, 3)
-    if out is None:
-        out = np.empty(shape, dtype=np.float32)
-    elif out.shape != shape or out.dtype != np.float32 or not out.flags.writeable:
-        raise ConfigError(
-            f"out array has shape {out.shape}, dtype {out.dtype}, "
-            f"writeable={out.flags.writeable}; need shape {shape}, float32, writeable"
-        )
+    out = output_array(out, shape)
     show_bar = progress and sys.stderr.isatty()
     for index, entry in enumerate(
         tqdm(files, desc=f"decode {Path(root).name}", unit="img", leave=False, disable=not show_bar)

@@ -69,6 +69,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.files import output_array
 
 SIGNATURE = b"!DFMF08FC"
 ROTATIONS_MARK = b"R"
@@ -578,13 +579,7 @@ def decode_dfmf(
         raise ConfigError(f"direction rows must be a list of 0..{dfmf.n_directions - 1}")
     _, _, height, width = check_crop(crop, dfmf)
     shape = (len(rows), height, width, 3)
-    if out is None:
-        out = np.empty(shape, dtype=np.float32)
-    elif out.shape != shape or out.dtype != np.float32 or not out.flags.writeable:
-        raise ConfigError(
-            f"out array has shape {out.shape}, dtype {out.dtype}, "
-            f"writeable={out.flags.writeable}; need shape {shape}, float32, writeable"
-        )
+    out = output_array(out, shape)
     dtype = _compute_dtype(dfmf)
     texel_factors = [crop_texel_factors(dfmf, channel, crop) for channel in range(3)]
     direction_factors = [
