@@ -76,7 +76,7 @@ class AutogradStep:
         if self.features.is_cpu:
             torch.set_num_threads(self.workers)  # the caller restores its own setting
         b, q = batch.directions.shape
-        latents = self.encoder(batch.inputs)  # (B, 8)
+        latents = self.encoder.forward_layers(batch.inputs)  # plain layers: the reference
         with self._autocast:
             predicted = self.decoder(latents.repeat_interleave(q, 0),
                                      self.features[batch.directions.reshape(-1)])

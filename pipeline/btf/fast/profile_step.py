@@ -12,7 +12,8 @@ the setups in turn within a round, so that a shared machine that slows down affe
 alike; each child also measures the float32 matrix-multiply peak, the yardstick. Printed per
 thread count: milliseconds per step of each part (medians over rounds), GFLOP/s and the
 share of the peak (the convolutions' and the decoder's products; the pools, batch-norm and
-ReLUs are not counted), the training time a run of the setup's recipe would take
+ReLUs are not counted), the process's CPU time per step (all threads; steadier than the
+wall clock on a shared machine), the training time a run of the setup's recipe would take
 (steps x ms/step) and the ratio of each setup to the first; then one JSON object.
 
 The setups: ``before``, the recipe of 32 ABRDFs x 256 queries with the encoder as autograd
@@ -210,6 +211,9 @@ def profile(setups: list[str], threads: int, steps: int, rounds: int) -> dict:
         b, q = recipe["batch_size"], recipe["queries_per_abrdf"]
         ms = {part: float(np.median([row[part] for row in rows])) for part in PARTS}
         ms["step"] = float(np.median([sum(row[p] for p in PARTS) for row in rows]))
+        # CPU time of the process (all its threads): on a shared machine, free of the time
+        # spent waiting for a core, so steadier than the wall clock.
+        cpu_ms = float(np.median([sum(row[f"cpu_{p}"] for p in PARTS) for row in rows]))
         peak = float(np.median([row["peak_gflops"] for row in rows]))
         enc_fwd, enc_bwd = encoder_flops(b)
         dec = decoder_flops(b, q)
@@ -219,7 +223,8 @@ def profile(setups: list[str], threads: int, steps: int, rounds: int) -> dict:
             "step": (enc_fwd + enc_bwd + dec) / ms["step"] / 1e6,
         }
         result[name] = {
-            "recipe": recipe, "ms": ms, "gflops": gflops, "peak_gflops": peak,
+            "recipe": recipe, "ms": ms, "cpu_ms": cpu_ms, "gflops": gflops,
+            "peak_gflops": peak,
             "share_of_peak": {k: v / peak for k, v in gflops.items()},
             "steps": steps_of(recipe), "training_s": steps_of(recipe) * ms["step"] / 1e3,
         }
@@ -227,6 +232,7 @@ def profile(setups: list[str], threads: int, steps: int, rounds: int) -> dict:
     for row in result.values():
         row["step_speedup"] = first["ms"]["step"] / row["ms"]["step"]
         row["training_speedup"] = first["training_s"] / row["training_s"]
+        row["cpu_step_speedup"] = first["cpu_ms"] / row["cpu_ms"]
     return result
 
 
@@ -238,6 +244,7 @@ def print_profile(threads: int, result: dict) -> None:
     print(f"{'ms per step':<18}" + "".join(f"{n:>12}" for n in names))
     for part in (*PARTS, "step"):
         print(f"{part:<18}" + "".join(f"{result[n]['ms'][part]:12.2f}" for n in names))
+    print(f"{'cpu ms, step':<18}" + "".join(f"{result[n]['cpu_ms']:12.2f}" for n in names))
     for what in ("encoder", "decoder", "step"):
         print(f"{'% of peak, ' + what:<18}"
               + "".join(f"{100 * result[n]['share_of_peak'][what]:11.0f}%" for n in names))
@@ -249,7 +256,9 @@ def print_profile(threads: int, result: dict) -> None:
     print(f"{names[0] + ' / setup':<18}"
           + "".join(f"{result[n]['training_speedup']:11.2f}x" for n in names)
           + "   (training time; per step: "
-          + ", ".join(f"{result[n]['step_speedup']:.2f}x" for n in names) + ")")
+          + ", ".join(f"{result[n]['step_speedup']:.2f}x" for n in names)
+          + "; CPU time per step: "
+          + ", ".join(f"{result[n]['cpu_step_speedup']:.2f}x" for n in names) + ")")
 
 
 def main(argv=None) -> dict:
