@@ -33,17 +33,17 @@ def run_job(cfg: DictConfig) -> float | None:
     if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool) or cfg.seed < 0:
         raise ConfigError(f"seed={cfg.seed!r} must be an integer >= 0")
     if method.prepare is not None:
-        method.call("prepare", cfg)
+        method.prepare(cfg)
     # SIGTERM/SIGINT end the run FAILED and the process, wherever they land; its temporary
     # files under these folders go with it (pipeline.core.stopping).
     leftovers = [cfg.paths.get(folder) for folder in ("runs", "cache", "data")]
     with stopping.job_scope(leftovers_in=[f for f in leftovers if f]), \
             job_run(cfg, run_name=method.name_run(cfg), description=method.description,
-                    unused=method.unused(cfg) if method.unused else ()) as run:
+                    unused=method.left_out(cfg)) as run:
         ctx = Context.from_config(cfg)
         try:
             with threadpool_limits(cfg.get("threads")):  # numpy's BLAS and OpenMP pools
-                metrics = method.call("run", ctx)
+                metrics = method.run(ctx)
             mlflow.log_metrics(metrics)  # first: the UI lists metrics as they were logged
         finally:
             # Grouped under "time/" and "memory/" (the UI folds names by their prefix).
@@ -65,7 +65,7 @@ def log_job_figures(method: Method, cfg: DictConfig, cache_keys: dict[str, str])
     import mlflow
 
     with tempfile.TemporaryDirectory() as folder:
-        if method.call("figures", cfg, cache_keys, Path(folder)):
+        if method.figures(cfg, cache_keys, Path(folder)):
             mlflow.log_artifacts(folder, "figures")
 
 

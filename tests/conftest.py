@@ -21,7 +21,12 @@ from omegaconf import DictConfig
 
 from pipeline.core.methods import register_schemas
 
-register_schemas()  # for the tests that compose with Hydra's API themselves
+
+@pytest.fixture(scope="session", autouse=True)
+def _settings_schemas() -> None:
+    """The structured configs the YAML files extend, for the tests that compose with
+    Hydra's API themselves (``tests/helpers.compose_config`` registers them too)."""
+    register_schemas()
 
 
 @pytest.fixture(scope="session")

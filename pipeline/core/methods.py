@@ -7,8 +7,8 @@ and asks each method's report for its sections. Neither names a method, so addin
 a new package plus a config file (``docs/design.md``, "Adding a method").
 
 A :class:`Method` lives in a light module of its package: its runner, report and figures
-are functions there that import the heavy modules when called (or ``module:name``
-strings), so registering a method costs no torch import and a typo in a setting is
+are functions there that import the heavy modules when called, its reports ``module``
+names imported when the tables are built, so registering a method costs no torch import and a typo in a setting is
 answered before the heavy imports.
 """
 
@@ -24,7 +24,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.core.errors import ConfigError
 
-Reference = Callable | str  # a function, or "module:function" imported when called
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
@@ -34,8 +33,8 @@ class Method:
 
     name : ``method.name`` of its config file.
     paper : the letter of PAPERS.md it reproduces; orders the report's sections.
-    run : a function (or ``module:function``) taking a :class:`pipeline.core.stage.Context` and returning
-        the job's metrics (``dict[str, float]``).
+    run : ``(ctx) -> dict[str, float]``: the job's chain on a
+        :class:`pipeline.core.stage.Context`, returning its metrics.
     description : the run's note in the MLflow UI: what it computed, how to read it.
     headline : the metrics printed at the end of a job (and returned to sweepers: the
         first one that exists).
@@ -52,33 +51,31 @@ class Method:
         recipe, so the UI's compare view shows only what made the model.
     schemas : Hydra structured configs to register before composing, as
         ``(group, name, dataclass)``: the one source of a settings group's defaults,
-        which the YAML files extend (``defaults: [<name>, _self_]``).
+        which the YAML files extend (``defaults: [/<group>/<name>@_here_, _self_]``).
     """
 
     name: str
     paper: str
-    run: Reference
+    run: Callable[[Any], dict[str, float]]
     description: str
     headline: tuple[str, ...] = ("rmse",)
     reports: tuple[str, ...] = ()
-    figures: Reference | None = None
-    prepare: Reference | None = None
+    figures: Callable[[DictConfig, dict, Path], list[Path]] | None = None
+    prepare: Callable[[DictConfig], None] | None = None
     run_name: Callable[[DictConfig], str] | None = None
     unused: Callable[[DictConfig], list[str]] | None = None
     schemas: tuple[tuple[str, str, type], ...] = ()
 
-    def call(self, field: str, *args) -> Any:
-        """Import and call the ``module:function`` named by ``field``."""
-        return resolve(getattr(self, field))(*args)
+    def left_out(self, cfg: DictConfig) -> list[str]:
+        """The settings :attr:`unused` names for this job (none without it)."""
+        return self.unused(cfg) if self.unused else []
 
     def name_run(self, cfg: DictConfig) -> str:
         return self.run_name(cfg) if self.run_name else f"{self.name} s{cfg.seed}"
 
 
-def resolve(reference: Reference) -> Any:
-    """The object a ``module:name`` (or ``module``) reference names; a callable as is."""
-    if callable(reference):
-        return reference
+def resolve(reference: str) -> Any:
+    """The object a ``module:name`` (or ``module``) reference names."""
     module_name, _, attribute = reference.partition(":")
     try:
         module = importlib.import_module(module_name)

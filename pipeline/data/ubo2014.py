@@ -70,6 +70,7 @@ import numpy as np
 
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.files import output_array
+from pipeline.data.directions import unit_vectors
 
 SIGNATURE = b"!DFMF08FC"
 ROTATIONS_MARK = b"R"
@@ -384,7 +385,8 @@ def _pick(entries, angles: np.ndarray, what: str, path: Path) -> np.ndarray:
     """File indices of ``entries`` (indices, or [θ, φ] degrees matched to ``angles``)."""
     if entries is None:
         return np.arange(len(angles))
-    vectors = _unit(np.asarray(angles, dtype=np.float64))
+    angles = np.asarray(angles, dtype=np.float64)
+    vectors = unit_vectors(angles[:, 0], angles[:, 1])
     picked = []
     for entry in entries:
         if isinstance(entry, (int, np.integer)) and not isinstance(entry, bool):
@@ -401,7 +403,7 @@ def _pick(entries, angles: np.ndarray, what: str, path: Path) -> np.ndarray:
             raise ConfigError(
                 f"dataset.{what} entry {entry!r} is neither an index nor [theta, phi] in degrees"
             ) from None
-        target = _unit(np.radians([[theta, phi]]))[0]
+        target = unit_vectors(np.radians(theta), np.radians(phi))
         distance = np.degrees(np.arccos(np.clip(vectors @ target, -1.0, 1.0)))
         nearest = int(np.argmin(distance))
         if distance[nearest] > MATCH_TOLERANCE_DEG:
@@ -415,11 +417,6 @@ def _pick(entries, angles: np.ndarray, what: str, path: Path) -> np.ndarray:
     if not picked:
         raise ConfigError(f"dataset.{what} is an empty list; null means all of them")
     return np.unique(picked)
-
-
-def _unit(angles: np.ndarray) -> np.ndarray:
-    theta, phi = angles[:, 0], angles[:, 1]
-    return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], 1)
 
 
 def select_rows(dfmf: DFMFFile, views=None, lights=None) -> np.ndarray:
