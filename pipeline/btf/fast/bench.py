@@ -25,7 +25,8 @@ Prints, in one run on one machine:
 
 With ``device=cuda``, only the training loops, on the GPU: ``pipeline.btf.train.train`` at
 the paper's batch with the autograd backend in float32 and in bfloat16 (autocast) and with
-the fused step (torch ops, one chunk), against the GPU's matmul peaks; then
+the fused step (torch ops, one chunk), and at ``experiment=paper_cpu``'s batch, against
+the GPU's matmul peaks; then
 ``paper_run`` and ``load_size`` when asked.
 
 The last line is one JSON object, also logged to MLflow (experiment ``bench`` under
@@ -39,7 +40,7 @@ across runs on a shared machine. A measurement tool, not a test. Its keys:
   ``train_paper_recipe``, ``decoder_naive``, ``decoder_fused``, and with ``_bf16``
   ``train_default_bf16`` (``train_fused_bf16``), ``train_tuned_bf16``,
   ``decoder_fused_bf16``; with ``device=cuda`` ``train_autograd``,
-  ``train_autograd_bf16`` and ``train_fused`` only;
+  ``train_autograd_bf16``, ``train_fused`` and ``train_paper_recipe`` only;
 - the ratios ``train_speedup`` (default / naive), ``tuning_speedup`` (tuned / default),
   ``decoder_speedup`` (fused / autograd), each also with ``_bf16``, ``backend_speedup``
   (fused backend / autograd backend); with ``device=cuda`` ``backend_speedup`` and
@@ -380,22 +381,28 @@ def print_training(figures: dict, recipe, bf16_skipped: str | None) -> None:
                     f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
 
 
-def cuda_figures(steps: int, channels) -> dict:
-    """``pipeline.btf.train.train`` at the paper's batch on the GPU, timed in turn
-    (:func:`interleaved`): the autograd backend in float32 and in bfloat16 (autocast) and
-    the fused step (torch ops, one chunk), against the GPU's matmul peaks."""
+def cuda_figures(steps: int, channels, recipe) -> dict:
+    """``pipeline.btf.train.train`` on the GPU, timed in turn (:func:`interleaved`): at the
+    paper's batch the autograd backend in float32 and in bfloat16 (autocast) and the fused
+    step (torch ops, one chunk), and the autograd backend at ``experiment=paper_cpu``'s
+    batch (``recipe``), against the GPU's matmul peaks."""
     loops = {"train_autograd": pipeline_training(5, -1, steps, channels, 1,
                                                  backend="autograd", device="cuda"),
              "train_autograd_bf16": pipeline_training(5, -1, steps, channels, 1,
                                                       precision="bfloat16",
                                                       backend="autograd", device="cuda"),
              "train_fused": pipeline_training(5, -1, steps, channels, 1, backend="fused",
-                                              device="cuda")}
-    return interleaved(loops, dict.fromkeys(loops, 5 * N_PAPER), steps, bf16=True,
-                       device="cuda")
+                                              device="cuda"),
+             "train_paper_recipe": pipeline_training(
+                 recipe.batch_size, recipe.queries_per_abrdf, steps, channels, 1,
+                 optimizer=recipe.optimizer, lr=recipe.lr, backend="autograd",
+                 device="cuda")}
+    queries = dict.fromkeys(loops, 5 * N_PAPER)
+    queries["train_paper_recipe"] = recipe.batch_size * recipe.queries_per_abrdf
+    return interleaved(loops, queries, steps, bf16=True, device="cuda")
 
 
-def print_cuda(figures: dict) -> None:
+def print_cuda(figures: dict, recipe) -> None:
     """The GPU's training lines; adds ``backend_speedup`` and ``bf16_speedup``."""
     peak, peak_bf16 = figures["matmul_gflops"], figures["matmul_gflops_bf16"]
     print(f"matmul peak on {figures['device']}: float32 {peak:.0f} GFLOP/s, bfloat16 "
@@ -410,6 +417,11 @@ def print_cuda(figures: dict) -> None:
                     figures["train_fused"], peak)
     _ratio(figures, "backend_speedup", "train_fused", "train_autograd",
            "the fused backend over the autograd backend, same run")
+    _print_training(f"pipeline loop on the GPU, experiment=paper_cpu recipe ({recipe.batch_size} x "
+                    f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
+    paper_steps = recipe.epochs * (recipe.epoch_texels // recipe.batch_size)
+    print(f"  at this rate a paper_cpu model's {paper_steps} steps take "
+          f"{paper_steps / figures['train_paper_recipe']['steps_per_s']:.0f} s")
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -434,15 +446,15 @@ def run(settings: BenchSettings) -> dict:
                      "torch": torch.__version__, "cpu_bf16": cpu_bfloat16_support(),
                      "decoder_parameters": parameter_count(Decoder()),
                      "encoder_channels": list(channels)}
+    recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
     if on_cuda:
-        figures |= cuda_figures(settings.steps, channels)
-        print_cuda(figures)
+        figures |= cuda_figures(settings.steps, channels, recipe)
+        print_cuda(figures, recipe)
     else:
         # Built here, once, before the child processes load them.
         figures |= {"kernels": kernels.available(), "tuning": tuning_in_effect(threads)}
         if bf16_skipped is not None:
             figures["bf16_skipped"] = bf16_skipped
-        recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
         figures |= training_figures(settings.steps, threads, channels, recipe,
                                     bf16_skipped is None)
         print_training(figures, recipe, bf16_skipped)
