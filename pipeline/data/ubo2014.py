@@ -55,8 +55,9 @@ Examples
 >>> rows = select_rows(dfmf, views=[0, 10], lights=None)               # doctest: +SKIP
 >>> images = decode_dfmf(dfmf, rows, crop=(0, 0, 100, 100))            # doctest: +SKIP
 
-From the shell: ``python -m pipeline.data.ubo2014_bench info FILE`` (header, views and lights),
-``python -m pipeline.data.ubo2014_bench bench [FILE]`` (peak memory of loading a crop).
+From the shell: ``python -m pipeline.data.ubo2014_bench info file=PATH`` (header, views and
+lights), ``python -m pipeline.data.ubo2014_bench bench [file=PATH]`` (peak memory of loading
+a crop).
 """
 
 from __future__ import annotations

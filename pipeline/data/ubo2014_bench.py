@@ -1,30 +1,93 @@
-"""``python -m pipeline.data.ubo2014_bench info FILE`` and ``... bench [FILE]``.
+"""``python -m pipeline.data.ubo2014_bench info file=PATH`` and ``... bench [file=PATH]``.
 
 ``info`` prints a DFMF file's header facts and its view and light directions with the
 indices ``dataset.views`` / ``dataset.lights`` accept. ``bench`` loads a crop the way the
 load stage does (into a ``.npy`` memory map) and prints its peak memory: the heap peak
 (tracemalloc: what numpy allocated) and the peak resident set (which also counts the
-pages of the memory-mapped file and output that were touched). Without FILE it writes a
-file of the UBO2014 shape first: 151 views × 151 lights, 400 × 400 texels, random
-float16 factors of ``--components`` components.
+pages of the memory-mapped file and output that were touched). Without ``file`` it writes
+a file of the UBO2014 shape first: 151 views × 151 lights, 400 × 400 texels, random
+float16 factors of ``components`` components::
+
+    python -m pipeline.data.ubo2014_bench bench 'crop=[0,0,100,100]' components=64
+
+Settings are ``key=value`` after the command (:data:`KEYS`; ``--help`` lists them).
 """
 
 from __future__ import annotations
 
-import argparse
 import tempfile
 import time
 import tracemalloc
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.core import cli
+from pipeline.core.errors import ConfigError
 from pipeline.core.files import human, reserved_memmap
 from pipeline.core.memory import stage_peak
+from pipeline.core.settings import Integer, ListOf, OneOf
 from pipeline.data.ubo2014 import count_ubo2014_images, describe, load_ubo2014, read_dfmf
 from pipeline.data.ubo2014_write import write_dfmf
 
 PAPER_SHAPE = {"n_views": 151, "n_lights": 151, "size": 400}
+PROG = "python -m pipeline.data.ubo2014_bench"
+COMMANDS = {"info": "header facts, views and lights of the .btf file (file= required)",
+            "bench": "peak memory of loading a crop (of file=, or of a file it writes)"}
+
+
+@dataclass(frozen=True)
+class UBO2014BenchSettings:
+    """The command and its settings; :data:`KEYS` describes each."""
+
+    command: str = "bench"
+    file: str | None = None
+    crop: tuple[int, ...] = (0, 0, 100, 100)
+    components: int = 16
+    dtype: str = "float16"
+    workdir: str | None = None
+
+
+# Each key of the command line: its field, what it may be, and what it sets.
+KEYS = {
+    "file": ("file", cli.Text(optional=True),
+             "a .btf (DFMF) file; bench without it writes one of the UBO2014 shape"),
+    "crop": ("crop", ListOf(Integer(0), 4), "[row, col, height, width] texels loaded (bench)"),
+    "components": ("components", Integer(1), "components per channel of the written file "
+                                             "(bench)"),
+    "dtype": ("dtype", OneOf("float16", "float32"), "factors of the written file (bench)"),
+    "workdir": ("workdir", cli.Text(optional=True),
+                "where the written file and the decoded crop go (null: the temp dir; bench)"),
+}
+
+
+def usage() -> str:
+    commands = "\n".join(f"  {name:<6} {text}" for name, text in COMMANDS.items())
+    return cli.usage(PROG, KEYS, UBO2014BenchSettings(),
+                     f"{commands}\n\nSettings and their defaults:",
+                     synopsis=f"{{{','.join(COMMANDS)}}} [key=value ...]")
+
+
+def parse(argv: list[str]) -> UBO2014BenchSettings:
+    """:class:`UBO2014BenchSettings` from the command and its ``key=value`` arguments;
+    raises :class:`ConfigError` naming a bad one."""
+    command, rest = cli.command_of(argv, list(COMMANDS))
+    given = cli.read(rest, KEYS, f"the {command} command")
+    if command == "info":
+        if given.get("file") is None:
+            raise ConfigError("info needs file=PATH, the .btf file to describe")
+        if others := sorted(set(given) - {"file"}):
+            raise ConfigError(f"{', '.join(others)}: settings of bench, not of info")
+    if "crop" in given:
+        given["crop"] = tuple(given["crop"])
+    return UBO2014BenchSettings(command, **given)
+
+
+def parse_args(argv: list[str] | None = None) -> UBO2014BenchSettings:
+    """:func:`parse` for a command line: ``--help`` prints :func:`usage` and exits 0, a bad
+    argument prints its error and exits 2."""
+    return cli.parse_args(PROG, parse, usage(), argv)
 
 
 def hemisphere_angles(count: int, max_theta_deg: float = 75.0) -> np.ndarray:
@@ -99,9 +162,9 @@ def _info(path: Path) -> None:
         print(f"  {index:4d}: {theta:7.2f} {phi:7.2f}")
 
 
-def _bench(args) -> None:
+def _bench(args: UBO2014BenchSettings) -> None:
     with tempfile.TemporaryDirectory(dir=args.workdir) as workdir:
-        path = args.file
+        path = None if args.file is None else Path(args.file)
         if path is None:
             path = Path(workdir) / "paper_shaped.btf"
             write_paper_shaped(path, components=args.components, dtype=args.dtype)
@@ -113,26 +176,10 @@ def _bench(args) -> None:
           f"RSS peak {result['rss_peak_mb']:.0f} MiB, {result['seconds']:.1f} s")
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m pipeline.data.ubo2014",
-                                     description=__doc__.splitlines()[0])
-    commands = parser.add_subparsers(dest="command", required=True)
-    info = commands.add_parser("info", help="header facts, views and lights of a .btf file")
-    info.add_argument("file", type=Path)
-    bench = commands.add_parser("bench", help="peak memory of loading a crop")
-    bench.add_argument("file", type=Path, nargs="?",
-                       help="a .btf file; default: write one of the UBO2014 shape")
-    bench.add_argument("--crop", type=int, nargs=4, default=[0, 0, 100, 100],
-                       metavar=("ROW", "COL", "HEIGHT", "WIDTH"))
-    bench.add_argument("--components", type=int, default=16,
-                       help="components per channel of the written file")
-    bench.add_argument("--dtype", default="float16", choices=["float16", "float32"])
-    bench.add_argument("--workdir", type=Path, default=None,
-                       help="where the written file and the decoded crop go "
-                       "(default: the temp dir)")
-    args = parser.parse_args(argv)
+def main(argv: list[str] | None = None) -> None:
+    args = parse_args(argv)
     if args.command == "info":
-        _info(args.file)
+        _info(Path(args.file))
     else:
         _bench(args)
 

@@ -1,7 +1,7 @@
 """Where a training step's time goes at ``experiment=paper_cpu``'s size, before and after.
 
-    python -m pipeline.btf.fast.profile_step [--threads 1 2] [--steps 30] [--rounds 3]
-                                             [--setups before,encoder,after]
+    python -m pipeline.btf.fast.profile_step [threads=[1,2]] [steps=30] [rounds=3]
+                                             [setups=before,encoder,after]
 
 times the parts of one training step (N = 6561 directions, the paper's encoder, Adam),
 laid out as ``pipeline.btf.train`` runs them: the batch's data (gather and normalize with
@@ -22,18 +22,24 @@ recipe with the encoder's hand-written training step (``Encoder.forward``,
 :mod:`pipeline.btf.fast.encoder_step`); ``after``, that encoder with the recipe of
 ``experiment=paper_cpu`` (``conf/train/cpu.yaml``: its batch, queries, steps and
 ``reuse_freed_memory``).
+
+Settings are ``key=value`` (:data:`KEYS`; ``--help`` lists them), read before torch is
+imported, so that a bad one is answered at once.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+
+from pipeline.core import cli
+from pipeline.core.settings import Integer, OneOf
 
 CONF = Path(__file__).resolve().parents[3] / "conf"  # pipeline/btf/fast/ -> the repository
 N_PAPER = 6561
@@ -63,6 +69,71 @@ SETUPS = {
     "encoder": lambda: BEFORE_RECIPE | {"encoder": "training"},
     "after": lambda: cpu_recipe() | {"encoder": "training"},
 }
+
+
+PROG = "python -m pipeline.btf.fast.profile_step"
+
+
+@dataclass(frozen=True)
+class ProfileSettings:
+    """What to profile; :data:`KEYS` describes each."""
+
+    threads: tuple[int, ...] = (1, 2)
+    steps: int = 30
+    rounds: int = 3
+    setups: tuple[str, ...] = ("before", "encoder", "after")
+
+
+def _items(value) -> list:
+    """A YAML list, a comma-separated string (``1,2``: numbers) or one value, as a list."""
+    if isinstance(value, str):
+        words = [word.strip() for word in value.split(",") if word.strip()]
+        return [int(word) if word.isdigit() else word for word in words]
+    return list(value) if isinstance(value, list | tuple) else [value]
+
+
+@dataclass(frozen=True)
+class _OneOrMore:
+    """One value that ``item`` accepts, or a non-empty list (or comma-separated string) of
+    them."""
+
+    item: Integer | OneOf
+
+    def ok(self, value) -> bool:
+        items = _items(value)
+        return bool(items) and all(self.item.ok(item) for item in items)
+
+    def __str__(self) -> str:
+        return f"{self.item}, or a list of them"
+
+
+# Each key of the command line: its field, what it may be, and what it sets.
+KEYS = {
+    "threads": ("threads", _OneOrMore(Integer(1)), "thread counts, each profiled in turn"),
+    "steps": ("steps", Integer(1), "timed steps per child"),
+    "rounds": ("rounds", Integer(1), "interleaved rounds (the figures are their medians)"),
+    "setups": ("setups", _OneOrMore(OneOf(*SETUPS)),
+               f"the setups, the first the baseline; of {', '.join(SETUPS)}"),
+}
+
+
+def usage() -> str:
+    return cli.usage(PROG, KEYS, ProfileSettings(),
+                     "Where a training step's time goes. Settings and their defaults:")
+
+
+def parse(argv: list[str]) -> ProfileSettings:
+    """:class:`ProfileSettings` from ``key=value`` arguments (``threads`` and ``setups`` one
+    value or a list); raises :class:`~pipeline.core.errors.ConfigError` naming a bad one."""
+    settings = cli.parse(argv, KEYS, ProfileSettings, "the profiler")
+    return replace(settings, threads=tuple(_items(settings.threads)),
+                   setups=tuple(_items(settings.setups)))
+
+
+def parse_args(argv: list[str] | None = None) -> ProfileSettings:
+    """:func:`parse` for a command line: ``--help`` prints :func:`usage` and exits 0, a bad
+    argument prints its error and exits 2."""
+    return cli.parse_args(PROG, parse, usage(), argv)
 
 
 def steps_of(recipe: dict) -> int:
@@ -187,7 +258,8 @@ class _nothing:
 
 
 def _child(spec: dict) -> dict:
-    """One setup's timing in a fresh process (``--child``)."""
+    """One setup's timing in a fresh process (``--child SPEC``: not a setting, the word
+    between this process and its children)."""
     command = [sys.executable, "-m", "pipeline.btf.fast.profile_step", "--child",
                json.dumps(spec)]
     done = subprocess.run(command, capture_output=True, text=True, check=False)
@@ -261,31 +333,18 @@ def print_profile(threads: int, result: dict) -> None:
           + ", ".join(f"{result[n]['cpu_step_speedup']:.2f}x" for n in names) + ")")
 
 
-def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(prog="python -m pipeline.btf.fast.profile_step",
-                                     description=__doc__.split("\n\n")[0])
-    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2])
-    parser.add_argument("--steps", type=int, default=30, help="timed steps per child")
-    parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--setups", default="before,encoder,after",
-                        help=f"comma-separated, the first the baseline; of {', '.join(SETUPS)}")
-    parser.add_argument("--child", help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
-    if args.child:
-        spec = json.loads(args.child)
+def main(argv: list[str] | None = None) -> dict:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["--child"]:  # one setup's timing, in a process that _child started
+        spec = json.loads(argv[1])
         row = time_steps(spec["recipe"], spec["threads"], spec["steps"])
         print(json.dumps(row))
         return row
-    setups = [s.strip() for s in args.setups.split(",") if s.strip()]
-    unknown = [s for s in setups if s not in SETUPS]
-    if unknown or not setups:
-        parser.error(f"--setups {args.setups!r}: unknown {unknown}; choose from "
-                     f"{', '.join(SETUPS)}")
-    if min(args.threads) < 1 or args.steps < 1 or args.rounds < 1:
-        parser.error("--threads, --steps and --rounds must be >= 1")
+    settings = parse_args(argv)
+    setups = list(settings.setups)
     figures = {}
-    for threads in args.threads:
-        figures[str(threads)] = profile(setups, threads, args.steps, args.rounds)
+    for threads in settings.threads:
+        figures[str(threads)] = profile(setups, threads, settings.steps, settings.rounds)
         print_profile(threads, figures[str(threads)])
     print(json.dumps(figures))
     return figures

@@ -16,16 +16,60 @@ second:
 The differences to ``lambertian`` are the materials' own cost. Figures are measured in the
 one run, so compare them as ratios; on a shared machine absolute times move.
 
-    python -m pipeline.btf.render.bench --size 256 --spp 128 --crop 100
+    python -m pipeline.btf.render.bench size=256 spp=128 crop=100 threads=2
+
+Settings are ``key=value`` (:data:`KEYS`; ``--help`` lists them), read before torch and
+Embree are imported, so that a bad one is answered at once.
 """
 
 from __future__ import annotations
 
-import argparse
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from pipeline.core import cli
+from pipeline.core.settings import Integer
+
+PROG = "python -m pipeline.btf.render.bench"
+
+
+@dataclass(frozen=True)
+class RenderBenchSettings:
+    """The frame and material sizes; :data:`KEYS` describes each."""
+
+    size: int = 256
+    spp: int = 128
+    crop: int = 100
+    threads: int | None = None
+
+
+# Each key of the command line: its field, what it may be, and what it sets.
+KEYS = {
+    "size": ("size", Integer(1), "frame width and height, pixels"),
+    "spp": ("spp", Integer(1), "samples per pixel"),
+    "crop": ("crop", Integer(1), "texels per side of the BTF crop"),
+    "threads": ("threads", Integer(1, optional=True), "torch threads (null: all cores)"),
+}
+
+
+def usage() -> str:
+    return cli.usage(PROG, KEYS, RenderBenchSettings(),
+                     "The cost of a Fig. 8 frame per material. Settings and their defaults:")
+
+
+def parse(argv: list[str]) -> RenderBenchSettings:
+    """:class:`RenderBenchSettings` from ``key=value`` arguments; raises
+    :class:`~pipeline.core.errors.ConfigError` naming a bad one."""
+    return cli.parse(argv, KEYS, RenderBenchSettings, "the render benchmark")
+
+
+def parse_args(argv: list[str] | None = None) -> RenderBenchSettings:
+    """:func:`parse` for a command line: ``--help`` prints :func:`usage` and exits 0, a bad
+    argument prints its error and exits 2."""
+    return cli.parse_args(PROG, parse, usage(), argv)
 
 
 def materials(crop: int, folder: Path, seed: int = 0) -> dict:
@@ -62,16 +106,12 @@ def materials(crop: int, folder: Path, seed: int = 0) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
+    """Render each material once and print its figures; returns each one's render stats."""
+    args = parse_args(argv)  # before torch and Embree load: a bad argument is answered at once
     from pipeline.render.engine import render_with_stats
     from pipeline.render.scene import default_scene
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--size", type=int, default=256, help="frame width and height")
-    parser.add_argument("--spp", type=int, default=128, help="samples per pixel")
-    parser.add_argument("--crop", type=int, default=100, help="texels per side of the BTF crop")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
-    args = parser.parse_args(argv)
-    if args.threads:
+    if args.threads is not None:
         import torch
 
         torch.set_num_threads(args.threads)
