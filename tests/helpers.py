@@ -34,3 +34,27 @@ def recipe_tags(params: dict) -> dict[str, str]:
     from pipeline.core.recipe import recipe_id, render_recipe_id
 
     return {"recipe": recipe_id(params), "render_recipe": render_recipe_id(params)}
+
+
+def exits_before_torch(calls: list[tuple[str, list[str]]]) -> tuple[list, bool, str]:
+    """Call each command's ``main(argv)`` (``calls``: ``("module", argv)``) in one fresh
+    interpreter; returns each call's exit code, whether torch was imported by then, and
+    the calls' stderr: a bad argument must be answered before torch loads."""
+    import json
+    import subprocess
+    import sys
+
+    code = ("import importlib, json, sys\n"
+            f"calls = {calls!r}\n"
+            "codes = []\n"
+            "for module, argv in calls:\n"
+            "    try:\n"
+            "        importlib.import_module(module).main(argv)\n"
+            "    except SystemExit as stop:\n"
+            "        codes.append(stop.code)\n"
+            "print(json.dumps({'codes': codes, 'torch': 'torch' in sys.modules}))\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout.strip().splitlines()[-1])
+    return result["codes"], result["torch"], done.stderr

@@ -1,13 +1,10 @@
 """``python -m pipeline.bench key=value ...``: its settings, read and refused without torch."""
 
-import json
 import re
-import subprocess
-import sys
 from dataclasses import fields
 
 import pytest
-from helpers import ROOT
+from helpers import exits_before_torch
 
 from pipeline.btf.fast.bench_settings import KEYS, BenchSettings, parse, parse_args, usage
 from pipeline.core.errors import ConfigError
@@ -58,18 +55,7 @@ def test_help_lists_every_setting_with_its_default(capsys):
 def test_a_bad_argument_is_answered_before_torch_loads():
     """The command's error (exit 2, as argparse's) and its --help come before the seconds
     torch takes to import."""
-    code = ("import json, sys\n"
-            "from pipeline.bench import main\n"
-            "codes = []\n"
-            "for argv in (['steps=abc'], ['--help']):\n"
-            "    try:\n"
-            "        main(argv)\n"
-            "    except SystemExit as stop:\n"
-            "        codes.append(stop.code)\n"
-            "print(json.dumps({'codes': codes, 'torch': 'torch' in sys.modules}))\n")
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    assert json.loads(done.stdout.strip().splitlines()[-1]) == {"codes": [2, 0],
-                                                               "torch": False}
-    assert "python -m pipeline.bench: error: steps='abc' must be" in done.stderr
+    codes, torch_loaded, stderr = exits_before_torch([("pipeline.bench", ["steps=abc"]),
+                                                      ("pipeline.bench", ["--help"])])
+    assert codes == [2, 0] and not torch_loaded
+    assert "python -m pipeline.bench: error: steps='abc' must be" in stderr

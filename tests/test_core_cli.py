@@ -2,13 +2,10 @@
 theirs with it: a bad argument is refused naming it (and the closest real key), before
 torch loads."""
 
-import json
-import subprocess
-import sys
 from dataclasses import dataclass
 
 import pytest
-from helpers import ROOT
+from helpers import exits_before_torch
 
 from pipeline.btf.fast import profile_step
 from pipeline.btf.render import bench as render_bench
@@ -143,22 +140,10 @@ def test_the_step_profiler_takes_key_value_settings():
 def test_each_command_refuses_a_bad_key_before_torch_loads():
     """Each command's main: exit 2 on a misspelt key, with the closest key named, and
     torch not imported."""
-    code = ("import json, sys\n"
-            "from pipeline.btf.fast.profile_step import main as profile\n"
-            "from pipeline.btf.render.bench import main as render\n"
-            "from pipeline.data.ubo2014_bench import main as ubo2014\n"
-            "codes = []\n"
-            "for main, argv in ((profile, ['step=1']), (render, ['sze=1']),\n"
-            "                   (ubo2014, ['bench', 'dtype=float64'])):\n"
-            "    try:\n"
-            "        main(argv)\n"
-            "    except SystemExit as stop:\n"
-            "        codes.append(stop.code)\n"
-            "print(json.dumps({'codes': codes, 'torch': 'torch' in sys.modules}))\n")
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)
-    assert done.returncode == 0, done.stderr
-    assert json.loads(done.stdout.strip().splitlines()[-1]) == {"codes": [2, 2, 2],
-                                                               "torch": False}
-    assert "(did you mean steps?)" in done.stderr and "(did you mean size?)" in done.stderr
-    assert "dtype='float64' must be one of float16, float32" in done.stderr
+    codes, torch_loaded, stderr = exits_before_torch([
+        ("pipeline.btf.fast.profile_step", ["step=1"]),
+        ("pipeline.btf.render.bench", ["sze=1"]),
+        ("pipeline.data.ubo2014_bench", ["bench", "dtype=float64"])])
+    assert codes == [2, 2, 2] and not torch_loaded
+    assert "(did you mean steps?)" in stderr and "(did you mean size?)" in stderr
+    assert "dtype='float64' must be one of float16, float32" in stderr
