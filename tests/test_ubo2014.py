@@ -11,13 +11,9 @@ import pytest
 from helpers import compose_config
 
 from pipeline.core.errors import ConfigError, DataError
-from pipeline.data.ubo2014 import (
-    channel_factors,
-    decode_dfmf,
-    load_ubo2014,
-    read_dfmf,
-    select_rows,
-)
+from pipeline.data.ubo2014 import load_ubo2014, select_rows
+from pipeline.data.ubo2014_decode import channel_factors, decode_dfmf
+from pipeline.data.ubo2014_header import read_dfmf
 from pipeline.data.ubo2014_write import write_dfmf
 
 # 3 views × 4 lights, 5 wide × 4 high (not square: a swapped width and height shows).

@@ -137,7 +137,8 @@ def load(ctx: Context) -> Entry:
 def _load_ubo2014(ctx: Context) -> Entry:
     """The load stage for a UBO2014 ``.btf`` file: only ``dataset.crop`` of the chosen
     directions is decoded (from the factors), never the whole file."""
-    from pipeline.data.ubo2014 import count_ubo2014_images, describe, load_ubo2014, read_dfmf
+    from pipeline.data.ubo2014 import count_ubo2014_images, load_ubo2014
+    from pipeline.data.ubo2014_header import describe, read_dfmf
 
     ds = ctx.cfg.dataset
     path = dataset_root(ctx.cfg).resolve()

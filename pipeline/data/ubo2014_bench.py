@@ -28,7 +28,8 @@ from pipeline.core.errors import ConfigError
 from pipeline.core.files import human, reserved_memmap
 from pipeline.core.memory import stage_peak
 from pipeline.core.settings import Integer, ListOf, OneOf
-from pipeline.data.ubo2014 import count_ubo2014_images, describe, load_ubo2014, read_dfmf
+from pipeline.data.ubo2014 import count_ubo2014_images, load_ubo2014
+from pipeline.data.ubo2014_header import describe, read_dfmf
 from pipeline.data.ubo2014_write import write_dfmf
 
 PAPER_SHAPE = {"n_views": 151, "n_lights": 151, "size": 400}

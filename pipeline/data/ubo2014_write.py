@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.core.errors import ConfigError
 from pipeline.core.files import write_atomic
-from pipeline.data.ubo2014 import (
+from pipeline.data.ubo2014_format import (
     CHANNEL_HEADER,
     DRR_EPS,
     FIXED_HEADER,
