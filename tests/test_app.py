@@ -120,7 +120,7 @@ def test_k_larger_than_texel_count_fails_cleanly(smoke_cfg):
 
 
 def test_corrupt_image_fails_cleanly_with_its_path(smoke_cfg, tmp_path):
-    from pipeline.btf.synthetic import write_synthetic_btf
+    from pipeline.btf.synthetic_dataset import write_synthetic_btf
 
     root = write_synthetic_btf(tmp_path / "ds", size=8, seed=0, views=[[0, 0], [15, 0]])
     victim = sorted(root.glob("*/*.jpg"))[5]

@@ -10,7 +10,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from pipeline.btf.synthetic import SyntheticBTF, write_synthetic_btf
+from pipeline.btf.synthetic import SyntheticBTF
+from pipeline.btf.synthetic_dataset import write_synthetic_btf
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.stage import folder_fingerprint
 from pipeline.data.btf import (

@@ -31,7 +31,8 @@ from pipeline.btf.render.surfaces import (
     direction_hulls,
 )
 from pipeline.btf.stereographic import stereographic
-from pipeline.btf.synthetic import SyntheticBTF, write_synthetic_btf
+from pipeline.btf.synthetic import SyntheticBTF
+from pipeline.btf.synthetic_dataset import write_synthetic_btf
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.directions import (
     btf_directions,

@@ -191,7 +191,7 @@ def test_real_capture_downsampled_with_photometric_normals(fourier_cfg):
 @pytest.fixture(scope="module")
 def tiny_btf(tmp_path_factory):
     """An 8 x 8 synthetic BTF in the UBO2003 layout (JPEG, as the real one), two views."""
-    from pipeline.btf.synthetic import write_synthetic_btf
+    from pipeline.btf.synthetic_dataset import write_synthetic_btf
 
     root = tmp_path_factory.mktemp("btf") / "tiny"
     return write_synthetic_btf(root, size=8, format="ubo2003", views=[(0, 0), (30, 90)])

@@ -278,7 +278,7 @@ def test_synthetic_settings_are_checked(tmp_path):
 @pytest.fixture(scope="module")
 def tiny_btf(tmp_path_factory):
     """An 8 x 8 synthetic BTF in the UBO2003 layout (lossless PNG), two view folders."""
-    from pipeline.btf.synthetic import write_synthetic_btf
+    from pipeline.btf.synthetic_dataset import write_synthetic_btf
 
     root = tmp_path_factory.mktemp("btf") / "tiny"
     return write_synthetic_btf(root, size=8, format="ubo2003", ext="png", views=[(0, 0), (30, 90)])

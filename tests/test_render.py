@@ -302,7 +302,8 @@ def test_analytic_material_agrees_with_the_measured_data_at_grid_directions(tmp_
     """The truth and the reference interpolate the same thing: the generator's values, as
     the built-in dataset writes them (gamma 2.2, 8-bit: PNG, or JPEG q95) and the reader
     decodes them, cropped as the crop stage cuts, at every grid direction pair."""
-    from pipeline.btf.synthetic import SyntheticBTF, write_synthetic_btf
+    from pipeline.btf.synthetic import SyntheticBTF
+    from pipeline.btf.synthetic_dataset import write_synthetic_btf
     from pipeline.data.btf import load_btf
 
     root = write_synthetic_btf(tmp_path / "btf", size=12, seed=1, ext=ext)

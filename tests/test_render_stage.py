@@ -224,7 +224,7 @@ def test_measured_data_is_scored_against_the_reference_with_every_material_clamp
     """Data without a generator (a dataset folder): no truth; the model is queried at
     directions clamped onto the grid, and the tables say they score against the reference."""
     from pipeline.app import run_job
-    from pipeline.btf.synthetic import write_synthetic_btf
+    from pipeline.btf.synthetic_dataset import write_synthetic_btf
     from pipeline.core.cache import StageCache
     from pipeline.tables import build_tables, default_settings
 

@@ -5,14 +5,11 @@ import json
 import numpy as np
 import pytest
 
-import pipeline.btf.synthetic as synthetic_btf
+import pipeline.btf.synthetic_dataset as synthetic_btf
 from pipeline.btf.materials import GAP, MATERIALS, WARP, WEFT
-from pipeline.btf.synthetic import (
-    SyntheticBTF,
-    channel_weights,
-    material_sheet,
-    write_synthetic_btf,
-)
+from pipeline.btf.synthetic import SyntheticBTF, material_sheet
+from pipeline.btf.synthetic_dataset import write_synthetic_btf
+from pipeline.btf.synthetic_shading import channel_weights
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.btf import load_btf
 from pipeline.data.directions import btf_directions, grid_81_degrees, parse_ubo2003_file_name

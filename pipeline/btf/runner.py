@@ -254,8 +254,8 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
 def evaluated_dataset(dataset) -> dict:
     """``dataset`` settings as the evaluate stage's key holds them: the generator's
     direction-set settings left out at their defaults
-    (:func:`pipeline.btf.synthetic.generator_settings`)."""
-    from pipeline.btf.synthetic import generator_settings
+    (:func:`pipeline.btf.synthetic_dataset.generator_settings`)."""
+    from pipeline.btf.synthetic_dataset import generator_settings
 
     settings = plain_settings(dataset)
     return {**settings, "synthetic": generator_settings(settings["synthetic"])}

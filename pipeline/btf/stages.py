@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 def synthetic_folder(cfg: DictConfig) -> Path:
     """Where the built-in BTF of these settings is (or will be) written: named by a hash of
     the generator's settings and views."""
-    from pipeline.btf.synthetic import generator_settings
+    from pipeline.btf.synthetic_dataset import generator_settings
 
     ds = cfg.dataset
     gen = plain_settings(ds.synthetic)
@@ -44,7 +44,7 @@ def dataset_root(cfg: DictConfig) -> Path:
     (UBO2014); the built-in synthetic BTF is generated into a folder on first use."""
     ds = cfg.dataset
     if ds.name == "synthetic" and ds.root is None:
-        from pipeline.btf.synthetic import write_synthetic_btf
+        from pipeline.btf.synthetic_dataset import write_synthetic_btf
 
         gen = plain_settings(ds.synthetic)
         views = plain_settings(ds.views)
@@ -306,7 +306,8 @@ def truth_floor(ctx: Context, cropped: Entry, prep: Entry) -> Entry | None:
     cfg = ctx.cfg
     if not built_in(cfg):
         return None
-    from pipeline.btf.synthetic import SyntheticBTF, generator_settings
+    from pipeline.btf.synthetic import SyntheticBTF
+    from pipeline.btf.synthetic_dataset import generator_settings
 
     gen = plain_settings(cfg.dataset.synthetic)
     size = int(cfg.btf.crop.size)

@@ -220,7 +220,7 @@ def load_times(runs: str, size: int) -> dict:
     from hydra import compose, initialize_config_dir
 
     from pipeline.btf.stages import load
-    from pipeline.btf.synthetic import write_synthetic_btf
+    from pipeline.btf.synthetic_dataset import write_synthetic_btf
     from pipeline.core.stage import Context
 
     root = write_synthetic_btf(Path(runs) / "data" / f"bench_ubo2003_{size}", size=size, seed=0)
