@@ -7,8 +7,8 @@
 set -u
 repo=$(cd "$(dirname "$0")/.." && pwd)
 commit=$(git -C "$repo" rev-parse --short HEAD)
-out=$(realpath -m "${1:-/tmp/performance_$commit}")
-shift $(( $# > 0 ? 1 : 0 ))
+case ${1:-} in setup|runs|benches|"") out=/tmp/performance_$commit ;; *) out=$1; shift ;; esac
+out=$(realpath -m "$out")
 parts=${*:-setup runs benches}
 mkdir -p "$out"
 if [ ! -d "$out/project" ]; then
@@ -16,6 +16,11 @@ if [ ! -d "$out/project" ]; then
   ln -sfn "$(realpath "$repo/../shared")" "$out/shared"
 fi
 cd "$out/project"
+measured=$(git rev-parse --short HEAD)
+if [ "$measured" != "$commit" ]; then
+  echo "$out/project holds $measured, the repository $commit: give another OUT_DIR" >&2
+  exit 2
+fi
 py=.venv/bin/python
 export PYTHONUNBUFFERED=1
 

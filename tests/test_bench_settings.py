@@ -21,7 +21,7 @@ def test_key_value_arguments_set_the_bench():
 
 @pytest.mark.parametrize("argument, named", [
     ("--steps", "'--steps' is not a setting of the bench"),
-    ("steps", "'steps' is not a setting"),
+    ("steps", "steps needs a value: give steps=VALUE"),
     # the key is paths.runs, as elsewhere
     ("runs=x", "'runs=x' is not a setting of the bench (did you mean paths.runs?)"),
     ("step=3", "'step=3' is not a setting of the bench (did you mean steps?)"),

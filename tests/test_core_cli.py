@@ -53,6 +53,9 @@ def test_values_are_read_as_yaml():
     ("crop=[0,0,4]", "crop=[0, 0, 4] must be a list of 4 items"),
     ("paths.runs=", "paths.runs=None must be a non-empty string"),
     ("crop=[0,0", "crop='[0,0' is not a value (YAML)"),
+    ("steps", "steps needs a value: give steps=VALUE"),
+    ("steps=1:30", "steps='1:30' must be an integer >= 1"),  # YAML 1.1 would say 90
+    ("mode=on", "mode='on' must be one of fast, slow, True"),  # YAML 1.1 would say True
 ])
 def test_a_bad_argument_is_refused_naming_it(argument, said):
     with pytest.raises(ConfigError) as raised:
@@ -147,3 +150,14 @@ def test_each_command_refuses_a_bad_key_before_torch_loads():
     assert codes == [2, 2, 2] and not torch_loaded
     assert "(did you mean steps?)" in stderr and "(did you mean size?)" in stderr
     assert "dtype='float64' must be one of float16, float32" in stderr
+
+
+@pytest.mark.parametrize("text, value", [
+    ("30", 30), ("-3", -3), ("1.5", 1.5), ("1e-3", 0.001), (".inf", float("inf")),
+    ("true", True), ("False", False), ("null", None), ("[1,2]", [1, 2]),
+    ("1:30", "1:30"), ("on", "on"), ("yes", "yes"), ("0x10", "0x10"), ("1_000", "1_000"),
+])
+def test_values_are_read_as_yaml_1_2_reads_them(text, value):
+    """As Hydra's overrides: YAML 1.2's plain scalars, not PyYAML's 1.1 sexagesimal
+    integers, yes/on booleans, hexadecimal or underscored numbers."""
+    assert cli.read_value(text) == value

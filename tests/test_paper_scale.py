@@ -111,3 +111,30 @@ def test_bench_counts_the_decoders_flops_and_the_papers_sizes():
     assert TRAIN_FLOPS_PER_QUERY == 3 * 2 * _decoder_multiply_adds()
     assert M_PAPER == compose_config("experiment=paper").btf.crop.size ** 2
     assert N_PAPER == N_DIRECTIONS**2
+
+
+def test_the_gpu_figures_print_on_a_machine_without_one(capsys):
+    """``device=cuda``'s printing runs only on a GPU: fed made-up figures here, it prints
+    every loop, the ratios and the time a paper_cpu model's steps take at its rate."""
+    from omegaconf import OmegaConf
+
+    from pipeline.btf.fast.bench import print_cuda
+    from pipeline.btf.fast.bench_loops import CONF
+
+    recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
+
+    def loop(steps_per_s, queries):
+        return {"queries_per_s": steps_per_s * queries, "gflops": 1000.0,
+                "steps_per_s": steps_per_s}
+
+    paper = 5 * N_DIRECTIONS**2
+    figures = {"device": "cuda (test)", "matmul_gflops": 50000.0,
+               "matmul_gflops_bf16": 700000.0, "train_autograd": loop(200.0, paper),
+               "train_autograd_bf16": loop(100.0, paper), "train_fused": loop(400.0, paper),
+               "train_paper_recipe": loop(7488 / 30, recipe.batch_size * recipe.queries_per_abrdf)}
+    print_cuda(figures, recipe)
+    out = capsys.readouterr().out
+    assert figures["bf16_speedup"] == pytest.approx(0.5)
+    assert figures["backend_speedup"] == pytest.approx(2.0)
+    assert "bfloat16 over float32, autograd backend: 0.500x" in out
+    assert "a paper_cpu model's 7488 steps take 30 s" in out

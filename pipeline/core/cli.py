@@ -5,7 +5,9 @@ once, naming the argument and, for a misspelt key, the closest real one.
 A command describes its settings in one table, key -> ``(field, constraint, help)``: the
 field of its settings dataclass that the key sets, what the value may be (a constraint of
 :mod:`pipeline.core.settings`, or :class:`Text`) and the line ``--help`` prints. Values are
-read as YAML, as Hydra reads them: ``null``, ``true``, ``30``, ``[0,0,100,100]``.
+read as YAML: ``null``, ``true``, ``30``, ``[0,0,100,100]``; with YAML 1.2's plain scalars,
+as Hydra reads them (``1:30`` stays a string, ``on``/``yes`` are no booleans), not PyYAML's
+YAML 1.1 ones.
 
 >>> from pipeline.core.settings import Integer
 >>> keys = {"steps": ("steps", Integer(1), "training steps")}
@@ -20,6 +22,7 @@ pipeline.core.errors.ConfigError: 'step=5' is not a setting (did you mean steps?
 from __future__ import annotations
 
 import difflib
+import re
 import sys
 import textwrap
 from collections.abc import Callable, Mapping, Sequence
@@ -29,6 +32,31 @@ import yaml
 
 from pipeline.core.errors import ConfigError
 from pipeline.core.settings import check_settings
+
+
+class _Yaml12Loader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2's booleans, integers and floats: YAML 1.1 (what
+    PyYAML implements) reads ``1:30`` as 90 and ``on``/``yes`` as true, which no user of a
+    ``key=value`` command means (PyYAML has no 1.2 mode, hence the resolvers here)."""
+
+
+_Yaml12Loader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers
+            if tag not in ("tag:yaml.org,2002:bool", "tag:yaml.org,2002:int",
+                           "tag:yaml.org,2002:float")]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+for _tag, _pattern, _first in (
+        ("bool", r"^(?:true|True|TRUE|false|False|FALSE)$", "tTfF"),
+        ("int", r"^[-+]?[0-9]+$", "-+0123456789"),
+        ("float", r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+                  r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$", "-+0123456789.")):
+    _Yaml12Loader.add_implicit_resolver(f"tag:yaml.org,2002:{_tag}", re.compile(_pattern),
+                                        list(_first))
+
+
+def read_value(text: str):
+    """One command-line value as YAML 1.2 reads it (see the module docstring)."""
+    return yaml.load(text, Loader=_Yaml12Loader)  # a SafeLoader: no arbitrary objects
 
 
 @dataclass(frozen=True)
@@ -60,6 +88,8 @@ def read(argv: Sequence[str], keys: Mapping[str, tuple], command: str = "") -> d
     given: dict = {}
     for argument in argv:
         key, equals, text = argument.partition("=")
+        if not equals and key in keys:
+            raise ConfigError(f"{key} needs a value: give {key}=VALUE")
         if not equals or key not in keys:
             of = f" of {command}" if command else ""
             raise ConfigError(f"{argument!r} is not a setting{of}{closest(key, list(keys))}: "
@@ -68,7 +98,7 @@ def read(argv: Sequence[str], keys: Mapping[str, tuple], command: str = "") -> d
         if key in given:
             raise ConfigError(f"{key} is given twice")
         try:
-            given[key] = yaml.safe_load(text)
+            given[key] = read_value(text)
         except yaml.YAMLError:
             raise ConfigError(f"{key}={text!r} is not a value (YAML)") from None
     nested: dict = {}

@@ -39,8 +39,8 @@ KEYS = {
     "threads": ("threads", Integer(1, optional=True), "CPU threads (null: all cores)"),
     "device": ("device", OneOf("cpu", "cuda"),
                "cpu: every figure, both training backends on the CPU; cuda: the training "
-               "loops at the paper's batch on the GPU, per backend and precision (and "
-               "paper_run, load_size when asked)"),
+               "loops at the paper's batch on the GPU, per backend and precision, and at "
+               "paper_cpu's batch (and paper_run, load_size when asked)"),
     "paths.runs": ("runs", cli.Text(), "the folder holding mlflow.db (and paper_run's outputs)"),
     "mlflow": ("mlflow", OneOf(True, False),
                "log the figures to MLflow (experiment bench under paths.runs)"),
