@@ -121,8 +121,27 @@ def test_best_at_budget_matches_the_runs_and_never_pools_two_recipes(tmp_path,
     assert "![rate_distortion_synthetic_plain_weave]" in summary
     assert (out / "rate_distortion_synthetic_plain_weave.png").is_file()
     assert "Neural BTF (float32) has 1 point (no curve)" in summary
-    reach = pd.read_csv(out / "rate_distortion_reach.csv")
+    reach = pd.read_csv(out / "rate_distortion_reach_synthetic_plain_weave.csv")
     assert len(reach.columns) == 2 + 4 and set(reach["dataset"]) == {DATASET}
+
+
+def test_each_dataset_gets_its_own_bytes_to_reach_table(tmp_path):
+    """Two datasets with different RMSE ranges: each table has its own four levels and no
+    empty cells (one table of both would have eight columns, half of them empty)."""
+    from pipeline.btf.rate_distortion import reach_sections
+
+    def point(dataset, setting, size, nbytes, rmse):
+        return {"dataset": dataset, "method": "pca", "arm": "PCA (float16)",
+                "line": "PCA (float16)", "setting": setting, "size": size, "bytes": nbytes,
+                "rmse_mean": rmse, "rmse_std": np.nan, "n": 1, "seeds": "0"}
+
+    points = [point(name, f"c = {c}", c, 100_000 * c, scale / c)
+              for name, scale in (("a", 0.1), ("b", 0.03)) for c in (1, 2, 4, 8, 16)]
+    text = "\n".join(reach_sections(pd.DataFrame(points), tmp_path))
+    for name in ("a", "b"):
+        reach = pd.read_csv(tmp_path / f"rate_distortion_reach_{name}.csv")
+        assert len(reach.columns) == 2 + 4 and not reach.isna().any().any()
+        assert f"Bytes to reach an RMSE: {name}" in text
 
 
 def test_without_runs_the_section_says_what_to_run(tmp_path):

@@ -214,6 +214,27 @@ def bytes_to_reach(table: pd.DataFrame, count: int = N_LEVELS) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def reach_sections(table: pd.DataFrame, out: Path) -> list[str]:
+    """Write :func:`bytes_to_reach` as one table per dataset
+    (``rate_distortion_reach_<dataset>``), each with its own RMSE levels as columns;
+    return their Markdown sections."""
+    reach = bytes_to_reach(table)
+    if reach.empty:
+        return []
+    sections = []
+    for dataset, of_dataset in reach.groupby("dataset", sort=False):
+        of_dataset = of_dataset.dropna(axis=1, how="all")  # the other datasets' levels
+        if of_dataset.shape[1] > 2:
+            sections.append(write_table(
+                of_dataset, out, f"rate_distortion_reach_{safe_stem(dataset)}",
+                f"Bytes to reach an RMSE: {dataset}",
+                "The fewest stored bytes (and the setting) at which a line's mean RMSE is at "
+                "or below each level; levels spread geometrically between the dataset's "
+                "worst and best points. –: no point of the line reaches it. Means only: see "
+                "the error bars for the spread."))
+    return sections
+
+
 def plot(group: pd.DataFrame, dataset: str, path: Path, budgets_kb=BUDGETS_KB) -> Path:
     """RMSE (mean ± std over seeds) against bytes (log) of one dataset's points, one line
     per line, the Pareto front circled and joined, the budgets as dotted verticals."""
@@ -261,7 +282,7 @@ def missing(table: pd.DataFrame) -> list[str]:
 def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05,
             budgets_kb=BUDGETS_KB) -> str:
     """Write ``rate_distortion_<dataset>.png``, ``rate_distortion_points.csv``,
-    ``rate_distortion_budget.{md,csv,tex}`` and ``rate_distortion_reach.{md,csv,tex}`` into
+    ``rate_distortion_budget.{md,csv,tex}`` and ``rate_distortion_reach_<dataset>.{md,csv,tex}`` into
     ``out`` from labelled runs; return the Markdown section."""
     table = points(runs)
     if table.empty:
@@ -285,14 +306,7 @@ def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05,
         f"difference = its mean RMSE - the best's, with a {100 * (1 - alpha):g} % Welch "
         f"interval over the seeds of both; 'wins beyond seed noise' when that interval "
         f"excludes 0. Seeds: n of each point."))
-    reach = bytes_to_reach(table)
-    if not reach.empty and reach.shape[1] > 2:
-        parts.append(write_table(
-            reach, out, "rate_distortion_reach", "Bytes to reach an RMSE",
-            "The fewest stored bytes (and the setting) at which a line's mean RMSE is at or "
-            "below each level; levels spread geometrically between the dataset's worst and "
-            "best points. –: no point of the line reaches it. Means only: see the error bars "
-            "for the spread."))
+    parts += reach_sections(table, out)
     notes = missing(table)
     parts.append("### Missing from the rate-distortion grid\n\n" + (
         "\n".join(f"- {n}" for n in notes) if notes else "Nothing.") + "\n")
