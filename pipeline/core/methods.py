@@ -6,10 +6,10 @@ method the composed config names; the tables command reads every ``conf/method/*
 and asks each method's report for its sections. Neither names a method, so adding one is
 a new package plus a config file (``docs/design.md``, "Adding a method").
 
-A :class:`Method` lives in a light module of its package: its runner, report and figures
-are functions there that import the heavy modules when called, its reports ``module``
-names imported when the tables are built, so registering a method costs no torch import and a typo in a setting is
-answered before the heavy imports.
+A :class:`Method` lives in a light module of its package: its runner and figures are
+functions there that import the heavy modules when called, and its reports are module
+names imported when the tables are built. So registering a method costs no torch import,
+and a typo in a setting is answered before the heavy imports.
 """
 
 from __future__ import annotations
