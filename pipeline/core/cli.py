@@ -163,3 +163,33 @@ def parse_args(prog: str, parse: Callable[[list[str]], object], usage: str,
     except ConfigError as error:
         print(f"{prog}: error: {error}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+@dataclass(frozen=True)
+class Command:
+    """One command's command line: its ``prog``, key table (``keys``), settings dataclass,
+    the ``--help`` summary, and ``what`` (say ``"the bench"``: completes "is not a setting
+    of ..."). A command whose parsing does more (a subcommand word, a post-processed value)
+    passes its own ``parse`` to :meth:`parse_args`."""
+
+    prog: str
+    keys: Mapping[str, tuple]
+    settings: type
+    summary: str
+    what: str = ""
+    synopsis: str = "[key=value ...]"
+    notes: str = ""
+
+    def usage(self) -> str:
+        """The ``--help`` text (:func:`usage`)."""
+        return usage(self.prog, self.keys, self.settings(), self.summary, self.synopsis,
+                     self.notes)
+
+    def parse(self, argv: Sequence[str]):
+        """The settings from ``key=value`` arguments (:func:`parse`)."""
+        return parse(argv, self.keys, self.settings, self.what)
+
+    def parse_args(self, argv: Sequence[str] | None = None,
+                   parser: Callable[[list[str]], object] | None = None):
+        """``parser`` (by default :meth:`parse`) for a command line (:func:`parse_args`)."""
+        return parse_args(self.prog, parser or self.parse, self.usage(), argv)

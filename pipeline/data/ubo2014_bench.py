@@ -63,11 +63,11 @@ KEYS = {
 }
 
 
-def usage() -> str:
-    commands = "\n".join(f"  {name:<6} {text}" for name, text in COMMANDS.items())
-    return cli.usage(PROG, KEYS, UBO2014BenchSettings(),
-                     f"{commands}\n\nSettings and their defaults:",
-                     synopsis=f"{{{','.join(COMMANDS)}}} [key=value ...]")
+COMMAND = cli.Command(
+    PROG, KEYS, UBO2014BenchSettings,
+    "\n".join(f"  {name:<6} {text}" for name, text in COMMANDS.items())
+    + "\n\nSettings and their defaults:",
+    synopsis=f"{{{','.join(COMMANDS)}}} [key=value ...]")
 
 
 def parse(argv: list[str]) -> UBO2014BenchSettings:
@@ -83,12 +83,6 @@ def parse(argv: list[str]) -> UBO2014BenchSettings:
     if "crop" in given:
         given["crop"] = tuple(given["crop"])
     return UBO2014BenchSettings(command, **given)
-
-
-def parse_args(argv: list[str] | None = None) -> UBO2014BenchSettings:
-    """:func:`parse` for a command line: ``--help`` prints :func:`usage` and exits 0, a bad
-    argument prints its error and exits 2."""
-    return cli.parse_args(PROG, parse, usage(), argv)
 
 
 def hemisphere_angles(count: int, max_theta_deg: float = 75.0) -> np.ndarray:
@@ -178,7 +172,7 @@ def _bench(args: UBO2014BenchSettings) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = parse_args(argv)
+    args = COMMAND.parse_args(argv, parse)
     if args.command == "info":
         _info(Path(args.file))
     else:

@@ -53,22 +53,11 @@ KEYS = {
 }
 
 
-def usage() -> str:
-    return cli.usage(PROG, KEYS, BenchSettings(),
-                     "Method A's training benchmark (pipeline/btf/fast/bench.py). Settings and "
-                     "their defaults:",
-                     notes="Timings are medians of interleaved rounds: compare them as ratios "
-                           "within one run.")
-
-
-def parse(argv: list[str]) -> BenchSettings:
-    """:class:`BenchSettings` from ``key=value`` arguments (values read as YAML, as Hydra
-    reads them: ``null``, ``true``, ``30``); raises :class:`ConfigError` naming a bad one
-    (and, for an unknown key, the closest real one)."""
-    return cli.parse(argv, KEYS, BenchSettings, "the bench")
-
-
-def parse_args(argv: list[str] | None = None) -> BenchSettings:
-    """:func:`parse` for a command line: ``--help`` prints :func:`usage` and exits 0, a bad
-    argument prints its error on stderr and exits 2 (as argparse does)."""
-    return cli.parse_args(PROG, parse, usage(), argv)
+COMMAND = cli.Command(
+    PROG, KEYS, BenchSettings,
+    "Method A's training benchmark (pipeline/btf/fast/bench.py). Settings and their defaults:",
+    what="the bench",
+    notes="Timings are medians of interleaved rounds: compare them as ratios within one run.")
+usage = COMMAND.usage
+parse = COMMAND.parse  # raises ConfigError naming a bad argument (and the closest key)
+parse_args = COMMAND.parse_args  # --help: usage, exit 0; a bad argument: its error, exit 2

@@ -117,23 +117,17 @@ KEYS = {
 }
 
 
-def usage() -> str:
-    return cli.usage(PROG, KEYS, ProfileSettings(),
-                     "Where a training step's time goes. Settings and their defaults:")
+COMMAND = cli.Command(PROG, KEYS, ProfileSettings,
+                      "Where a training step's time goes. Settings and their defaults:",
+                      what="the profiler")
 
 
 def parse(argv: list[str]) -> ProfileSettings:
     """:class:`ProfileSettings` from ``key=value`` arguments (``threads`` and ``setups`` one
     value or a list); raises :class:`~pipeline.core.errors.ConfigError` naming a bad one."""
-    settings = cli.parse(argv, KEYS, ProfileSettings, "the profiler")
+    settings = COMMAND.parse(argv)
     return replace(settings, threads=tuple(_items(settings.threads)),
                    setups=tuple(_items(settings.setups)))
-
-
-def parse_args(argv: list[str] | None = None) -> ProfileSettings:
-    """:func:`parse` for a command line: ``--help`` prints :func:`usage` and exits 0, a bad
-    argument prints its error and exits 2."""
-    return cli.parse_args(PROG, parse, usage(), argv)
 
 
 def steps_of(recipe: dict) -> int:
@@ -340,7 +334,7 @@ def main(argv: list[str] | None = None) -> dict:
         row = time_steps(spec["recipe"], spec["threads"], spec["steps"])
         print(json.dumps(row))
         return row
-    settings = parse_args(argv)
+    settings = COMMAND.parse_args(argv, parse)
     setups = list(settings.setups)
     figures = {}
     for threads in settings.threads:

@@ -55,21 +55,10 @@ KEYS = {
 }
 
 
-def usage() -> str:
-    return cli.usage(PROG, KEYS, RenderBenchSettings(),
-                     "The cost of a Fig. 8 frame per material. Settings and their defaults:")
-
-
-def parse(argv: list[str]) -> RenderBenchSettings:
-    """:class:`RenderBenchSettings` from ``key=value`` arguments; raises
-    :class:`~pipeline.core.errors.ConfigError` naming a bad one."""
-    return cli.parse(argv, KEYS, RenderBenchSettings, "the render benchmark")
-
-
-def parse_args(argv: list[str] | None = None) -> RenderBenchSettings:
-    """:func:`parse` for a command line: ``--help`` prints :func:`usage` and exits 0, a bad
-    argument prints its error and exits 2."""
-    return cli.parse_args(PROG, parse, usage(), argv)
+COMMAND = cli.Command(PROG, KEYS, RenderBenchSettings,
+                      "The cost of a Fig. 8 frame per material. Settings and their defaults:",
+                      what="the render benchmark")
+parse = COMMAND.parse  # raises ConfigError naming a bad argument (and the closest key)
 
 
 def materials(crop: int, folder: Path, seed: int = 0) -> dict:
@@ -107,7 +96,7 @@ def materials(crop: int, folder: Path, seed: int = 0) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     """Render each material once and print its figures; returns each one's render stats."""
-    args = parse_args(argv)  # before torch and Embree load: a bad argument is answered at once
+    args = COMMAND.parse_args(argv)  # before torch and Embree load: errors come at once
     from pipeline.render.engine import render_with_stats
     from pipeline.render.scene import default_scene
 
