@@ -123,6 +123,7 @@ def test_best_at_budget_matches_the_runs_and_never_pools_two_recipes(tmp_path,
     assert "Neural BTF (float32) has 1 point (no curve)" in summary
     reach = pd.read_csv(out / "rate_distortion_reach_synthetic_plain_weave.csv")
     assert len(reach.columns) == 2 + 4 and set(reach["dataset"]) == {DATASET}
+    assert not (out / "rate_distortion_winners.csv").exists()  # one dataset: its budget table
 
 
 def test_each_dataset_gets_its_own_bytes_to_reach_table(tmp_path):
@@ -142,6 +143,34 @@ def test_each_dataset_gets_its_own_bytes_to_reach_table(tmp_path):
         reach = pd.read_csv(tmp_path / f"rate_distortion_reach_{name}.csv")
         assert len(reach.columns) == 2 + 4 and not reach.isna().any().any()
         assert f"Bytes to reach an RMSE: {name}" in text
+
+
+def test_the_winners_table_reads_the_budget_table_across_datasets():
+    """Two datasets, different winners at 128 KB: each column is its dataset's row of the
+    budget table (the best, its RMSE, the other method's gap and verdict)."""
+    from pipeline.btf.rate_distortion import best_at_budgets, winners
+
+    def point(dataset, method, setting, nbytes, rmses):
+        return {"dataset": dataset, "method": method, "arm": method, "line": method,
+                "setting": setting, "label": f"{method} {setting}", "bytes": nbytes,
+                "rmse_mean": np.mean(rmses), "rmse_std": np.std(rmses, ddof=1),
+                "n": len(rmses)}
+
+    points = pd.DataFrame([
+        point("a", "pca", "c = 1", 100_000, [0.050, 0.051]),
+        point("a", "clustered", "k = 500", 120_000, [0.030, 0.031]),
+        point("b", "pca", "c = 1", 100_000, [0.020, 0.021]),
+        point("b", "clustered", "k = 500", 120_000, [0.030, 0.031]),
+        point("b", "clustered", "k = 5000", 400_000, [0.010, 0.0102]),
+    ])
+    budget = best_at_budgets(points, budgets_kb=(64, 128, 512))
+    table = winners(budget).set_index("budget [KB]")
+    assert list(table.columns) == ["a", "b"]
+    assert (table.loc[64] == "nothing fits").all()
+    assert table.loc[128, "a"] == ("clustered k = 500: 0.0305; pca c = 1 +0.0200 "
+                                   "(wins beyond seed noise)")
+    assert table.loc[128, "b"].startswith("pca c = 1: 0.0205; clustered k = 500 +0.0100")
+    assert table.loc[512, "b"].startswith("clustered k = 5000: 0.0101; pca c = 1")
 
 
 def test_without_runs_the_section_says_what_to_run(tmp_path):

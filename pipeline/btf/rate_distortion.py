@@ -187,6 +187,26 @@ def best_at_budgets(table: pd.DataFrame, budgets_kb=BUDGETS_KB, alpha: float = 0
     return table
 
 
+def winners(budget: pd.DataFrame) -> pd.DataFrame:
+    """The budget table (:func:`best_at_budgets`) read across datasets: one row per budget,
+    one column per dataset, each cell the best point with its mean RMSE, and how far the
+    best point of another method is behind it with the verdict."""
+    def cell(row) -> str:
+        if pd.isna(row.get("method")):
+            return "nothing fits"
+        text = f"{row['best']}: {row['RMSE mean']:.4f}"
+        if pd.isna(row.get("best other method")):
+            return f"{text} ({row['verdict']})"
+        return (f"{text}; {row['best other method']} +{row['difference']:.4f} "
+                f"({row['verdict']})")
+
+    cells = budget.assign(cell=budget.apply(cell, axis=1))
+    table = cells.pivot(index="budget [KB]", columns="dataset", values="cell")
+    table = table[list(dict.fromkeys(budget["dataset"]))].reset_index()
+    table.columns.name = None
+    return table
+
+
 def rmse_levels(group: pd.DataFrame, count: int = N_LEVELS) -> list[float]:
     """``count`` RMSE levels between a dataset's worst and best mean RMSE (geometric,
     endpoints left out), at two significant digits."""
@@ -282,8 +302,9 @@ def missing(table: pd.DataFrame) -> list[str]:
 def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05,
             budgets_kb=BUDGETS_KB) -> str:
     """Write ``rate_distortion_<dataset>.png``, ``rate_distortion_points.csv``,
-    ``rate_distortion_budget.{md,csv,tex}`` and ``rate_distortion_reach_<dataset>.{md,csv,tex}`` into
-    ``out`` from labelled runs; return the Markdown section."""
+    ``rate_distortion_budget.{md,csv,tex}``, ``rate_distortion_winners.{md,csv,tex}`` (with
+    more than one dataset) and ``rate_distortion_reach_<dataset>.{md,csv,tex}`` into ``out``
+    from labelled runs; return the Markdown section."""
     table = points(runs)
     if table.empty:
         return ("## Rate-distortion\n\nNo run with `rmse` and `bytes_total`: "
