@@ -7,6 +7,9 @@ Tests import from here (``from helpers import compose_config``): pytest's defaul
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
@@ -15,6 +18,7 @@ from omegaconf import DictConfig
 ROOT = Path(__file__).resolve().parents[1]  # the repository
 CONF_DIR = ROOT / "conf"
 SHARED = ROOT.parent / "shared"  # real datasets, where the checkout has them
+PACKAGE = ROOT / "pipeline"
 
 
 def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictConfig:
@@ -58,3 +62,24 @@ def exits_before_torch(calls: list[tuple[str, list[str]]]) -> tuple[list, bool, 
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout.strip().splitlines()[-1])
     return result["codes"], result["torch"], done.stderr
+
+
+def module_name(path: Path) -> str:
+    """The dotted name of a module file under the repository (``pipeline/a/__init__.py``:
+    ``pipeline.a``)."""
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+# Every module of the package, from the files on disk (``pipeline/__main__.py`` included).
+PIPELINE_MODULES = {module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def fresh_python(code: str, timeout: float = 300) -> dict:
+    """Run ``code`` in a new interpreter (this one's environment); it prints one JSON line."""
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                          text=True, timeout=timeout)
+    assert done.returncode == 0, done.stderr[-4000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])

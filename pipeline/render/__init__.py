@@ -10,7 +10,7 @@
   with hard shadows and jittered samples per pixel; the conventions (directions, uv to
   texel, units) are in its docstring.
 
-A library below the methods: it imports no method package (``tests/test_layout.py``
+A library below the methods: it imports no method package (``tests/test_imports.py``
 checks it). A method's materials, render stages and reports live in its own package
 (method A's in :mod:`pipeline.btf.render`).
 
