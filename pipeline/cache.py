@@ -28,13 +28,14 @@ that a mistyped setting is answered at once.
 
 from __future__ import annotations
 
-import difflib
 import sys
 import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from pipeline.core.cli import closest
 
 if TYPE_CHECKING:
     from pipeline.core.cache import StageCache
@@ -339,11 +340,6 @@ def usage() -> str:
     return "\n".join(lines)
 
 
-def _closest(word: str, choices) -> str:
-    found = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.5)
-    return f" (did you mean {found[0]}?)" if found else ""
-
-
 def parse(argv: list[str]) -> Options:
     """Read ``argv`` (without the program's name) into :class:`Options`; a
     :class:`UsageError` names the first word at fault and, for a misspelt key or
@@ -357,7 +353,7 @@ def parse(argv: list[str]) -> Options:
             flag, _, attached = word.partition("=")
             key = OLD_FLAGS.get(flag)
             if key is None:
-                hint = _closest(flag.lstrip("-").replace("-", "_"), SETTINGS)
+                hint = closest(flag, list(SETTINGS))
                 raise UsageError(f"unknown option {flag}{hint}; settings are key=value: "
                                  f"{', '.join(SETTINGS)}")
             if SETTINGS[key].boolean:
@@ -371,7 +367,7 @@ def parse(argv: list[str]) -> Options:
             word = f"{key}={value}"
         if "=" not in word:
             if word not in COMMANDS:
-                raise UsageError(f"unknown command {word!r}{_closest(word, COMMANDS)}; "
+                raise UsageError(f"unknown command {word!r}{closest(word, list(COMMANDS))}; "
                                  f"commands: {', '.join(COMMANDS)}")
             if command is not None:
                 raise UsageError(f"two commands, {command} and {word}: give one")
@@ -379,7 +375,7 @@ def parse(argv: list[str]) -> Options:
             continue
         key, _, value = word.partition("=")
         if key not in SETTINGS:
-            raise UsageError(f"unknown setting {key!r}{_closest(key, SETTINGS)}; settings: "
+            raise UsageError(f"unknown setting {key!r}{closest(key, list(SETTINGS))}; settings: "
                              f"{', '.join(SETTINGS)}")
         if key in given:
             raise UsageError(f"{key} is given twice ({key}={given[key]} and {word})")
