@@ -173,6 +173,27 @@ def test_the_winners_table_reads_the_budget_table_across_datasets():
     assert table.loc[512, "b"].startswith("clustered k = 5000: 0.0101; pca c = 1")
 
 
+def test_a_float32_copy_better_by_rounding_loses_to_its_float16_model():
+    """A float32 model 1e-6 below its float16 copy, at twice the bytes, is neither on the
+    front nor the best at a budget that holds both; 2e-5 below, it is both."""
+    from pipeline.btf.rate_distortion import best_at_budgets, pareto_front
+
+    def table(gain):
+        return pd.DataFrame([
+            {"dataset": "a", "method": "neural_btf", "label": "Neural BTF (float16) latent 4",
+             "bytes": 127_918, "rmse_mean": 0.0173, "rmse_std": np.nan, "n": 1},
+            {"dataset": "a", "method": "neural_btf", "label": "Neural BTF (float32) latent 4",
+             "bytes": 255_836, "rmse_mean": 0.0173 - gain, "rmse_std": np.nan, "n": 1},
+            {"dataset": "a", "method": "pca", "label": "PCA (float16) c = 1",
+             "bytes": 100_000, "rmse_mean": 0.05, "rmse_std": np.nan, "n": 1}])
+
+    rounding, real = table(1e-6), table(2e-5)
+    assert list(pareto_front(rounding)) == [True, False, True]
+    assert list(pareto_front(real)) == [True, True, True]
+    assert best_at_budgets(rounding, budgets_kb=(512,)).loc[0, "bytes"] == 127_918
+    assert best_at_budgets(real, budgets_kb=(512,)).loc[0, "bytes"] == 255_836
+
+
 def test_without_runs_the_section_says_what_to_run(tmp_path):
     from pipeline.btf.rate_distortion import section
 

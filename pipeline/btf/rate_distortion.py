@@ -34,6 +34,10 @@ N_LEVELS = 4  # RMSE levels of the bytes-to-reach table, per dataset
 AXES = {"pca": ["method.n_components", "method.match_clustered_k"],
         "clustered": ["method.k"], "neural_btf": ["btf.model.latent"]}
 METHOD_NAMES = {"pca": "PCA", "clustered": "clustered", "neural_btf": "Neural BTF"}
+# Mean RMSEs closer than this are a tie, which the fewer bytes win (the front and the best
+# at a budget): a model stored in float16 differs from its float32 copy by rounding alone,
+# a few 1e-6 of RMSE either way (docs/results.md), and at twice the bytes that is no win.
+RMSE_TIE = 1e-5
 
 
 def _num(series: pd.Series) -> pd.Series:
@@ -108,17 +112,26 @@ def points(runs: pd.DataFrame) -> pd.DataFrame:
     return table.sort_values(["dataset", "line", "bytes"]).reset_index(drop=True)
 
 
-def pareto_front(points_of_dataset: pd.DataFrame) -> pd.Series:
-    """True for the points no other point beats in both bytes and mean RMSE (fewer or
-    equal bytes and a lower RMSE, or fewer bytes and an equal one)."""
+def pareto_front(points_of_dataset: pd.DataFrame, tie: float = RMSE_TIE) -> pd.Series:
+    """True for the points no other point beats in both bytes and mean RMSE: going up in
+    bytes, a point is on the front when its mean RMSE is lower than every smaller point's
+    by more than ``tie`` (:data:`RMSE_TIE`)."""
     ordered = points_of_dataset.sort_values(["bytes", "rmse_mean"])
     best = np.inf
     front = pd.Series(False, index=points_of_dataset.index)
     for index, rmse in ordered["rmse_mean"].items():
-        if rmse < best:
+        if rmse < best - tie:
             front[index] = True
             best = rmse
     return front
+
+
+def lowest(points_of_dataset: pd.DataFrame, tie: float = RMSE_TIE) -> pd.Series:
+    """The point with the lowest mean RMSE, the one with the fewest bytes among those within
+    ``tie`` of it (:data:`RMSE_TIE`)."""
+    near = points_of_dataset[points_of_dataset["rmse_mean"]
+                             <= points_of_dataset["rmse_mean"].min() + tie]
+    return near.loc[near["bytes"].idxmin()]
 
 
 def welch_interval(a: pd.Series, b: pd.Series, alpha: float = 0.05
@@ -142,7 +155,7 @@ def welch_interval(a: pd.Series, b: pd.Series, alpha: float = 0.05
 def best_at_budgets(table: pd.DataFrame, budgets_kb=BUDGETS_KB, alpha: float = 0.05
                     ) -> pd.DataFrame:
     """Per dataset and budget: the point with the lowest mean RMSE among those with at most
-    the budget's bytes, and the best point of every other method within the budget, with
+    the budget's bytes (:func:`lowest`: a tie goes to the fewer bytes), and the best point of every other method within the budget, with
     the difference of means, its Welch interval and whether the win is beyond seed noise
     (the interval excludes 0)."""
     rows = []
@@ -158,7 +171,7 @@ def best_at_budgets(table: pd.DataFrame, budgets_kb=BUDGETS_KB, alpha: float = 0
                                f"{smallest['bytes']} B)")
                 rows.append(row)
                 continue
-            best = fits.loc[fits["rmse_mean"].idxmin()]
+            best = lowest(fits)
             row.update({"best": best["label"], "method": best["method"],
                         "bytes": int(best["bytes"]), "RMSE mean": best["rmse_mean"],
                         "RMSE std": best["rmse_std"], "seeds": int(best["n"])})
@@ -167,7 +180,7 @@ def best_at_budgets(table: pd.DataFrame, budgets_kb=BUDGETS_KB, alpha: float = 0
                 row["verdict"] = "no other method fits this budget"
                 rows.append(row)
                 continue
-            other = others.loc[others["rmse_mean"].idxmin()]
+            other = lowest(others)
             row.update({"best other method": other["label"], "its bytes": int(other["bytes"]),
                         "its RMSE mean": other["rmse_mean"], "its RMSE std": other["rmse_std"],
                         "its seeds": int(other["n"]),
@@ -314,7 +327,8 @@ def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05,
              "One point per recipe (its seeds pooled: mean ± std, the error bars), one line "
              "per method and storage types (PCA over its components, clustered over k, Neural "
              "BTF over its latent size), every model scored as stored. Circled and dashed: "
-             "the Pareto front. Points: `rate_distortion_points.csv`.\n"]
+             f"the Pareto front (mean RMSEs within {RMSE_TIE:g} are a tie, which the fewer "
+             "bytes win). Points: `rate_distortion_points.csv`.\n"]
     for dataset, group in table.groupby("dataset", sort=False):
         path = plot(group, dataset, out / f"rate_distortion_{safe_stem(dataset)}.png",
                     budgets_kb)
@@ -323,7 +337,8 @@ def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05,
     parts.append(write_table(
         budget, out, "rate_distortion_budget", "Best model at a byte budget",
         f"best: the lowest mean RMSE among the points with at most the budget's bytes (KB = "
-        f"1024 B). best other method: the best point of another method within the budget; "
+        f"1024 B; within {RMSE_TIE:g} of it, the fewest bytes). best other method: the best "
+        f"point of another method within the budget; "
         f"difference = its mean RMSE - the best's, with a {100 * (1 - alpha):g} % Welch "
         f"interval over the seeds of both; 'wins beyond seed noise' when that interval "
         f"excludes 0. Seeds: n of each point."))
