@@ -119,6 +119,10 @@ def test_the_ubo2014_bench_takes_a_command_and_key_value_settings():
         ubo2014_bench.parse(["info"])
     with pytest.raises(ConfigError, match="crop: settings of bench, not of info"):
         ubo2014_bench.parse(["info", "file=a.btf", "crop=[0,0,1,1]"])
+    # components and dtype describe the file bench writes: with file= they would be ignored
+    with pytest.raises(ConfigError, match="components, dtype: settings of the file bench"):
+        ubo2014_bench.parse(["bench", "file=a.btf", "dtype=float32", "components=4"])
+    assert ubo2014_bench.parse(["bench", "file=a.btf", "crop=[0,0,1,1]"]).file == "a.btf"
 
 
 def test_the_ubo2014_info_command_describes_a_file(tmp_path, capsys):
