@@ -126,6 +126,16 @@ def test_best_at_budget_matches_the_runs_and_never_pools_two_recipes(tmp_path,
     assert not (out / "rate_distortion_winners.csv").exists()  # one dataset: its budget table
 
 
+def test_the_budgets_are_a_setting_of_the_tables_command(tmp_path, mlflow_template, settings):
+    mlflow_template(tmp_path)
+    _log_points(tmp_path)
+    settings.budgets_kb = [90, 1000]
+    out = build_tables(tmp_path, settings)
+    budget = pd.read_csv(out / "rate_distortion_budget.csv").set_index("budget [KB]")
+    assert list(budget.index) == [90, 1000]
+    assert budget.loc[90, "bytes"] == 87_494  # Neural BTF latent 2 (lr = 0.01) alone fits
+
+
 def test_each_dataset_gets_its_own_bytes_to_reach_table(tmp_path):
     """Two datasets with different RMSE ranges: each table has its own four levels and no
     empty cells (one table of both would have eight columns, half of them empty)."""

@@ -28,7 +28,7 @@ from matplotlib.figure import Figure
 from pipeline.core.recipe import RECIPE_TAG, recipe_suffixes
 from pipeline.core.report import param, safe_stem, save_figure, write_file, write_table
 
-BUDGETS_KB = (64, 128, 256, 512)  # KB = 1024 bytes, as Table 1's "ratio (paper)"
+BUDGETS_KB = (64, 128, 256, 512)  # KB = 1024 bytes, as Table 1's; tables.budgets_kb sets them
 N_LEVELS = 4  # RMSE levels of the bytes-to-reach table, per dataset
 # The size setting of each method: what a line varies (left out of its recipe comparison).
 AXES = {"pca": ["method.n_components", "method.match_clustered_k"],

@@ -111,7 +111,8 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
         files = draw_fig7(runs, OmegaConf.to_container(settings.fig7.pairs), out)
         found.append("## Fig. 7\n\n" + "\n\n".join(f"![{p.stem}]({p.name})" for p in files
                                                    if p.suffix == ".png") + "\n")
-    found.append(rate_distortion.section(runs, out, alpha=float(settings.alpha)))
+    found.append(rate_distortion.section(runs, out, alpha=float(settings.alpha),
+                                         budgets_kb=tuple(settings.budgets_kb)))
     return found
 
 
