@@ -1,5 +1,7 @@
 """`python -m pipeline.tables` on a few hand-made MLflow runs with known numbers."""
 
+import warnings
+
 import mlflow
 import pandas as pd
 import pytest
@@ -300,3 +302,16 @@ def test_the_summary_page_shows_its_tables_and_figures_in_one_file(tmp_path, set
     assert "<table>" in html and "src=\"rmse_vs_k.png\"" not in html
     [png] = re.findall(r'alt="rmse_vs_k" src="data:image/png;base64,([^"]+)"', html)
     assert base64.b64decode(png) == (out / "rmse_vs_k.png").read_bytes()
+
+
+def test_rmse_versus_k_says_so_when_it_has_nothing_to_draw(tmp_path):
+    """A store of PCA runs alone: no empty figure (and no matplotlib warning), a line."""
+    from pipeline.btf.report import plot_rmse_vs_k
+
+    runs = pd.DataFrame({"dataset": ["d"], "params.method.name": ["pca"], "family": ["f"],
+                         "model": ["PCA"], "k": [128], "metrics.rmse": [0.1]})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        section = plot_rmse_vs_k(runs, tmp_path)
+    assert "No clustered or Neural BTF run" in section
+    assert not (tmp_path / "rmse_vs_k.png").exists()

@@ -148,6 +148,8 @@ def plot_rmse_vs_k(runs: pd.DataFrame, out: Path) -> str:
         for name, runs_of_model in neural.groupby("model"):
             ax.axhline(runs_of_model["metrics.rmse"].mean(), linestyle="--",
                        label=f"{dataset} {name}")
+    if not ax.get_legend_handles_labels()[0]:
+        return "## RMSE versus k\n\nNo clustered or Neural BTF run to draw.\n"
     ax.set_xlabel("k (clusters)")
     ax.set_ylabel("RMSE (normalized)")
     ax.set_xscale("log")
