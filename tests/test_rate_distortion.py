@@ -54,17 +54,17 @@ def settings():
     return s
 
 
-def _log_points(runs_dir) -> None:
+def _log_points(runs_dir, material: str = "plain_weave") -> None:
     experiment_id = init_store(runs_dir, "rate_distortion")
     for i, (_, settings, components, total, rmses) in enumerate(POINTS):
         for seed, rmse in enumerate(rmses):
-            params = {**BASE, **settings, "seed": seed}
+            params = {**BASE, **settings, "seed": seed, "dataset.synthetic.material": material}
             if components is not None:
                 params["method.n_components"] = components
             metrics = {"rmse": rmse, "bytes_total": total, "rmse_mean_abrdf": 0.2}
             if components is not None:
                 metrics["n_components"] = components
-            tags = {"cache.evaluate": f"point{i}-seed{seed}", **recipe_tags(params)}
+            tags = {"cache.evaluate": f"{material}-point{i}-seed{seed}", **recipe_tags(params)}
             with mlflow.start_run(experiment_id=experiment_id, tags=tags):
                 mlflow.log_params(params)
                 mlflow.log_metrics(metrics)
@@ -134,6 +134,19 @@ def test_the_budgets_are_a_setting_of_the_tables_command(tmp_path, mlflow_templa
     budget = pd.read_csv(out / "rate_distortion_budget.csv").set_index("budget [KB]")
     assert list(budget.index) == [90, 1000]
     assert budget.loc[90, "bytes"] == 87_494  # Neural BTF latent 2 (lr = 0.01) alone fits
+
+
+def test_two_datasets_get_a_winners_table(tmp_path, mlflow_template, settings):
+    mlflow_template(tmp_path)
+    _log_points(tmp_path, "plain_weave")
+    _log_points(tmp_path, "knit")
+    out = build_tables(tmp_path, settings)
+    table = pd.read_csv(out / "rate_distortion_winners.csv").set_index("budget [KB]")
+    budget = pd.read_csv(out / "rate_distortion_budget.csv")
+    assert sorted(table.columns) == sorted(set(budget["dataset"])) and len(table.columns) == 2
+    for _, row in budget[budget["budget [KB]"] == 256].iterrows():
+        assert table.loc[256, row["dataset"]].startswith(f"{row['best']}: ")
+    assert "## Who wins at a budget, per dataset" in (out / "summary.md").read_text()
 
 
 def test_each_dataset_gets_its_own_bytes_to_reach_table(tmp_path):

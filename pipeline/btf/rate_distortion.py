@@ -342,6 +342,12 @@ def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05,
         f"difference = its mean RMSE - the best's, with a {100 * (1 - alpha):g} % Welch "
         f"interval over the seeds of both; 'wins beyond seed noise' when that interval "
         f"excludes 0. Seeds: n of each point."))
+    if table["dataset"].nunique() > 1:
+        parts.append(write_table(
+            winners(budget), out, "rate_distortion_winners", "Who wins at a budget, per dataset",
+            "Each cell: the best point within the budget and its mean RMSE; then the best "
+            "point of another method, how much higher its mean RMSE is, and the verdict of "
+            "the budget table."))
     parts += reach_sections(table, out)
     notes = missing(table)
     parts.append("### Missing from the rate-distortion grid\n\n" + (
