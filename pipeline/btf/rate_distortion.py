@@ -35,8 +35,9 @@ AXES = {"pca": ["method.n_components", "method.match_clustered_k"],
         "clustered": ["method.k"], "neural_btf": ["btf.model.latent"]}
 METHOD_NAMES = {"pca": "PCA", "clustered": "clustered", "neural_btf": "Neural BTF"}
 # Mean RMSEs closer than this are a tie, which the fewer bytes win (the front and the best
-# at a budget): a model stored in float16 differs from its float32 copy by rounding alone,
-# a few 1e-6 of RMSE either way (docs/results.md), and at twice the bytes that is no win.
+# at a budget): a model stored in float16 differs from its float32 copy by rounding alone
+# (far below this; docs/results.md has the measured gaps), and at twice the bytes that is
+# no win.
 RMSE_TIE = 1e-5
 
 
@@ -155,9 +156,9 @@ def welch_interval(a: pd.Series, b: pd.Series, alpha: float = 0.05
 def best_at_budgets(table: pd.DataFrame, budgets_kb=BUDGETS_KB, alpha: float = 0.05
                     ) -> pd.DataFrame:
     """Per dataset and budget: the point with the lowest mean RMSE among those with at most
-    the budget's bytes (:func:`lowest`: a tie goes to the fewer bytes), and the best point of every other method within the budget, with
-    the difference of means, its Welch interval and whether the win is beyond seed noise
-    (the interval excludes 0)."""
+    the budget's bytes (:func:`lowest`: a tie goes to the fewer bytes), and the best point
+    of every other method within the budget, with the difference of means, its Welch
+    interval and whether the win is beyond seed noise (the interval excludes 0)."""
     rows = []
     level = f"{100 * (1 - alpha):g} %"
     for dataset, group in table.groupby("dataset", sort=False):

@@ -80,7 +80,8 @@ def parse(argv: list[str]) -> UBO2014BenchSettings:
             raise ConfigError("info needs file=PATH, the .btf file to describe")
         if others := sorted(set(given) - {"file"}):
             raise ConfigError(f"{', '.join(others)}: settings of bench, not of info")
-    elif given.get("file") is not None and (written := sorted({"components", "dtype"} & set(given))):
+    elif given.get("file") is not None and {"components", "dtype"} & set(given):
+        written = sorted({"components", "dtype"} & set(given))
         raise ConfigError(f"{', '.join(written)}: settings of the file bench writes, but "
                           f"file= names one to read: give one or the other")
     if "crop" in given:
