@@ -149,17 +149,23 @@ def test_two_datasets_get_a_winners_table(tmp_path, mlflow_template, settings):
     assert "## Who wins at a budget, per dataset" in (out / "summary.md").read_text()
 
 
+def _point(dataset, method, setting, nbytes, rmses, line=None) -> dict:
+    """A row of the points table (:func:`pipeline.btf.rate_distortion.points`) from the
+    RMSE of each seed; ``line`` (also the arm) defaults to the method."""
+    line = line or method
+    return {"dataset": dataset, "method": method, "arm": line, "line": line,
+            "setting": setting, "label": f"{line} {setting}", "size": None, "bytes": nbytes,
+            "rmse_mean": np.mean(rmses),
+            "rmse_std": np.std(rmses, ddof=1) if len(rmses) > 1 else np.nan,
+            "n": len(rmses), "seeds": ",".join(map(str, range(len(rmses))))}
+
+
 def test_each_dataset_gets_its_own_bytes_to_reach_table(tmp_path):
     """Two datasets with different RMSE ranges: each table has its own four levels and no
     empty cells (one table of both would have eight columns, half of them empty)."""
     from pipeline.btf.rate_distortion import reach_sections
 
-    def point(dataset, setting, size, nbytes, rmse):
-        return {"dataset": dataset, "method": "pca", "arm": "PCA (float16)",
-                "line": "PCA (float16)", "setting": setting, "size": size, "bytes": nbytes,
-                "rmse_mean": rmse, "rmse_std": np.nan, "n": 1, "seeds": "0"}
-
-    points = [point(name, f"c = {c}", c, 100_000 * c, scale / c)
+    points = [_point(name, "pca", f"c = {c}", 100_000 * c, [scale / c], "PCA (float16)")
               for name, scale in (("a", 0.1), ("b", 0.03)) for c in (1, 2, 4, 8, 16)]
     text = "\n".join(reach_sections(pd.DataFrame(points), tmp_path))
     for name in ("a", "b"):
@@ -173,18 +179,12 @@ def test_the_winners_table_reads_the_budget_table_across_datasets():
     budget table (the best, its RMSE, the other method's gap and verdict)."""
     from pipeline.btf.rate_distortion import best_at_budgets, winners
 
-    def point(dataset, method, setting, nbytes, rmses):
-        return {"dataset": dataset, "method": method, "arm": method, "line": method,
-                "setting": setting, "label": f"{method} {setting}", "bytes": nbytes,
-                "rmse_mean": np.mean(rmses), "rmse_std": np.std(rmses, ddof=1),
-                "n": len(rmses)}
-
     points = pd.DataFrame([
-        point("a", "pca", "c = 1", 100_000, [0.050, 0.051]),
-        point("a", "clustered", "k = 500", 120_000, [0.030, 0.031]),
-        point("b", "pca", "c = 1", 100_000, [0.020, 0.021]),
-        point("b", "clustered", "k = 500", 120_000, [0.030, 0.031]),
-        point("b", "clustered", "k = 5000", 400_000, [0.010, 0.0102]),
+        _point("a", "pca", "c = 1", 100_000, [0.050, 0.051]),
+        _point("a", "clustered", "k = 500", 120_000, [0.030, 0.031]),
+        _point("b", "pca", "c = 1", 100_000, [0.020, 0.021]),
+        _point("b", "clustered", "k = 500", 120_000, [0.030, 0.031]),
+        _point("b", "clustered", "k = 5000", 400_000, [0.010, 0.0102]),
     ])
     budget = best_at_budgets(points, budgets_kb=(64, 128, 512))
     table = winners(budget).set_index("budget [KB]")
@@ -203,12 +203,10 @@ def test_a_float32_copy_better_by_rounding_loses_to_its_float16_model():
 
     def table(gain):
         return pd.DataFrame([
-            {"dataset": "a", "method": "neural_btf", "label": "Neural BTF (float16) latent 4",
-             "bytes": 127_918, "rmse_mean": 0.0173, "rmse_std": np.nan, "n": 1},
-            {"dataset": "a", "method": "neural_btf", "label": "Neural BTF (float32) latent 4",
-             "bytes": 255_836, "rmse_mean": 0.0173 - gain, "rmse_std": np.nan, "n": 1},
-            {"dataset": "a", "method": "pca", "label": "PCA (float16) c = 1",
-             "bytes": 100_000, "rmse_mean": 0.05, "rmse_std": np.nan, "n": 1}])
+            _point("a", "neural_btf", "latent 4", 127_918, [0.0173], "Neural BTF (float16)"),
+            _point("a", "neural_btf", "latent 4", 255_836, [0.0173 - gain],
+                   "Neural BTF (float32)"),
+            _point("a", "pca", "c = 1", 100_000, [0.05], "PCA (float16)")])
 
     rounding, real = table(1e-6), table(2e-5)
     assert list(pareto_front(rounding)) == [True, False, True]

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-import pipeline.btf.synthetic_dataset as synthetic_btf
+import pipeline.btf.synthetic_dataset as synthetic_dataset
 from pipeline.btf.materials import GAP, MATERIALS, WARP, WEFT
 from pipeline.btf.synthetic import SyntheticBTF, material_sheet
 from pipeline.btf.synthetic_dataset import write_synthetic_btf
@@ -300,8 +300,8 @@ def test_killed_writer_leaves_no_dataset(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return encode(*args, **kwargs)
 
-    encode = synthetic_btf.encode_btf_image
-    monkeypatch.setattr(synthetic_btf, "encode_btf_image", failing_encode)
+    encode = synthetic_dataset.encode_btf_image
+    monkeypatch.setattr(synthetic_dataset, "encode_btf_image", failing_encode)
     with pytest.raises(KeyboardInterrupt):
         write_synthetic_btf(tmp_path / "btf", SIZE, 0, views=VIEWS)
     assert list(tmp_path.iterdir()) == []

@@ -75,13 +75,13 @@ def parse(argv: list[str]) -> UBO2014BenchSettings:
     raises :class:`ConfigError` naming a bad one."""
     command, rest = cli.command_of(argv, list(COMMANDS))
     given = cli.read(rest, KEYS, f"the {command} command")
+    written = sorted({"components", "dtype"} & set(given))  # settings of the file bench writes
     if command == "info":
         if given.get("file") is None:
             raise ConfigError("info needs file=PATH, the .btf file to describe")
         if others := sorted(set(given) - {"file"}):
             raise ConfigError(f"{', '.join(others)}: settings of bench, not of info")
-    elif given.get("file") is not None and {"components", "dtype"} & set(given):
-        written = sorted({"components", "dtype"} & set(given))
+    elif given.get("file") is not None and written:
         raise ConfigError(f"{', '.join(written)}: settings of the file bench writes, but "
                           f"file= names one to read: give one or the other")
     if "crop" in given:
