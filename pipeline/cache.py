@@ -35,8 +35,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from pipeline.core.cli import closest
-
 if TYPE_CHECKING:
     from pipeline.core.cache import StageCache
 
@@ -340,6 +338,14 @@ def usage() -> str:
     return "\n".join(lines)
 
 
+def _closest(word: str, choices) -> str:
+    """:func:`pipeline.core.cli.closest`, imported only for a bad word: it loads omegaconf,
+    which a good command line here does not need."""
+    from pipeline.core.cli import closest
+
+    return closest(word, list(choices))
+
+
 def parse(argv: list[str]) -> Options:
     """Read ``argv`` (without the program's name) into :class:`Options`; a
     :class:`UsageError` names the first word at fault and, for a misspelt key or
@@ -353,7 +359,7 @@ def parse(argv: list[str]) -> Options:
             flag, _, attached = word.partition("=")
             key = OLD_FLAGS.get(flag)
             if key is None:
-                hint = closest(flag, list(SETTINGS))
+                hint = _closest(flag, SETTINGS)
                 raise UsageError(f"unknown option {flag}{hint}; settings are key=value: "
                                  f"{', '.join(SETTINGS)}")
             if SETTINGS[key].boolean:
@@ -367,7 +373,7 @@ def parse(argv: list[str]) -> Options:
             word = f"{key}={value}"
         if "=" not in word:
             if word not in COMMANDS:
-                raise UsageError(f"unknown command {word!r}{closest(word, list(COMMANDS))}; "
+                raise UsageError(f"unknown command {word!r}{_closest(word, COMMANDS)}; "
                                  f"commands: {', '.join(COMMANDS)}")
             if command is not None:
                 raise UsageError(f"two commands, {command} and {word}: give one")
@@ -375,7 +381,7 @@ def parse(argv: list[str]) -> Options:
             continue
         key, _, value = word.partition("=")
         if key not in SETTINGS:
-            raise UsageError(f"unknown setting {key!r}{closest(key, list(SETTINGS))}; settings: "
+            raise UsageError(f"unknown setting {key!r}{_closest(key, SETTINGS)}; settings: "
                              f"{', '.join(SETTINGS)}")
         if key in given:
             raise UsageError(f"{key} is given twice ({key}={given[key]} and {word})")
