@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from torch.utils import cpp_extension
 
 from pipeline.btf.fast import kernels
 
@@ -63,10 +62,19 @@ def test_a_failed_build_falls_back_to_torch_ops(tmp_path):
     compiler.write_text(_FAILING_COMPILER)
     compiler.chmod(0o755)
     env = {key: value for key, value in os.environ.items() if key != "PIPELINE_KERNELS"}
-    env |= {"CXX": str(compiler), "TORCH_EXTENSIONS_DIR": str(tmp_path / "extensions"),
-            "TORCH_DONT_CHECK_COMPILER_ABI": "1"}
-    done = subprocess.run([sys.executable, "-c", _FALLBACK_SCRIPT], env=env, cwd=ROOT,
-                          capture_output=True, text=True, timeout=300)
+    env |= {
+        "CXX": str(compiler),
+        "TORCH_EXTENSIONS_DIR": str(tmp_path / "extensions"),
+        "TORCH_DONT_CHECK_COMPILER_ABI": "1",
+    }
+    done = subprocess.run(
+        [sys.executable, "-c", _FALLBACK_SCRIPT],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     lines = done.stdout.splitlines()
     assert lines[:2] == ["available False False", "fused_kernels False"], done.stdout
@@ -82,8 +90,10 @@ def test_kernels_refuse_mismatched_inputs():
         pytest.skip("the fused kernels did not build here (see test_kernels_build)")
     a, w, b, targets = torch.rand(4, 6), torch.rand(3, 6), torch.rand(3), torch.rand(4, 3)
     sums = [torch.zeros(3, 6), torch.zeros(3), torch.zeros(6), torch.zeros((), dtype=torch.float64)]
-    output_layer, relu_backward_ = (torch.ops.neural_btf.output_layer,
-                                    torch.ops.neural_btf.relu_backward_)
+    output_layer, relu_backward_ = (
+        torch.ops.neural_btf.output_layer,
+        torch.ops.neural_btf.relu_backward_,
+    )
     assert output_layer(a, w, b, targets, 1.0, *sums).shape == (4, 6)
     with pytest.raises(RuntimeError, match="shapes do not match"):
         output_layer(a, torch.rand(3, 5), b, targets, 1.0, *sums)
@@ -97,15 +107,26 @@ def test_kernels_refuse_mismatched_inputs():
         relu_backward_(a.half(), a.half(), None, None, None)
 
 
+# kernels.cpp with the plain loops only, its ops registered as torch.ops.neural_btf_plain.
+PLAIN_PREFIX = "pipeline_btf_kernels_plain"
+PLAIN_FLAGS = [*kernels.FLAGS, "-DNEURAL_BTF_GENERIC", "-DNEURAL_BTF_NAMESPACE=neural_btf_plain"]
+
+
+def load_plain_loops() -> bool:
+    """Build (where not built yet) and load the plain loops, after this machine's kernels;
+    whether both loaded. Built as the package builds its kernels (:func:`kernels.load`): in
+    bounded time, and past a lock that a killed build left (tests/test_kernel_lock.py)."""
+    return kernels.available() and kernels.load(PLAIN_PREFIX, PLAIN_FLAGS)
+
+
 @pytest.fixture(scope="module")
 def plain_loops():
     """kernels.cpp built with the plain loops only, as ``torch.ops.neural_btf_plain``."""
-    if not kernels.available():
-        pytest.skip("the fused kernels did not build here (see test_kernels_build)")
-    cpp_extension.load(name=f"pipeline_btf_kernels_plain_{kernels.cpu_key()}",
-                       sources=[str(kernels.SOURCE)], is_python_module=False,
-                       extra_cflags=kernels.FLAGS + ["-DNEURAL_BTF_GENERIC",
-                                                     "-DNEURAL_BTF_NAMESPACE=neural_btf_plain"])
+    if not load_plain_loops():
+        pytest.skip(
+            "the fused kernels or their plain loops did not build here (the warning "
+            "logged says why; see test_kernels_build)"
+        )
     return torch.ops.neural_btf_plain
 
 
@@ -125,8 +146,12 @@ def test_vector_code_matches_plain_loops(plain_loops, rows, hidden, dtype):
     x[torch.arange(rows), 4 + torch.arange(rows) % 5] = 1
     results = []
     for ops in (torch.ops.neural_btf, plain_loops):
-        sums = [torch.zeros(3, hidden), torch.zeros(3), torch.zeros(hidden),
-                torch.zeros((), dtype=torch.float64)]
+        sums = [
+            torch.zeros(3, hidden),
+            torch.zeros(3),
+            torch.zeros(hidden),
+            torch.zeros((), dtype=torch.float64),
+        ]
         g = ops.output_layer(a, w, b, targets, 0.01, *sums)
         g_b, g_x, h = torch.zeros(hidden), torch.zeros(9, hidden), g.clone()
         ops.relu_backward_(h, a, g_b, x, g_x)

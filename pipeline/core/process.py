@@ -86,6 +86,22 @@ def stop_children(leftovers_in: Iterable[str | os.PathLike] = (),
     return workers
 
 
+def kill_tree(pid: int) -> None:
+    """SIGKILL process ``pid`` and its descendants, ``pid`` last. ninja starts each
+    compiler in a process group of its own, which a signal to the build's group would
+    miss; each is stopped first, so that none starts another while the tree is listed."""
+    tree: list[int] = []
+    while found := [p for p in [pid, *descendants(pid)] if p not in tree]:
+        for p in found:
+            if p != os.getpid():
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(p, signal.SIGSTOP)
+        tree += found
+    for p in reversed(tree):
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(p, signal.SIGKILL)
+
+
 def remove_temporaries(folders: Iterable[Path], pids: Iterable[int]) -> list[Path]:
     """Remove the temporary files and folders of processes ``pids`` of this machine:
     names beginning with a dot that carry the pid as their owner (``.tmp-<key>-<random>-
