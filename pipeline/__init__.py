@@ -30,7 +30,7 @@ MLflow reads ``./mlflow.db`` unless told which store)::
     mlflow.set_tracking_uri(pipeline.tracking_uri(runs))
     found = mlflow.search_runs(experiment_names=["btf"], filter_string="status = 'FINISHED'",
                                order_by=["start_time DESC"])
-    run_id = found.loc[found["params.method.name"] == "clustered", "run_id"].iloc[0]
+    run_id = found.loc[found["params.model.name"] == "clustered", "run_id"].iloc[0]
 
     # The MLflow pyfunc model: one query a row (radians) -> columns R, G, B (linear RGB).
     model = mlflow.pyfunc.load_model(f"runs:/{run_id}/compressed_btf")

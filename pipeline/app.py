@@ -32,6 +32,12 @@ def run_job(cfg: DictConfig) -> float | None:
     method = method_of(cfg)
     if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool) or cfg.seed < 0:
         raise ConfigError(f"seed={cfg.seed!r} must be an integer >= 0")
+    threads = cfg.get("threads")
+    if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool)
+                                or threads < 1):
+        raise ConfigError(f"threads={threads!r} must be an integer >= 1 or null (all cores)")
+    if method.check is not None:
+        method.check(cfg)
     if method.prepare is not None:
         method.prepare(cfg)
     # SIGTERM/SIGINT end the run FAILED and the process, wherever they land; its temporary
@@ -54,8 +60,8 @@ def run_job(cfg: DictConfig) -> float | None:
             mlflow.log_metric("memory/peak_rss_mb", process_peak_mb())
         if method.figures is not None:
             log_job_figures(method, cfg, ctx.keys)
-        print_result(method, metrics, run.info.run_id, mlflow.get_artifact_uri(),
-                     cfg.paths.runs)
+        print_result(method, method.name_run(cfg), metrics, run.info.run_id,
+                     mlflow.get_artifact_uri(), cfg.paths.runs)
     headline = [metrics[name] for name in method.headline if name in metrics]
     return headline[0] if headline else None
 
@@ -69,12 +75,12 @@ def log_job_figures(method: Method, cfg: DictConfig, cache_keys: dict[str, str])
             mlflow.log_artifacts(folder, "figures")
 
 
-def print_result(method: Method, metrics: dict[str, float], run_id: str, artifacts: str,
-                 runs_dir) -> None:
+def print_result(method: Method, name: str, metrics: dict[str, float], run_id: str,
+                 artifacts: str, runs_dir) -> None:
     """The job's last words: its headline metrics, its run and where its files are."""
     from urllib.parse import unquote, urlparse
 
-    lines = [f"{method.name}: run {run_id} finished"]
+    lines = [f"{name}: run {run_id} finished"]
     lines += [f"  {name:<26} {metrics[name]:.6g}" for name in method.headline
               if name in metrics]
     uri = urlparse(artifacts)

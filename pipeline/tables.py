@@ -94,7 +94,7 @@ def log_tables(runs_dir, out: Path, settings: DictConfig, run_id: str | None, n_
     return run_id
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="tables")
+@hydra.main(version_base="1.3", config_path="conf", config_name="tables")
 def main(cfg: DictConfig) -> None:
     build_tables(cfg.paths.runs, cfg.tables)
 

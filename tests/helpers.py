@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 ROOT = Path(__file__).resolve().parents[1]  # the repository
-CONF_DIR = ROOT / "conf"
+CONF_DIR = ROOT / "pipeline" / "conf"
 SHARED = ROOT.parent / "shared"  # real datasets, where the checkout has them
 PACKAGE = ROOT / "pipeline"
 

@@ -43,8 +43,8 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
     runs = _runs(cfg)
     assert len(runs) == 2 and {r.info.status for r in runs} == {"FINISHED"}
     run = runs[0]
-    assert run.data.params["method.name"] == "clustered"
-    assert run.data.params["method.k"] == "8"
+    assert run.data.params["model.name"] == "clustered"
+    assert run.data.params["model.k"] == "8"
     assert run.data.params["seed"] == "0"
     assert run.data.params["dataset.name"] == "synthetic"
     for stage in ("load", "crop", "preprocess", "pca", "kmeans", "representatives", "train"):
@@ -84,7 +84,7 @@ def test_changing_train_settings_reuses_the_data_stages(smoke_cfg, caplog):
     run_job(smoke_cfg())
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
-        run_job(smoke_cfg("train.max_steps=10", "method.k=4"))
+        run_job(smoke_cfg("train.max_steps=10", "model.k=4"))
     by_stage = {r.getMessage().split()[1]: r.getMessage() for r in caplog.records}
     for stage in ("load", "crop", "preprocess", "pca"):
         assert " hit " in by_stage[stage], by_stage[stage]
@@ -114,8 +114,8 @@ def test_crop_larger_than_texture_fails_cleanly(smoke_cfg):
 
 
 def test_k_larger_than_texel_count_fails_cleanly(smoke_cfg):
-    cfg = smoke_cfg("method.k=145")
-    _assert_failed_cleanly(cfg, ConfigError, "method.k=145 is larger than the number of texels M=144")
+    cfg = smoke_cfg("model.k=145")
+    _assert_failed_cleanly(cfg, ConfigError, "model.k=145 is larger than the number of texels M=144")
     assert "kmeans" not in {p.parent.name for p in _cache_entries(cfg)}
 
 
@@ -133,10 +133,10 @@ def test_corrupt_image_fails_cleanly_with_its_path(smoke_cfg, tmp_path):
 
 
 def test_pca_baseline_runs_through_the_app(smoke_cfg):
-    cfg = smoke_cfg("method=pca", "method.n_components=3")
+    cfg = smoke_cfg("model=pca", "model.n_components=3")
     rmse = run_job(cfg)
     run = _runs(cfg)[0]
-    assert run.info.status == "FINISHED" and run.data.params["method.name"] == "pca"
+    assert run.info.status == "FINISHED" and run.data.params["model.name"] == "pca"
     assert run.data.metrics["rmse"] == pytest.approx(rmse)
     assert rmse < run.data.metrics["rmse_mean_abrdf"]
     m, n = 144, 9 * 81

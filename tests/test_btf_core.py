@@ -249,11 +249,11 @@ def test_kmeans_pp_takes_its_randomness_and_iterations_from_its_arguments():
 
 @pytest.mark.parametrize(
     "k, match",
-    [(0, r"method\.k=0 must be a positive integer"),
-     (-3, r"method\.k=-3 must be a positive integer"),
-     (2.5, r"method\.k=2\.5 must be a positive integer"),
-     ("8", r"method\.k='8' must be a positive integer"),
-     (6, r"method\.k=6 is larger than the number of texels M=5")],
+    [(0, r"model\.k=0 must be a positive integer"),
+     (-3, r"model\.k=-3 must be a positive integer"),
+     (2.5, r"model\.k=2\.5 must be a positive integer"),
+     ("8", r"model\.k='8' must be a positive integer"),
+     (6, r"model\.k=6 is larger than the number of texels M=5")],
 )
 def test_check_k_names_the_bad_value(k, match):
     """Catches a bad k accepted or reported without the value and the setting's name."""
@@ -265,7 +265,7 @@ def test_check_k_accepts_the_edges_and_kmeans_pp_checks_k():
     """Catches k = 1 or k = M refused, or kmeans_pp running with a k it should refuse."""
     check_k(1, 5)
     check_k(5, 5)
-    with pytest.raises(ConfigError, match=r"method\.k=4 is larger .* M=3"):
+    with pytest.raises(ConfigError, match=r"model\.k=4 is larger .* M=3"):
         kmeans_pp(np.zeros((3, 2), np.float32), 4, seed=0)
 
 
@@ -319,9 +319,9 @@ def _train_arguments(monkeypatch, runs, method: str, run_training: bool = False)
     from pipeline.core.stage import Context
 
     # Two views (N = 2 x 81 directions) keep generating the built-in BTF quick.
-    cfg = compose_config("experiment=smoke", f"method={method}", f"paths.runs={runs}",
+    cfg = compose_config("experiment=smoke", f"model={method}", f"paths.runs={runs}",
                          "dataset.views=[[0,0],[15,0]]", "train.max_steps=3",
-                         "btf.model.encoder_channels=[8,16,32]",
+                         "btf.network.encoder_channels=[8,16,32]",
                          "train.curve_every=0")
     ctx = Context.from_config(cfg)
     captured: dict = {}
@@ -355,11 +355,11 @@ def test_clustered_train_stage_feeds_each_texel_its_cluster_median(smoke_runs, m
     """Catches the clustered model fed the texel's own ABRDF (or a mean/medoid) instead of its cluster's median."""
     got = _train_arguments(monkeypatch, smoke_runs, "clustered")
     abrdf, sources, of_texel = got["abrdf"], got["sources"], got["source_of_texel"]
-    k = got["cfg"].method.k
+    k = got["cfg"].model.k
     np.testing.assert_array_equal(abrdf, got["crop"])  # targets: the texels themselves
     assert sources.shape == (k,) + abrdf.shape[1:]
     np.testing.assert_array_equal(of_texel, got["labels"])  # the k-means list
-    assert not got["kwargs"]["target_from_source"]  # method.target: texel (the default)
+    assert not got["kwargs"]["target_from_source"]  # model.target: texel (the default)
     fed = sources[of_texel]
     np.testing.assert_allclose(fed, _median_loop(abrdf, of_texel, k)[of_texel], rtol=1e-6)
     own = np.all(fed == abrdf, axis=(1, 2))
@@ -393,7 +393,7 @@ def test_clustered_encoder_sees_only_normalized_medians_while_training(smoke_run
     got = _train_arguments(monkeypatch, smoke_runs, "clustered", run_training=True)
     norm, abrdf = got["norm"], got["abrdf"]
     # The encoder takes (batch, 3, N): the permuted standardized log ABRDFs.
-    medians = norm.encoder_input(_median_loop(abrdf, got["labels"], got["cfg"].method.k))
+    medians = norm.encoder_input(_median_loop(abrdf, got["labels"], got["cfg"].model.k))
     medians = medians.transpose(0, 2, 1).reshape(len(medians), -1)
     own = norm.encoder_input(abrdf).transpose(0, 2, 1).reshape(len(abrdf), -1)
     rows = np.concatenate([s.reshape(len(s), -1) for s in seen])

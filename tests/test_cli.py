@@ -20,7 +20,7 @@ def _run(*args, cwd=ROOT):
 def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_template):
     runs = tmp_path / "runs"
     mlflow_template(runs)
-    done = _run("pipeline", "-m", "experiment=smoke", "method.k=4,8", "seed=0,1",
+    done = _run("pipeline", "-m", "experiment=smoke", "model.k=4,8", "seed=0,1",
                 "hydra/launcher=joblib", f"paths.runs={runs}")
     assert done.returncode == 0, done.stderr[-3000:]
 
@@ -33,7 +33,7 @@ def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_templ
     assert len(children) == 4
     assert {r.data.tags["mlflow.parentRunId"] for r in children} == {parents[0].info.run_id}
     assert {r.info.status for r in children} == {"FINISHED"}
-    assert {(r.data.params["method.k"], r.data.params["seed"]) for r in children} == {
+    assert {(r.data.params["model.k"], r.data.params["seed"]) for r in children} == {
         ("4", "0"), ("4", "1"), ("8", "0"), ("8", "1")}
     # One PCA for the whole sweep: computed once, a hit in every other job's log.
     logs = [p.read_text() for p in (runs / "hydra" / "multirun").glob("*/*/*.log")]
@@ -45,7 +45,7 @@ def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_templ
     # The UI shows the work: the sweep's parent names what it swept; each job holds its
     # resolved config, its overrides, its log and a description; the experiment opens
     # on its runs (not on MLflow's GenAI overview).
-    assert parents[0].data.params["method.k"] == "4,8"
+    assert parents[0].data.params["model.k"] == "4,8"
     assert parents[0].data.params["seed"] == "0,1"
     # ... and carries a description and each job's headline metrics (names made legal).
     assert "Hydra sweep" in parents[0].data.tags["mlflow.note.content"]
@@ -57,13 +57,13 @@ def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_templ
     assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"
     child = children[0]
     assert "rmse_mean_abrdf" in child.data.tags["mlflow.note.content"]
-    assert f"method.k={child.data.params['method.k']}" in child.data.tags["overrides"].split()
+    assert f"model.k={child.data.params['model.k']}" in child.data.tags["overrides"].split()
     paths = _artifact_paths(client, child.info.run_id)
     assert {"config/resolved.yaml", "config/overrides.yaml", "hydra/config.yaml",
             "hydra/overrides.yaml", "hydra/__main__.log"} <= paths, paths
     assert any(p.startswith("figures/fig7_") and p.endswith(".png") for p in paths), paths
     resolved = client.download_artifacts(child.info.run_id, "config/resolved.yaml", str(tmp_path))
-    assert f"k: {child.data.params['method.k']}" in Path(resolved).read_text()
+    assert f"k: {child.data.params['model.k']}" in Path(resolved).read_text()
 
 
 def _artifact_paths(client, run_id, path=None):

@@ -1,5 +1,6 @@
 """The compressed BTF file (pipeline.btf.compressed): round trip, queries against the
-evaluation's decoding, bytes against Table 1, atomic writes, damaged files, MLflow."""
+evaluation's decoding, bytes against Table 1, atomic writes, damaged files, MLflow, equal
+runs logging equal bytes. The PCA's file: tests/test_compressed_pca.py."""
 
 from __future__ import annotations
 
@@ -47,18 +48,26 @@ def _model(case: str, seed: int = 0) -> dict:
     rng = np.random.default_rng(seed)
     m = ROWS * COLS
     decoder = Decoder(hidden=16, layers=2).eval()
-    model = {"decoder": decoder, "alpha": ALPHA, "crop_size": (ROWS, COLS),
-             "crop_offset": (2, 3), "dataset": "synthetic"}
+    model = {
+        "decoder": decoder,
+        "alpha": ALPHA,
+        "crop_size": (ROWS, COLS),
+        "crop_offset": (2, 3),
+        "dataset": "synthetic",
+    }
     if case == "neural_btf":
-        model.update(method="neural_btf",
-                     latents=rng.normal(size=(m, 8)).astype(np.float32))
+        model.update(method="neural_btf", latents=rng.normal(size=(m, 8)).astype(np.float32))
     else:
-        model.update(method="clustered", k=K,
-                     latents=rng.normal(size=(K, 8)).astype(np.float32),
-                     latent_of_texel=rng.permutation(np.arange(m) % K).astype(np.int32))
+        model.update(
+            method="clustered",
+            k=K,
+            latents=rng.normal(size=(K, 8)).astype(np.float32),
+            latent_of_texel=rng.permutation(np.arange(m) % K).astype(np.int32),
+        )
     if case == "clustered_scaled":
-        model.update(texel_scale=rng.uniform(0.5, 1.5, m).astype(np.float32),
-                     texel_scale_mode="lstsq")
+        model.update(
+            texel_scale=rng.uniform(0.5, 1.5, m).astype(np.float32), texel_scale_mode="lstsq"
+        )
     return model
 
 
@@ -78,7 +87,7 @@ CASES = ["neural_btf", "clustered", "clustered_scaled"]
 @pytest.mark.parametrize("case", CASES)
 def test_round_trip_keeps_every_field(tmp_path, case):
     model = _model(case)
-    path = write_compressed(tmp_path / FILE_NAME, **model, run_id="abc123")
+    path = write_compressed(tmp_path / FILE_NAME, **model)
     btf = load_compressed(path)
     assert btf.path == path
     for name, value in model["decoder"].state_dict().items():
@@ -96,26 +105,36 @@ def test_round_trip_keeps_every_field(tmp_path, case):
     else:
         assert btf.texel_scale is None and btf.metadata["texel_scale"] == "none"
     assert btf.alpha == ALPHA and btf.crop_size == (ROWS, COLS) and btf.crop_offset == (2, 3)
-    assert btf.method == model["method"] and btf.run_id == "abc123"
+    assert btf.method == model["method"] and "mlflow_run_id" not in btf.metadata
     meta = btf.metadata
     assert meta["format"] == "pipeline.btf.compressed" and meta["format_version"] == "1"
     assert meta["dataset"] == "synthetic" and meta["direction_encoding"] == "stereographic"
     assert (meta["decoder_latent"], meta["decoder_hidden"], meta["decoder_layers"]) == (
-        "8", "16", "2")
+        "8",
+        "16",
+        "2",
+    )
     assert (meta["weight_dtype"], meta["list_dtype"], meta["extra_dtype"]) == (
-        "float32", "int32", "float32")
+        "float32",
+        "int32",
+        "float32",
+    )
     assert json.loads(meta["crop_size"]) == [ROWS, COLS]
 
 
 def test_stored_dtypes_follow_the_sizes_settings(tmp_path):
     model = _model("clustered_scaled")
-    path = write_compressed(tmp_path / FILE_NAME, **model, weight_dtype="float16",
-                            list_dtype="uint16", extra_dtype="float16")
+    path = write_compressed(
+        tmp_path / FILE_NAME,
+        **model,
+        weight_dtype="float16",
+        list_dtype="uint16",
+        extra_dtype="float16",
+    )
     btf = load_compressed(path)
     assert btf.latents.dtype == np.float16 and btf.texel_scale.dtype == np.float16
     assert btf.latent_of_texel.dtype == np.uint16
     np.testing.assert_array_equal(btf.latent_of_texel, model["latent_of_texel"])
-    assert btf.run_id is None and "mlflow_run_id" not in btf.metadata
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -125,40 +144,47 @@ def test_query_reproduces_the_evaluated_reconstruction(tmp_path, case):
     directions = _directions(30)
     expected = _expected(model, directions)
     scale = float(np.abs(expected).max())
-    np.testing.assert_allclose(btf.reconstruct(directions), expected, rtol=1e-6,
-                               atol=1e-6 * scale)
+    np.testing.assert_allclose(btf.reconstruct(directions), expected, rtol=1e-6, atol=1e-6 * scale)
     texels = np.array([23, 0, 7, 7])
     got = btf.query(texels, directions)
     assert got.shape == (4, 30, 3) and got.dtype == np.float32
     np.testing.assert_allclose(got, expected[texels], rtol=1e-6, atol=1e-6 * scale)
     # Paired queries: texel i at direction i.
     pairs = btf.query_pairs(texels, directions[:4])
-    np.testing.assert_allclose(pairs, expected[texels, np.arange(4)], rtol=1e-5,
-                               atol=1e-6 * scale)
+    np.testing.assert_allclose(pairs, expected[texels, np.arange(4)], rtol=1e-5, atol=1e-6 * scale)
 
 
 def test_float16_weights_differ_by_their_rounding_only(tmp_path):
     model = _model("clustered_scaled")
-    btf = load_compressed(write_compressed(tmp_path / FILE_NAME, **model,
-                                           weight_dtype="float16", extra_dtype="float16"))
+    btf = load_compressed(
+        write_compressed(
+            tmp_path / FILE_NAME, **model, weight_dtype="float16", extra_dtype="float16"
+        )
+    )
     directions = _directions(20)
     # Exactly what the rounded model computes ...
     rounded = Decoder(hidden=16, layers=2).eval()
-    rounded.load_state_dict({name: value.half().float()
-                             for name, value in model["decoder"].state_dict().items()})
-    rounded_model = {**model, "latents": model["latents"].astype(np.float16).astype(np.float32),
-                     "texel_scale": model["texel_scale"].astype(np.float16).astype(np.float32)}
+    rounded.load_state_dict(
+        {name: value.half().float() for name, value in model["decoder"].state_dict().items()}
+    )
+    rounded_model = {
+        **model,
+        "latents": model["latents"].astype(np.float16).astype(np.float32),
+        "texel_scale": model["texel_scale"].astype(np.float16).astype(np.float32),
+    }
     expected = _expected(rounded_model, directions, rounded)
     scale = float(np.abs(expected).max())
-    np.testing.assert_allclose(btf.reconstruct(directions), expected, rtol=1e-6,
-                               atol=1e-6 * scale)
+    np.testing.assert_allclose(btf.reconstruct(directions), expected, rtol=1e-6, atol=1e-6 * scale)
     # ... and close to the float32 model: float16 keeps 11 significant bits.
     full = _expected(model, directions)
     assert np.abs(btf.reconstruct(directions) - full).max() < 1e-2 * scale
 
 
 def test_the_plain_python_recipe_of_the_docstring_gives_the_same_values(tmp_path):
-    """The module docstring's numpy-only ``btf_rgb`` against query_pairs."""
+    """The module docstring's numpy-only ``btf_rgb`` and ``pca_rgb`` against query_pairs."""
+    from test_compressed_pca import _measured
+    from test_compressed_pca import _model as _pca_model
+
     recipe = compressed.__doc__.split("numpy and safetensors only", 1)[1].split("::\n", 1)[1]
     namespace: dict = {}
     exec(textwrap.dedent(recipe), namespace)
@@ -167,22 +193,46 @@ def test_the_plain_python_recipe_of_the_docstring_gives_the_same_values(tmp_path
         path = write_compressed(tmp_path / f"{case}.safetensors", **model)
         texels, directions = np.arange(ROWS * COLS), _directions(ROWS * COLS, seed=2)
         expected = load_compressed(path).query_pairs(texels, directions)
-        np.testing.assert_allclose(namespace["btf_rgb"](str(path), texels, directions),
-                                   expected, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(
+            namespace["btf_rgb"](str(path), texels, directions), expected, rtol=1e-5, atol=1e-6
+        )
+    for dtype in ("float32", "float16"):
+        path = compressed.write_compressed_pca(
+            tmp_path / f"pca_{dtype}.safetensors", **_pca_model(dtype, seed=1)
+        )
+        pca = load_compressed(path)
+        texels = np.repeat(np.arange(pca.n_texels), 5)
+        pairs = np.random.default_rng(3).integers(0, len(_measured()), len(texels))
+        expected = pca.query_pairs(texels, _measured()[pairs])
+        np.testing.assert_allclose(
+            namespace["pca_rgb"](str(path), texels, pairs), expected, rtol=1e-5, atol=1e-6
+        )
 
 
 @pytest.mark.parametrize("case", CASES)
-@pytest.mark.parametrize("dtypes", [("float32", "int32", "float32"),
-                                    ("float16", "uint16", "float16")])
+@pytest.mark.parametrize(
+    "dtypes", [("float32", "int32", "float32"), ("float16", "uint16", "float16")]
+)
 def test_payload_is_table1s_bytes_total(tmp_path, case, dtypes):
     weight_dtype, list_dtype, extra_dtype = dtypes
     model = _model(case)
-    path = write_compressed(tmp_path / FILE_NAME, **model, weight_dtype=weight_dtype,
-                            list_dtype=list_dtype, extra_dtype=extra_dtype)
+    path = write_compressed(
+        tmp_path / FILE_NAME,
+        **model,
+        weight_dtype=weight_dtype,
+        list_dtype=list_dtype,
+        extra_dtype=extra_dtype,
+    )
     sizes = storage_sizes(
-        model["decoder"], n_latents=len(model["latents"]), n_texels=ROWS * COLS,
-        n_directions=81, clustered=case != "neural_btf", weight_dtype=weight_dtype,
-        list_dtype=list_dtype, extra_dtype=extra_dtype if case == "clustered_scaled" else None)
+        model["decoder"],
+        n_latents=len(model["latents"]),
+        n_texels=ROWS * COLS,
+        n_directions=81,
+        clustered=case != "neural_btf",
+        weight_dtype=weight_dtype,
+        list_dtype=list_dtype,
+        extra_dtype=extra_dtype if case == "clustered_scaled" else None,
+    )
     assert payload_bytes(path) == sizes["bytes_total"]
     assert payload_bytes(path) + header_bytes(path) == path.stat().st_size
     assert header_bytes(path) % 8 == 0  # safetensors pads its header to 8 bytes
@@ -212,13 +262,12 @@ def test_a_failed_write_leaves_no_file(tmp_path, monkeypatch):
 @pytest.mark.parametrize("case", CASES)
 def test_the_same_model_gives_the_same_bytes(tmp_path, case):
     """safetensors' own save orders the metadata by a hash map seeded anew on each call."""
-    first = write_compressed(tmp_path / "a.safetensors", **_model(case), run_id="r1")
-    second = write_compressed(tmp_path / "b.safetensors", **_model(case), run_id="r1")
+    first = write_compressed(tmp_path / "a.safetensors", **_model(case))
+    second = write_compressed(tmp_path / "b.safetensors", **_model(case))
     assert first.read_bytes() == second.read_bytes()
     _, header = compressed.read_header(first)
     assert list(header)[0] == "__metadata__"
     assert list(header["__metadata__"]) == sorted(header["__metadata__"])
-    assert load_compressed(first).metadata["mlflow_run_id"] == "r1"
 
 
 def test_a_full_disk_is_a_data_error_naming_the_file(tmp_path, monkeypatch):
@@ -227,8 +276,11 @@ def test_a_full_disk_is_a_data_error_naming_the_file(tmp_path, monkeypatch):
 
     monkeypatch.setattr(os, "fsync", full)
     target = tmp_path / FILE_NAME
-    with pytest.raises(DataError, match=rf"no space left for {re.escape(str(target))}: it "
-                                        rf"needs \d+ bytes, .* free in {re.escape(str(tmp_path))}"):
+    with pytest.raises(
+        DataError,
+        match=rf"no space left for {re.escape(str(target))}: it "
+        rf"needs \d+ bytes, .* free in {re.escape(str(tmp_path))}",
+    ):
         write_compressed(target, **_model("clustered"))
     assert list(tmp_path.iterdir()) == []
 
@@ -317,16 +369,24 @@ def test_the_logged_pyfunc_model_answers_like_query(tmp_path, mlflow_template, m
         seconds = time.perf_counter() - start
     print(f"log_compressed took {seconds:.2f} s")
     run_id = run.info.run_id
-    logged = mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=f"compressed/{FILE_NAME}",
-                                                 dst_path=str(tmp_path / "download"))
+    logged = mlflow.artifacts.download_artifacts(
+        run_id=run_id, artifact_path=f"compressed/{FILE_NAME}", dst_path=str(tmp_path / "download")
+    )
     btf = load_compressed(logged)
-    assert btf.run_id == run_id
-    assert payload_bytes(logged) == payload_bytes(folder / FILE_NAME)
+    # The cached file as it is: the run knows its file, the file names no run.
+    assert Path(logged).read_bytes() == (folder / FILE_NAME).read_bytes()
+    assert "mlflow_run_id" not in btf.metadata
 
     texels, directions = np.array([0, 5, 23, 5]), _directions(4)
-    frame = pd.DataFrame({"texel": texels, "theta_light": directions[:, 0],
-                          "phi_light": directions[:, 1], "theta_view": directions[:, 2],
-                          "phi_view": directions[:, 3]})
+    frame = pd.DataFrame(
+        {
+            "texel": texels,
+            "theta_light": directions[:, 0],
+            "phi_light": directions[:, 1],
+            "theta_view": directions[:, 2],
+            "phi_view": directions[:, 3],
+        }
+    )
     model = mlflow.pyfunc.load_model(f"runs:/{run_id}/compressed_btf")
     rgb = model.predict(frame)
     assert list(rgb.columns) == ["R", "G", "B"]
@@ -341,8 +401,12 @@ def test_the_export_stage_holds_what_the_run_evaluated(tmp_path):
     from pipeline.btf import runner
     from pipeline.core.stage import Context
 
-    cfg = compose_config("experiment=smoke", f"paths.runs={tmp_path / 'runs'}",
-                         "method.texel_scale=lstsq", "btf.crop.size=8")
+    cfg = compose_config(
+        "experiment=smoke",
+        f"paths.runs={tmp_path / 'runs'}",
+        "model.texel_scale=lstsq",
+        "btf.crop.size=8",
+    )
     ctx = Context.from_config(cfg)
     metrics = runner.run(ctx)
     cache = Path(cfg.paths.cache)
@@ -353,6 +417,55 @@ def test_the_export_stage_holds_what_the_run_evaluated(tmp_path):
     assert payload_bytes(path) == metrics["bytes_total"]
     abrdf = np.load(crop / "abrdf.npy")
     recon = btf.reconstruct(np.load(crop / "directions.npy"))
-    rmse = float(np.sqrt(np.mean(np.square(recon / np.float32(btf.alpha) - abrdf / btf.alpha,
-                                           dtype=np.float64))))
+    rmse = float(
+        np.sqrt(
+            np.mean(np.square(recon / np.float32(btf.alpha) - abrdf / btf.alpha, dtype=np.float64))
+        )
+    )
     assert rmse == pytest.approx(metrics["rmse_all_dirs"], rel=1e-5)
+
+
+@pytest.mark.parametrize("model", ["clustered", "pca"])
+def test_two_equal_runs_log_the_same_bytes(tmp_path, mlflow_template, model):
+    """Two smoke jobs with equal settings, each in its own runs folder (its own cache and
+    store, so the second computes everything again): their logged
+    ``compressed/btf.safetensors`` are byte for byte equal."""
+    import mlflow
+    from helpers import compose_config
+    from mlflow.tracking import MlflowClient
+
+    from pipeline.app import run_job
+    from pipeline.core.tracking import tracking_uri
+
+    logged = []
+    for name in ("first", "second"):
+        runs = tmp_path / name
+        mlflow_template(runs)
+        cfg = compose_config("experiment=smoke", f"model={model}", f"paths.runs={runs}")
+        run_job(cfg)
+        client = MlflowClient(tracking_uri(runs))
+        experiment = client.get_experiment_by_name(cfg.tracking.experiment)
+        (run,) = client.search_runs([experiment.experiment_id])
+        path = client.download_artifacts(
+            run.info.run_id, f"compressed/{FILE_NAME}", str(tmp_path / f"{name}_download")
+        )
+        logged.append(Path(path).read_bytes())
+    assert logged[0] == logged[1]
+    assert load_compressed(path).method == model
+    if model == "pca":  # the pyfunc model answers for a PCA file too
+        import pandas as pd
+
+        texels, directions = np.array([0, 5, 143]), _directions(3)
+        frame = pd.DataFrame(
+            {
+                "texel": texels,
+                **{name: directions[:, i] for i, name in enumerate(compressed.QUERY_COLUMNS[1:])},
+            }
+        )
+        model_dir = client.download_artifacts(
+            run.info.run_id, "compressed_btf", str(tmp_path / "model")
+        )
+        rgb = mlflow.pyfunc.load_model(model_dir).predict(frame)
+        np.testing.assert_array_equal(
+            rgb.to_numpy(), load_compressed(path).query_pairs(texels, directions)
+        )

@@ -345,7 +345,7 @@ def test_the_whole_chain_runs_on_a_fibonacci_set(tmp_path, mlflow_template):
     runs_dir = tmp_path / "runs"
     mlflow_template(runs_dir)
     run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}",
-                           "method=neural_btf", *FIBONACCI))
+                           "model=neural_btf", *FIBONACCI))
     client, run = _only_run(runs_dir, "render_smoke")
     metrics = run.data.metrics
     n, m = N_LIGHTS * N_VIEWS, 12 * 12
@@ -401,7 +401,7 @@ def test_measured_data_on_a_fibonacci_set_renders_every_model_clamped_to_its_edg
                                directions="fibonacci", n_lights=N_LIGHTS, n_views=N_VIEWS)
     run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}",
                            "dataset=ubo2014", f"dataset.root={path}", "dataset.crop=null",
-                           "method=pca", "method.n_components=2"))
+                           "model=pca", "model.n_components=2"))
     _, run = _only_run(runs_dir, "render_smoke")
     metrics = run.data.metrics
     assert metrics["n_directions"] == N_LIGHTS * N_VIEWS

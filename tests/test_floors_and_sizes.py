@@ -49,17 +49,17 @@ def test_a_built_in_run_logs_its_floor_lossless_data_below_jpeg(smoke_cfg):
 
 def test_table1_reads_the_stored_types(smoke_cfg):
     run_job(smoke_cfg("btf.sizes.weight_dtype=float16"))
-    run_job(smoke_cfg("method=pca"))
+    run_job(smoke_cfg("model=pca"))
     clustered, pca = _runs(smoke_cfg())
     assert clustered.data.tags["stored_as.decoder"] == "float16"
     assert clustered.data.tags["stored_as.latents"] == "float16"
     assert clustered.data.tags["stored_as.list"] == "int32"
-    assert pca.data.tags["stored_as.decoder"] == pca.data.params["method.dtype"]
+    assert pca.data.tags["stored_as.decoder"] == pca.data.params["model.dtype"]
 
 
 def _row(model: str, k, total: int, rmse: float, seed=0, scaled=None, unscaled=None) -> dict:
     return {"dataset": "d", "model": model, "family": "clustered" if k else "",
-            "order": k or 0, "params.method.name":
+            "order": k or 0, "params.method.name": "btf", "params.model.name":
             "clustered" if k else "neural_btf", "seed": seed,
             "params.btf.sizes.extra_dtype": "float32", "metrics.n_texels": 100.0,
             "metrics.bytes_decoder": 1000, "metrics.bytes_latents": total - 1000 - 400 * bool(k),

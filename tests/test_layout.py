@@ -16,14 +16,17 @@ from helpers import PIPELINE_MODULES as MODULES
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
 
+from pipeline.core.sweeper import expand
+
 # ------------------------------------------------------------------ experiments compose
 
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
-METHOD_A = {"neural_btf", "clustered", "pca"}
+METHOD_A = {"btf"}
 
 
 def _sweep_points(experiment: str) -> list[list[str]]:
-    """The experiment alone, then each value of each of its sweep's parameters alone."""
+    """The experiment alone, then each value of each of its sweep's axes alone, then each
+    job of each of its arms (pipeline.core.sweeper)."""
     cfg = compose_config(f"experiment={experiment}", return_hydra_config=True)
     params = OmegaConf.select(cfg, "hydra.sweeper.params") or {}
     parser = OverridesParser.create()
@@ -31,7 +34,9 @@ def _sweep_points(experiment: str) -> list[list[str]]:
     for key, values in params.items():
         override = parser.parse_override(f"{key}={values}")
         points += [[f"{key}={value}"] for value in override.sweep_string_iterator()]
-    return points
+    arms = OmegaConf.select(cfg, "hydra.sweeper.arms")
+    arms = OmegaConf.to_container(arms) if arms else []
+    return points + expand(arms, None, [])
 
 
 def test_experiments_are_found():
@@ -49,7 +54,7 @@ def test_experiment_composes_with_its_methods_settings_only(experiment):
             assert isinstance(OmegaConf.select(cfg, "btf.crop.size"), int), where
             assert "train" in cfg, where
         else:
-            assert {"btf", "train"} & set(cfg) == set(), where
+            assert {"btf", "train", "model"} & set(cfg) == set(), where
         OmegaConf.to_container(cfg, resolve=True)  # every interpolation resolves
 
 

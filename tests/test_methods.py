@@ -46,12 +46,12 @@ def test_a_method_added_by_config_alone_runs_and_reports(dummy_conf, tmp_path):
     runs = tmp_path / "runs"
     env = {"PYTHONPATH": str(dummy_conf / "code"), "PATH": "/usr/bin:/bin"}
     done = subprocess.run(
-        [sys.executable, "-m", "pipeline", "method=dummy", "~experiment",
+        [sys.executable, "-m", "pipeline", "method=dummy", "experiment=none",
          "tracking.experiment=dummy",
          f"paths.runs={runs}", f"hydra.searchpath=[file://{dummy_conf / 'conf'}]"],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert "dummy: run" in done.stdout and "rmse" in done.stdout and "0.5" in done.stdout
+    assert "dummy s0: run" in done.stdout and "rmse" in done.stdout and "0.5" in done.stdout
     client = MlflowClient(tracking_uri(runs))
     [run] = client.search_runs([client.get_experiment_by_name("dummy").experiment_id])
     assert run.data.metrics["rmse"] == 0.5 and run.data.tags[NOTE_TAG] == "**A dummy method**"
@@ -79,7 +79,7 @@ def test_every_method_config_names_its_method():
     from helpers import compose_config
 
     for path in sorted((CONF_DIR / "method").glob("*.yaml")):
-        method = method_of(compose_config(f"method={path.stem}", "~experiment"))
+        method = method_of(compose_config(f"method={path.stem}", "experiment=none"))
         assert isinstance(method, Method) and method.name == path.stem
         assert method.description and method.headline and method.reports
 
@@ -87,9 +87,9 @@ def test_every_method_config_names_its_method():
 def test_a_spec_of_another_method_or_missing_is_refused():
     from helpers import compose_config
 
-    cfg = compose_config("method=pca")
-    cfg.method.spec = "pipeline.btf.methods:CLUSTERED"
-    with pytest.raises(ConfigError, match="is method 'clustered'"):
+    cfg = compose_config("model=pca")
+    cfg.method.spec = "pipeline.brdf_map.methods:BRDF_MAP"
+    with pytest.raises(ConfigError, match="is method 'brdf_map'"):
         method_of(cfg)
     cfg.method.spec = "pipeline.btf.methods:NOPE"
     with pytest.raises(ConfigError, match="cannot import"):
@@ -121,5 +121,5 @@ def test_open_maps_groups_and_real_settings_may_be_added():
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("config", overrides)
         check_added_keys(cfg, overrides, CONF_DIR, compose=lambda o: compose("config", o))
-        check_added_keys(cfg, ["+variant=k128", "+hydra/launcher=local"], CONF_DIR)  # groups
+        check_added_keys(cfg, ["+experiment_model=smoke_clustered", "+hydra/launcher=local"], CONF_DIR)  # groups
     assert not GlobalHydra.instance().is_initialized()

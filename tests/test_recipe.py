@@ -60,10 +60,10 @@ def test_every_entry_of_the_list_names_settings_that_exist():
 def _run(seed: int, value, metric: float, setting: str = "train.lr", render_lights="point",
          method: str = "clustered", k=8, truth: bool = False) -> dict:
     """One row as mlflow.search_runs returns it, with a job's recipe tags."""
-    params = {"method.name": method, "method.k": k, "seed": seed, "dataset.name": "synthetic",
+    params = {"method.name": "btf", "model.name": method, "model.k": k, "seed": seed, "dataset.name": "synthetic",
               "dataset.root": None, "dataset.synthetic.material": "plain_weave",
               "btf.crop.size": 12, "train.epochs": 1, "train.precision": "float32",
-              "method.texel_scale": "none", "method.target": "texel",
+              "model.texel_scale": "none", "model.target": "texel",
               "btf.render.lights": render_lights, setting: value}
     row = {f"params.{k}": str(v) for k, v in params.items()}
     row.update({f"tags.{k}": v for k, v in recipe_tags(params).items()})
@@ -185,7 +185,7 @@ def test_a_store_of_untagged_runs_gives_empty_tables_and_says_why(tmp_path, mlfl
     mlflow_template(tmp_path)
     experiment_id = init_store(tmp_path, "btf")
     with mlflow.start_run(experiment_id=experiment_id):
-        mlflow.log_params({"method.name": "clustered", "method.k": 8, "seed": 0,
+        mlflow.log_params({"method.name": "btf", "model.name": "clustered", "model.k": 8, "seed": 0,
                            "dataset.name": "synthetic"})
         mlflow.log_metrics({"rmse": 0.1})
     with caplog.at_level(logging.WARNING):

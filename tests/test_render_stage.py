@@ -159,13 +159,13 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     mlflow_template(runs_dir)
     cfg = compose_config("experiment=render_smoke", f"paths.runs={runs_dir}")
     run_job(cfg)
-    run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}", "method=pca",
-                           "method.n_components=2"))
+    run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}", "model=pca",
+                           "model.n_components=2"))
 
     client = MlflowClient(tracking_uri(runs_dir))
     experiment = client.get_experiment_by_name("render_smoke")
     pca, run = client.search_runs([experiment.experiment_id], order_by=["start_time DESC"])
-    assert pca.data.params["method.name"] == "pca"
+    assert pca.data.params["model.name"] == "pca"
     for stage in ("render_reference", "render_truth"):  # one reference and one truth
         assert pca.data.tags[f"cache.{stage}"] == run.data.tags[f"cache.{stage}"]
     assert np.isfinite(pca.data.metrics["render_rmse_bright"])
@@ -232,8 +232,8 @@ def test_measured_data_is_scored_against_the_reference_with_every_material_clamp
     mlflow_template(runs_dir)
     root = write_synthetic_btf(tmp_path / "WOOL", size=16)
     run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}",
-                           "dataset=ubo2003", f"dataset.root={root}", "method=pca",
-                           "method.n_components=2"))
+                           "dataset=ubo2003", f"dataset.root={root}", "model=pca",
+                           "model.n_components=2"))
     client = MlflowClient(tracking_uri(runs_dir))
     experiment = client.get_experiment_by_name("render_smoke")
     (run,) = client.search_runs([experiment.experiment_id])

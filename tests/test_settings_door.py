@@ -13,13 +13,14 @@ from pipeline.core.settings import Integer, ListOf, OneOf, Real, check_settings
 # a value of the wrong type as it composes, naming the key.
 BAD_TYPES = ["train.lr=abc", "train.epochs=nan", "train.batch_size=nan",
              "train.queries_per_abrdf=nan", "train.epoch_texels=nan", "train.epochs=1.5",
-             "train.epochs=true"]
+             "train.epochs=true", "model.k=true", "model.k=1.5"]
 BAD = [
     ("train.lr=nan", "train.lr=nan must be a finite number"),
     ("train.lr=-1", "train.lr=-1.0 must be a finite number > 0"),
     ("train.batch_size=1", "train.batch_size=1 must be >= 2"),
     ("btf.sizes.weight_dtype=foo", "btf.sizes.weight_dtype='foo' must be one of float32, float16"),
-    ("method.k=true", "method.k=True must be an integer >= 1 or null"),
+    ("model.k=0", "model.k=0 must be an integer >= 1"),
+    ("model.texel_scale=both", "model.texel_scale='both' must be one of none, lstsq, luminance"),
     ("btf.kmeans.n_init=0", "btf.kmeans.n_init=0 must be an integer >= 1"),
     ("seed=5000000000", "seed=5000000000 must be an integer >= 0 and <= 4294967295"),
     ("btf.crop.offset=[0]", "btf.crop.offset=[0] must be a list of 2 items"),
@@ -46,9 +47,17 @@ def test_a_value_of_the_wrong_type_is_refused_as_the_config_is_composed(smoke_cf
     assert f"full_key: {override.split('=')[0]}" in str(error.value.__cause__ or error.value)
 
 
+def test_a_setting_of_another_model_is_refused_as_the_config_is_composed(smoke_cfg):
+    """Each model's config is closed: ``model.n_components`` is PCA's, not clustered's."""
+    from hydra.errors import ConfigCompositionException
+
+    with pytest.raises(ConfigCompositionException, match="model.n_components"):
+        smoke_cfg("model=clustered", "model.n_components=8")
+
+
 def test_the_pca_arm_checks_its_own_settings(smoke_cfg):
-    with pytest.raises(ConfigError, match="method.dtype='float64' must be one of"):
-        run_job(smoke_cfg("method=pca", "method.dtype=float64"))
+    with pytest.raises(ConfigError, match="model.dtype='float64' must be one of"):
+        run_job(smoke_cfg("model=pca", "model.dtype=float64"))
 
 
 @pytest.mark.parametrize(("constraint", "good", "bad"), [

@@ -37,10 +37,10 @@ def _log_runs(runs_dir, rows, experiment="btf", failed=False, evaluate_key=None,
         m = 10_000
         latents = (k or m) * 8 * 4
         listing = m * 4 if k else 0
-        params = {"method.name": method, "method.k": k, "seed": seed,
+        params = {"method.name": "btf", "model.name": method, "model.k": k, "seed": seed,
                   "dataset.name": "synthetic", "dataset.root": None,
                   "dataset.synthetic.material": "plain_weave",
-                  "method.texel_scale": "none", "method.target": "texel",
+                  "model.texel_scale": "none", "model.target": "texel",
                   "train.epochs": epochs, "train.precision": precision or "float32"}
         tags = {"cache.evaluate": evaluate_key or f"{method}-{k}-{seed}-{rmse}-{precision}",
                 **recipe_tags(params)}
@@ -156,7 +156,7 @@ def test_a_rerun_of_the_same_job_is_not_another_seed(tmp_path, settings):
 def test_different_crops_of_one_source_are_different_datasets(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
     for crop, n, rmse, key in ((12, 729, 0.16, "btf.crop.size"), (48, 6561, 0.03, "btf.crop.size")):
-        _log_run(experiment_id, {"method.name": "clustered", "method.k": 8, "seed": 0,
+        _log_run(experiment_id, {"method.name": "btf", "model.name": "clustered", "model.k": 8, "seed": 0,
                                "dataset.name": "synthetic", key: crop,
                                  "dataset.synthetic.material": "plain_weave"},
                  {"rmse": rmse, "n_directions": n}, {"cache.evaluate": str(crop)})
@@ -218,7 +218,7 @@ def test_no_convergence_table_without_runs_of_different_lengths(tmp_path, settin
 def test_runs_near_the_mean_abrdf_baseline_are_flagged(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
     for seed, rmse in ((0, 0.03), (1, 0.14)):  # against a baseline of 0.15
-        _log_run(experiment_id, {"method.name": "neural_btf", "method.k": None, "seed": seed,
+        _log_run(experiment_id, {"method.name": "btf", "model.name": "neural_btf", "model.k": None, "seed": seed,
                                "dataset.name": "synthetic"},
                  {"rmse": rmse, "rmse_mean_abrdf": 0.15}, {"cache.evaluate": str(seed)})
     out = build_tables(tmp_path, settings)
@@ -244,7 +244,7 @@ def test_runs_of_two_recipes_are_never_averaged_as_seeds(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
     for seed, optimizer, threads, rmse in ((0, "sgd", 1, 0.05), (1, "sgd", 2, 0.07),
                                            (0, "adam", 1, 0.02), (1, "adam", 2, 0.04)):
-        _log_run(experiment_id, {"method.name": "clustered", "method.k": 500, "seed": seed,
+        _log_run(experiment_id, {"method.name": "btf", "model.name": "clustered", "model.k": 500, "seed": seed,
                                "dataset.name": "synthetic", "train.epochs": 16,
                                "train.optimizer": optimizer, "train.threads": threads},
                  {"rmse": rmse}, {"cache.evaluate": f"{optimizer}{seed}"})
@@ -258,9 +258,9 @@ def test_table2_names_each_columns_learning_rate(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
     for method, k, train_lr, method_lr in (("neural_btf", None, "None", 0.05),
                                           ("clustered", 500, 0.05, 0.08)):
-        _log_run(experiment_id, {"method.name": method, "method.k": k, "seed": 0,
+        _log_run(experiment_id, {"method.name": "btf", "model.name": method, "model.k": k, "seed": 0,
                                "dataset.name": "synthetic", "train.lr": train_lr,
-                               "method.lr": method_lr},
+                               "model.lr": method_lr},
                  {"rmse": 0.03}, {"cache.evaluate": method})
     text = (build_tables(tmp_path, settings) / "table2_rmse.md").read_text()
     assert "Learning rates: Neural BTF: 0.05; k = 500: 0.05." in text
@@ -308,7 +308,7 @@ def test_rmse_versus_k_says_so_when_it_has_nothing_to_draw(tmp_path):
     """A store of PCA runs alone: no empty figure (and no matplotlib warning), a line."""
     from pipeline.btf.report import plot_rmse_vs_k
 
-    runs = pd.DataFrame({"dataset": ["d"], "params.method.name": ["pca"], "family": ["f"],
+    runs = pd.DataFrame({"dataset": ["d"], "params.method.name": "btf", "params.model.name": ["pca"], "family": ["f"],
                          "model": ["PCA"], "k": [128], "metrics.rmse": [0.1]})
     with warnings.catch_warnings():
         warnings.simplefilter("error")

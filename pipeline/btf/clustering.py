@@ -47,10 +47,10 @@ def pca_reduce(
 
 def check_k(k: int, n_texels: int) -> None:
     if not isinstance(k, int) or k < 1:
-        raise ConfigError(f"method.k={k!r} must be a positive integer")
+        raise ConfigError(f"model.k={k!r} must be a positive integer")
     if k > n_texels:
         raise ConfigError(
-            f"method.k={k} is larger than the number of texels M={n_texels}: "
+            f"model.k={k} is larger than the number of texels M={n_texels}: "
             "lower k or enlarge btf.crop.size"
         )
 

@@ -96,7 +96,7 @@ def texel_scales(target: np.ndarray, pred: np.ndarray, mode: str) -> np.ndarray:
     elif mode == "luminance":
         scale = t.mean(1) / np.maximum(r.mean(1), 1e-12)
     else:
-        raise ValueError(f"method.texel_scale={mode!r} must be none, lstsq or luminance")
+        raise ValueError(f"model.texel_scale={mode!r} must be none, lstsq or luminance")
     return scale.astype(np.float32)
 
 
@@ -182,7 +182,7 @@ def storage_sizes(
     latent_dim: int = LATENT_DIM,
 ) -> dict[str, int | float]:
     """Exact stored bytes (the keys are the MLflow metric names users rely on);
-    ``latent_dim`` values per latent (``btf.model.latent``).
+    ``latent_dim`` values per latent (``btf.network.latent``).
 
     ``compression_ratio`` = bytes_original / bytes_total with the original stored as
     float32 RGB (M x N x 3 x 4 bytes), as in the paper's "751 MB".

@@ -1,4 +1,5 @@
-"""The compressed BTF of a run (:mod:`pipeline.btf.compressed`): the cached ``export`` stage,
+"""The compressed BTF of a run (:mod:`pipeline.btf.compressed`): the cached ``export`` stage
+(:func:`export_stage` for Neural BTF and clustered, :func:`export_linear_stage` for PCA),
 and the file logged to MLflow with an MLflow pyfunc model around it."""
 
 from __future__ import annotations
@@ -20,30 +21,31 @@ from pipeline.btf.compressed import (
     header_bytes,
     load_compressed,
     payload_bytes,
-    read_header,
-    safetensors_bytes,
     stored_parts,
-    write_atomic,
+    support_bytes,
     write_compressed,
+    write_compressed_pca,
 )
+from pipeline.btf.models import model_of
 from pipeline.core.cache import Entry
 from pipeline.core.stage import Context, plain_settings
 
 
-def export_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry,
-                 evaluated: Entry) -> Entry:
+def export_stage(
+    ctx: Context, cropped: Entry, prep: Entry, trained: Entry, evaluated: Entry
+) -> Entry:
     """Write the run's compressed BTF, ``btf.safetensors``, into a cache entry.
 
     Its tensors are Table 1's bytes exactly (checked against the evaluate stage's
     ``bytes_total``); the per-texel scale is the one the evaluate stage fitted.
     """
     cfg = ctx.cfg
-    method = cfg.method
-    clustered = method.name == "clustered"
+    clustered = model_of(cfg).clusters
+    k = cfg.model.k if clustered else None
     settings = {
         "sizes": plain_settings(cfg.btf.sizes),
-        "method": method.name,
-        "k": method.get("k") if clustered else None,
+        "method": cfg.model.name,
+        "k": k,
         "crop": plain_settings(cfg.btf.crop),
         "dataset": cfg.dataset.name,
     }
@@ -62,8 +64,8 @@ def export_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry,
             prep.json("alpha"),
             crop_size=(crop_settings["size"], crop_settings["size"]),
             crop_offset=tuple(crop_settings["offset"]),
-            method=method.name,
-            k=method.get("k") if clustered else None,
+            method=cfg.model.name,
+            k=k,
             dataset=cfg.dataset.name,
             latent_of_texel=trained.array("latent_of_texel", mmap=False) if clustered else None,
             texel_scale=evaluated.array("texel_scale", mmap=False) if has_scale else None,
@@ -72,25 +74,71 @@ def export_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry,
             list_dtype=sizes["list_dtype"],
             extra_dtype=sizes["extra_dtype"],
         )
-        payload, table1 = payload_bytes(path), evaluated.json("metrics")
-        parts = stored_parts(path)
-        counted = {part: table1[f"bytes_{part}"] for part in TABLE1_PARTS}
-        stored = {part: parts.get(part, {"bytes": 0})["bytes"] for part in TABLE1_PARTS}
-        if payload != table1["bytes_total"] or stored != counted:
-            raise RuntimeError(f"{path} holds {payload} bytes of tensors ({stored}), but "
-                               f"Table 1 counts {table1['bytes_total']} ({counted}): "
-                               f"storage_sizes and the format disagree")
-        return {"bytes_payload": payload, "bytes_header": header_bytes(path),
-                "bytes_file": path.stat().st_size,
-                "stored_as": {part: found["dtype"] for part, found in parts.items()}}
+        return _checked_against_table1(path, evaluated.json("metrics"))
 
     return ctx.run("export", settings, inputs, compute, version="2")
 
 
+def export_linear_stage(ctx: Context, cropped: Entry, prep: Entry, fitted: Entry) -> Entry:
+    """Write the PCA baseline's compressed file, ``btf.safetensors`` (method ``pca``), into
+    a cache entry: the linear stage's arrays as stored (its tensors are the linear stage's
+    ``bytes_total``, checked) and the crop's direction pairs, which the file needs to be
+    evaluated between them as the renderer does."""
+    cfg = ctx.cfg
+    crop_settings = plain_settings(cfg.btf.crop)
+    settings = {"crop": crop_settings, "dataset": cfg.dataset.name}
+    inputs = {"crop": cropped, "preprocess": prep, "linear": fitted}
+
+    def compute(folder: Path) -> dict:
+        coefficients = fitted.array("coefficients", mmap=False)
+        path = write_compressed_pca(
+            folder / FILE_NAME,
+            fitted.array("mean", mmap=False),
+            fitted.array("basis", mmap=False),
+            coefficients,
+            prep.json("alpha"),
+            measured_directions=cropped.array("directions", mmap=False),
+            crop_size=(crop_settings["size"], crop_settings["size"]),
+            crop_offset=tuple(crop_settings["offset"]),
+            dataset=cfg.dataset.name,
+            weight_dtype=str(coefficients.dtype),  # the linear stage stores model.dtype
+        )
+        return _checked_against_table1(path, fitted.json("metrics"))
+
+    return ctx.run("export", settings, inputs, compute, version="1")
+
+
+def _checked_against_table1(path: Path, table1: dict) -> dict:
+    """The export stage's summary of the file at ``path``, after checking that its
+    tensors are Table 1's bytes (``table1``: the run's ``bytes_*`` metrics), part by part.
+
+    Raises
+    ------
+    RuntimeError
+        When they differ: the stage's size accounting and the format disagree.
+    """
+    payload, parts = payload_bytes(path), stored_parts(path)
+    counted = {part: table1[f"bytes_{part}"] for part in TABLE1_PARTS}
+    stored = {part: parts.get(part, {"bytes": 0})["bytes"] for part in TABLE1_PARTS}
+    if payload != table1["bytes_total"] or stored != counted:
+        raise RuntimeError(
+            f"{path} holds {payload} bytes of tensors ({stored}), but "
+            f"Table 1 counts {table1['bytes_total']} ({counted}): "
+            f"the size accounting and the format disagree"
+        )
+    return {
+        "bytes_payload": payload,
+        "bytes_support": support_bytes(path),
+        "bytes_header": header_bytes(path),
+        "bytes_file": path.stat().st_size,
+        "stored_as": {part: found["dtype"] for part, found in parts.items()},
+    }
+
+
 def log_compressed(entry: Entry, log_model: bool = True) -> None:
     """Log the export stage's file to the active MLflow run as ``compressed/btf.safetensors``
-    (its metadata naming the run) and, with ``log_model``, an MLflow pyfunc model
-    ``compressed_btf`` around it::
+    (the cached file as it is: equal models log equal bytes) and, with ``log_model``, an
+    MLflow pyfunc model ``compressed_btf`` around it::
 
         mlflow.set_tracking_uri(pipeline.tracking_uri(runs))  # the jobs' paths.runs
         model = mlflow.pyfunc.load_model(f"runs:/{run_id}/compressed_btf")
@@ -99,28 +147,30 @@ def log_compressed(entry: Entry, log_model: bool = True) -> None:
 
     The model needs this package (``pipeline``) importable where it is loaded.
     """
-    run_id = mlflow.active_run().info.run_id
+    path = entry.file(FILE_NAME)
+    mlflow.log_artifact(str(path), "compressed")
+    if not log_model:
+        return
     with tempfile.TemporaryDirectory() as tmp:
-        stamped = Path(tmp) / FILE_NAME
-        _copy_with_run_id(entry.file(FILE_NAME), stamped, run_id)
-        mlflow.log_artifact(str(stamped), "compressed")
-        if log_model:
-            # "Models from code": the model is this short script, not a pickled object.
-            code = Path(tmp) / "compressed_btf_model.py"
-            code.write_text(MODEL_CODE)
-            with warnings.catch_warnings():
-                # The signature says what a query is; an example would only slow logging.
-                warnings.filterwarnings("ignore", ".*An input example was not provided")
-                mlflow.pyfunc.log_model(
-                    name="compressed_btf",
-                    python_model=str(code),
-                    artifacts={"btf": str(stamped)},
-                    signature=query_signature(),
-                    # Given, so that MLflow does not load the model in a subprocess to infer
-                    # them (it still scans the installed packages once per process).
-                    pip_requirements=[f"{name}=={package_metadata.version(name)}"
-                                      for name in ("torch", "safetensors", "numpy", "pandas")],
-                )
+        # "Models from code": the model is this short script, not a pickled object.
+        code = Path(tmp) / "compressed_btf_model.py"
+        code.write_text(MODEL_CODE)
+        with warnings.catch_warnings():
+            # The signature says what a query is; an example would only slow logging.
+            warnings.filterwarnings("ignore", ".*An input example was not provided")
+            mlflow.pyfunc.log_model(
+                name="compressed_btf",
+                python_model=str(code),
+                artifacts={"btf": str(path)},
+                signature=query_signature(),
+                # Given, so that MLflow does not load the model in a subprocess to infer
+                # them (it still scans the installed packages once per process). scipy:
+                # a PCA file's interpolation.
+                pip_requirements=[
+                    f"{name}=={package_metadata.version(name)}"
+                    for name in ("torch", "safetensors", "numpy", "scipy", "pandas")
+                ],
+            )
 
 
 MODEL_CODE = """\
@@ -133,27 +183,17 @@ mlflow.models.set_model(CompressedBTFModel())
 """
 
 
-def _copy_with_run_id(source: Path, target: Path, run_id: str) -> None:
-    """The file at ``source`` with ``mlflow_run_id`` added to its metadata (written in the
-    fixed order of :func:`pipeline.btf.compressed.safetensors_bytes`)."""
-    from safetensors import safe_open
-
-    read_header(source)
-    with safe_open(source, framework="numpy") as f:
-        meta = dict(f.metadata() or {})
-        tensors = {name: f.get_tensor(name) for name in f.keys()}
-    write_atomic(target, safetensors_bytes(tensors, {**meta, "mlflow_run_id": run_id}))
-
-
 def query_signature():
     """The pyfunc model's signature: one query a row in, one RGB a row out."""
     from mlflow.models import ModelSignature
     from mlflow.types import ColSpec, Schema
 
-    inputs = Schema([ColSpec("long", "texel")]
-                    + [ColSpec("double", name) for name in QUERY_COLUMNS[1:]])
-    return ModelSignature(inputs=inputs,
-                          outputs=Schema([ColSpec("float", name) for name in RGB_COLUMNS]))
+    inputs = Schema(
+        [ColSpec("long", "texel")] + [ColSpec("double", name) for name in QUERY_COLUMNS[1:]]
+    )
+    return ModelSignature(
+        inputs=inputs, outputs=Schema([ColSpec("float", name) for name in RGB_COLUMNS])
+    )
 
 
 class CompressedBTFModel(mlflow.pyfunc.PythonModel):
@@ -168,6 +208,7 @@ class CompressedBTFModel(mlflow.pyfunc.PythonModel):
         missing = [c for c in QUERY_COLUMNS if c not in model_input.columns]
         if missing:
             raise ValueError(f"the query lacks columns {missing}; it needs {list(QUERY_COLUMNS)}")
-        rgb = self.btf.query_pairs(model_input["texel"].to_numpy(),
-                                   model_input[list(QUERY_COLUMNS[1:])].to_numpy())
+        rgb = self.btf.query_pairs(
+            model_input["texel"].to_numpy(), model_input[list(QUERY_COLUMNS[1:])].to_numpy()
+        )
         return pd.DataFrame(rgb, columns=list(RGB_COLUMNS), index=model_input.index)

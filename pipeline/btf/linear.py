@@ -2,7 +2,9 @@
 
 Stored: the mean ABRDF (3N values), ``c`` basis ABRDFs (c x 3N) and ``c`` coefficients per
 texel (M x c), in float32 or float16. The reconstruction is measured after rounding them
-to the stored dtype, so the RMSE is that of what would actually be kept.
+to the stored dtype, so the RMSE is that of what would actually be kept, and exactly those
+bytes are written into the run's compressed file (``pipeline.btf.compressed``, method
+``pca``; :func:`pipeline.btf.export.export_linear_stage`).
 """
 
 from __future__ import annotations
@@ -47,13 +49,11 @@ def fit_linear(targets: np.ndarray, n_components: int, dtype: str, seed: int = 0
     m = targets.shape[0]
     flat = np.asarray(targets, dtype=np.float32).reshape(m, -1)
     if not 1 <= n_components <= min(flat.shape):
-        raise ConfigError(f"method.n_components={n_components} must be in 1..{min(flat.shape)}")
+        raise ConfigError(f"model.n_components={n_components} must be in 1..{min(flat.shape)}")
     mean = flat.mean(axis=0)
     u, s, vt = randomized_svd(flat - mean, n_components, random_state=seed)
     store = np.float16 if dtype == "float16" else np.float32
-    return LinearModel(
-        mean.astype(store), vt.astype(store), (u * s).astype(store)
-    )
+    return LinearModel(mean.astype(store), vt.astype(store), (u * s).astype(store))
 
 
 def linear_error(model: LinearModel, targets: np.ndarray, chunk: int = 256):

@@ -56,7 +56,7 @@ class Encoder(nn.Module):
             length //= 3
         if length < 1:
             raise ConfigError(
-                f"btf.model.encoder_channels has {len(channels)} blocks, each pooling by 3, but "
+                f"btf.network.encoder_channels has {len(channels)} blocks, each pooling by 3, but "
                 f"an ABRDF has only N={n_directions} directions: use at most "
                 f"{max(int(np.log(max(n_directions, 1)) / np.log(3)), 0)} blocks"
             )
@@ -161,8 +161,10 @@ def parameter_count(module: nn.Module) -> int:
 
 def load_decoder(path) -> Decoder:
     """A trained decoder from the ``decoder.pt`` state dict a train stage wrote, its latent
-    size (``btf.model.latent``) read from the first layer's inputs (latent + 4)."""
+    size (``btf.network.latent``) read from the first layer's inputs (latent + 4)."""
     state = torch.load(path, weights_only=True)
-    decoder = Decoder(latent=state["net.0.weight"].shape[1] - 4)
+    weights = [key for key in state if key.endswith(".weight")]
+    decoder = Decoder(latent=state["net.0.weight"].shape[1] - 4,
+                      hidden=state["net.0.weight"].shape[0], layers=len(weights) - 1)
     decoder.load_state_dict(state)
     return decoder.eval()

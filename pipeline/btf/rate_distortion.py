@@ -25,15 +25,17 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from pipeline.btf.models import MODELS, models_of
 from pipeline.core.recipe import RECIPE_TAG, recipe_suffixes
 from pipeline.core.report import param, safe_stem, save_figure, write_file, write_table
 
 BUDGETS_KB = (64, 128, 256, 512)  # KB = 1024 bytes, as Table 1's; tables.budgets_kb sets them
 N_LEVELS = 4  # RMSE levels of the bytes-to-reach table, per dataset
 # The size setting of each method: what a line varies (left out of its recipe comparison).
-AXES = {"pca": ["method.n_components", "method.match_clustered_k"],
-        "clustered": ["method.k"], "neural_btf": ["btf.model.latent"]}
-METHOD_NAMES = {"pca": "PCA", "clustered": "clustered", "neural_btf": "Neural BTF"}
+AXES = {"pca": ["model.n_components", "model.match_clustered_k"],
+        "clustered": ["model.k"], "neural_btf": ["btf.network.latent"]}
+# A Neural BTF run logged before its latent size was a setting had the paper's 8.
+DEFAULT_SIZE = {"neural_btf": 8}
 # Mean RMSEs closer than this are a tie, which the fewer bytes win (the front and the best
 # at a budget): a model stored in float16 differs from its float32 copy by rounding alone
 # (far below this; docs/results.md has the measured gaps), and at twice the bytes that is
@@ -50,29 +52,20 @@ def arms(runs: pd.DataFrame) -> pd.DataFrame:
     ``k = 500``, ``latent 8``), ``size`` (that number) and ``line`` (the arm plus the recipe
     settings, other than the size setting, in which its runs differ)."""
     runs = runs.copy()
-    method = runs["params.method.name"]
-    weights = param(runs, "btf.sizes.weight_dtype", "float32")
-    pca_type = param(runs, "method.dtype", "float32")
-    listing = param(runs, "btf.sizes.list_dtype", "int32")
-    scale = param(runs, "method.texel_scale", "none")
-    extra = param(runs, "btf.sizes.extra_dtype", "float32")
-    storage = np.where(method == "pca", pca_type, weights)
-    storage = np.where(method == "clustered", storage + ", list " + listing, storage)
-    storage = np.where((method == "clustered") & (scale != "none"),
-                       storage + ", +scale " + extra, storage)
-    runs["arm"] = method.map(METHOD_NAMES).fillna(method) + " (" + storage + ")"
-    components = _num(runs.get("metrics.n_components", pd.Series(np.nan, index=runs.index)))
-    latent = _num(param(runs, "btf.model.latent", "8"))
-    size = np.where(method == "pca", components, np.where(method == "clustered", runs["k"],
-                                                          latent))
+    models = models_of(runs)
+    storage = [m.stored_types(run) if m else "?"
+               for m, (_, run) in zip(models, runs.iterrows(), strict=True)]
+    runs["arm"] = [f"{m.title if m else '?'} ({s})" for m, s in zip(models, storage,
+                                                                      strict=True)]
+    size = [_num(pd.Series([run.get(m.size[0], DEFAULT_SIZE.get(m.name)) if m else None]))
+            .iloc[0] for m, (_, run) in zip(models, runs.iterrows(), strict=True)]
     runs["size"] = size
-    prefix = np.where(method == "pca", "c = ", np.where(method == "clustered", "k = ",
-                                                        "latent "))
-    runs["setting"] = prefix + pd.Series(size, index=runs.index).map(
-        lambda v: "?" if pd.isna(v) else str(int(v)))
+    runs["setting"] = [(m.size[1] if m else "") + ("?" if pd.isna(v) else str(int(v)))
+                       for m, v in zip(models, size, strict=True)]
     runs["line"] = runs["arm"]
+    names = pd.Series([m.name if m else None for m in models], index=runs.index)
     for name, ignore in AXES.items():
-        rows = method == name
+        rows = names == name
         if rows.any():
             runs.loc[rows, "line"] = runs.loc[rows, "arm"] + recipe_suffixes(
                 runs[rows], ["dataset", "arm"], ignore=ignore)
@@ -84,7 +77,7 @@ def points(runs: pd.DataFrame) -> pd.DataFrame:
     ``bytes_total``: dataset, method, arm, line, setting, size, bytes, rmse_mean, rmse_std
     (sample std; NaN for one seed), n (seeds), seeds, rmse_mean_abrdf, heldout (lights
     held out of training: that RMSE is over the training directions only)."""
-    needed = ["metrics.rmse", "metrics.bytes_total", "params.method.name", RECIPE_TAG]
+    needed = ["metrics.rmse", "metrics.bytes_total", "params.model.name", RECIPE_TAG]
     if runs.empty or any(column not in runs for column in needed):
         return pd.DataFrame()
     runs = runs.dropna(subset=["metrics.rmse", "metrics.bytes_total"])
@@ -99,7 +92,7 @@ def points(runs: pd.DataFrame) -> pd.DataFrame:
         first = group.iloc[0]
         rmse = _num(group["metrics.rmse"])
         rows.append({
-            "dataset": dataset, "method": first["params.method.name"], "arm": first["arm"],
+            "dataset": dataset, "method": first["params.model.name"], "arm": first["arm"],
             "line": first["line"], "setting": first["setting"], "size": first["size"],
             "bytes": int(round(_num(group["metrics.bytes_total"]).mean())),
             "rmse_mean": float(rmse.mean()),
@@ -296,7 +289,7 @@ def missing(table: pd.DataFrame) -> list[str]:
     """What the points lack for a curve or a verdict, per dataset."""
     notes = []
     for dataset, group in table.groupby("dataset", sort=False):
-        absent = [METHOD_NAMES[m] for m in METHOD_NAMES if m not in set(group["method"])]
+        absent = [m.title for m in MODELS.values() if m.name not in set(group["method"])]
         if absent:
             notes.append(f"{dataset}: no run of {', '.join(absent)}")
         for line, of_line in group.groupby("line", sort=False):

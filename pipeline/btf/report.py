@@ -16,9 +16,10 @@ from omegaconf import OmegaConf
 
 from pipeline.btf import rate_distortion, tables
 from pipeline.btf.curves import curves_section
+from pipeline.btf.models import models_of
 from pipeline.core.report import runs_of, save_figure, write_table
 
-METHODS = ("neural_btf", "clustered", "pca")
+METHODS = ("btf",)
 
 
 def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
@@ -139,7 +140,7 @@ def plot_rmse_vs_k(runs: pd.DataFrame, out: Path) -> str:
     ax = fig.subplots()
     for dataset, group in runs.groupby("dataset"):
         # One line per model family (one recipe but k), never runs of different recipes.
-        clustered = group[group["params.method.name"] == "clustered"]
+        clustered = group[[m is not None and m.clusters for m in models_of(group)]]
         for name, runs_of_family in clustered.groupby("family"):
             stats = runs_of_family.groupby("k")["metrics.rmse"].agg(["mean", "std"])
             ax.errorbar(stats.index, stats["mean"], yerr=stats["std"].fillna(0), marker="o",

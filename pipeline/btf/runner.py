@@ -21,10 +21,12 @@ import numpy as np
 
 from pipeline.btf import interpolation, stages
 from pipeline.btf.export import export_stage, log_compressed
+from pipeline.btf.models import STORAGE_TYPES, Model, model_of
 from pipeline.btf.stereographic import direction_features
+from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.cache import Entry, save_arrays, save_json
-from pipeline.core.errors import ConfigError
-from pipeline.core.settings import Integer, ListOf, OneOf, Real, check_settings
+from pipeline.core.methods import resolve
+from pipeline.core.settings import SPEED, Integer, ListOf, OneOf, check_settings, constraints, roles
 from pipeline.core.stage import Context, plain_settings
 from pipeline.data.directions import direction_sets
 
@@ -32,7 +34,6 @@ log = logging.getLogger(__name__)
 
 
 
-STORAGE_TYPES = ("float32", "float16")
 # Method A's settings and what each may be, checked before any stage runs (train.* is
 # checked by TrainSettings itself).
 CONSTRAINTS = {
@@ -43,45 +44,39 @@ CONSTRAINTS = {
     "btf.pca.random_state": Integer(0, 2**32 - 1),
     "btf.kmeans.n_init": Integer(1),
     "btf.kmeans.max_iter": Integer(1),
-    "btf.model.encoder_channels": ListOf(Integer(1)),
-    "btf.model.latent": Integer(2, 16),
+    "btf.network.encoder_channels": ListOf(Integer(1)),
+    "btf.network.latent": Integer(2, 16),
+    "btf.network.hidden": Integer(1),
+    "btf.network.layers": Integer(1),
     "btf.sizes.weight_dtype": OneOf(*STORAGE_TYPES),
     "btf.sizes.list_dtype": OneOf("int32", "uint16"),
     "btf.sizes.extra_dtype": OneOf(*STORAGE_TYPES),
     "btf.interpolation.holdout_lights": Integer(0),
     "btf.interpolation.offgrid": Integer(0),
     "btf.interpolation.seed": Integer(0),
-    "method.k": Integer(1, optional=True),
-    "method.lr": Real(0.0, closed=False, optional=True),
-    "method.texel_scale": OneOf("none", "lstsq", "luminance"),
-    "method.target": OneOf("texel", "representative"),
-    "method.n_components": Integer(1),
-    "method.dtype": OneOf(*STORAGE_TYPES),
-    "method.match_clustered_k": Integer(1, optional=True),
 }
 
 
-def check_settings_at_the_door(cfg) -> None:
-    """Refuse a bad method-A setting before any stage runs, naming it and what it may be."""
-    check_settings(cfg, CONSTRAINTS)
-    if cfg.method.name != "pca":
+def check_settings_at_the_door(cfg, model: Model) -> None:
+    """Refuse a bad method-A setting before any stage runs, naming it and what it may be:
+    ``btf.*`` from :data:`CONSTRAINTS`, ``model.*`` from the model's declaration."""
+    check_settings(cfg, {**CONSTRAINTS, **constraints(model.config, "model")})
+    if model.trains:
         _train_settings(cfg)
 
 
 def _train_settings(cfg):
     """``train.*`` as :class:`TrainSettings` (which checks the values; the structured config
-    of ``conf/train/default.yaml`` has refused unknown keys); lr null: the method's."""
-    from pipeline.btf.train_settings import TrainSettings
-
+    of ``conf/train/default.yaml`` has refused unknown keys); lr null: the model's."""
     settings = plain_settings(cfg.train)
     lr = settings.pop("lr", None)
-    return TrainSettings(lr=cfg.method.lr if lr is None else lr, **settings)
+    return TrainSettings(lr=cfg.model.lr if lr is None else lr, **settings)
 
 
-# Settings that change how fast training runs but not what it computes (up to the order of
-# floating-point sums): not in the key.
-_SPEED_ONLY = {"threads", "chunk", "keep_awake", "omp_spin_count", "reuse_freed_memory",
-               "backend"}
+# What only changes how fast training runs (up to the order of floating-point sums) is
+# not in the train stage's key: the roles TrainSettings declares.
+SPEED_ONLY = {key.removeprefix("train.") for key, role in roles(TrainSettings, "train").items()
+               if role == SPEED}
 
 
 def train_stage(
@@ -89,16 +84,15 @@ def train_stage(
 ) -> Entry:
     """Train the autoencoder and store decoder weights and latents."""
     cfg = ctx.cfg
-    method = cfg.method
     settings = _train_settings(cfg)
     # Indices into the data's own light set (the 81-grid's canonical order for UBO2003).
     lights = direction_sets(cropped.array("directions", mmap=False)).lights
     heldout = interpolation.heldout_light_indices(cfg, lights)
     stage_settings = {
-        "method": method.name,
-        "target": method.get("target", "texel"),
-        "train": {k: v for k, v in settings.__dict__.items() if k not in _SPEED_ONLY},
-        "model": model_key(cfg.btf.model),
+        "method": cfg.model.name,
+        "target": cfg.model.get("target", "texel"),
+        "train": {k: v for k, v in settings.__dict__.items() if k not in SPEED_ONLY},
+        "model": plain_settings(cfg.btf.network),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),
     }
@@ -140,8 +134,10 @@ def train_stage(
             train_dirs,
             settings,
             seed=cfg.seed,
-            encoder_channels=tuple(cfg.btf.model.encoder_channels),
-            latent=int(cfg.btf.model.latent),
+            encoder_channels=tuple(cfg.btf.network.encoder_channels),
+            latent=int(cfg.btf.network.latent),
+            hidden=int(cfg.btf.network.hidden),
+            layers=int(cfg.btf.network.layers),
             target_from_source=stage_settings["target"] == "representative",
             on_epoch=on_epoch,
             on_curve=on_curve,
@@ -162,17 +158,6 @@ def train_stage(
     return ctx.run("train", stage_settings, inputs, compute, version="3")
 
 
-def model_key(model) -> dict:
-    """``btf.model`` as the train stage's key holds it: ``latent`` left out at the paper's
-    8, so that the models trained before it was a setting keep their keys."""
-    from pipeline.btf.model import LATENT_DIM
-
-    settings = plain_settings(model)
-    if settings.get("latent") == LATENT_DIM:
-        del settings["latent"]
-    return settings
-
-
 def log_curve_point(point: dict) -> None:
     """One point of the RMSE-versus-time curve, as MLflow metrics keyed by step."""
     mlflow.log_metrics({"curve_rmse": point["rmse"], "curve_seconds": point["seconds"],
@@ -184,9 +169,8 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
     stored: decoder weights and latents rounded to ``btf.sizes.weight_dtype``, the per-texel
     scale to ``extra_dtype``."""
     cfg = ctx.cfg
-    method = cfg.method
-    clustered = method.name == "clustered"
-    texel_scale = method.get("texel_scale", "none") if clustered else "none"
+    clustered = model_of(cfg).clusters
+    texel_scale = cfg.model.get("texel_scale", "none")
     settings = {
         "texel_scale": texel_scale,
         "sizes": plain_settings(cfg.btf.sizes),
@@ -262,24 +246,25 @@ def evaluated_dataset(dataset) -> dict:
 
 
 def run(ctx: Context) -> dict[str, float]:
-    """The whole chain for ``method=neural_btf`` or ``method=clustered``."""
+    """The whole chain of the job's model (``model=...``)."""
+    model = model_of(ctx.cfg)
+    check_settings_at_the_door(ctx.cfg, model)
+    if model.stage is None:
+        return run_linear(ctx)
     cfg = ctx.cfg
-    if cfg.method.name == "clustered" and cfg.method.get("k") is None:
-        raise ConfigError("method=clustered needs method.k")
-    check_settings_at_the_door(cfg)
     loaded = stages.load(ctx)
     cropped = stages.crop(ctx, loaded)
     prep = stages.preprocess(ctx, cropped)
     clusters = reps = None
     extra: dict[str, float] = {}
-    if cfg.method.name == "clustered":
+    if model.clusters:
         reduced = stages.pca(ctx, cropped, prep)
         clusters = stages.kmeans(ctx, reduced)
         reps = stages.representatives(ctx, cropped, clusters)
         extra["pca_explained_variance"] = reduced.manifest["summary"]["explained_variance"]
         extra["kmeans_inertia"] = clusters.manifest["summary"]["inertia"]
-    trained = train_stage(ctx, cropped, prep, clusters, reps)
-    if trained.hit and mlflow.active_run() is not None:
+    trained = resolve(model.stage)(ctx, cropped, prep, clusters, reps)
+    if trained.hit and model.trains and mlflow.active_run() is not None:
         # A cached model: replay its loss curve so every run shows one, at the steps where
         # train() logged it (the end of each pass over the texels; the last may be cut).
         per_pass = cropped.manifest["summary"]["M"] // cfg.train.batch_size
@@ -353,21 +338,21 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     from pipeline.btf.linear import components_for_budget, fit_linear, linear_error, pca_bytes
     from pipeline.btf.model import Decoder
 
-    method = ctx.cfg.method
+    pca = ctx.cfg.model
     m, n = cropped.manifest["summary"]["M"], cropped.manifest["summary"]["N"]
-    n_components = method.n_components
-    if method.get("match_clustered_k"):
-        # What clustered k stores with this run's model and storage settings.
-        latent, sizes = int(ctx.cfg.btf.model.latent), ctx.cfg.btf.sizes
-        budget = storage_sizes(Decoder(latent=latent), int(method.match_clustered_k), m, n,
+    n_components = pca.n_components
+    if pca.get("match_clustered_k"):
+        # What clustered k stores with this run's network and storage settings.
+        latent, sizes = int(ctx.cfg.btf.network.latent), ctx.cfg.btf.sizes
+        budget = storage_sizes(Decoder(latent=latent), int(pca.match_clustered_k), m, n,
                                True, weight_dtype=sizes.weight_dtype,
                                list_dtype=sizes.list_dtype, latent_dim=latent)["bytes_total"]
-        n_components = components_for_budget(budget, m, n, method.dtype)
-    settings = {"n_components": n_components, "dtype": method.dtype, "seed": ctx.cfg.seed}
+        n_components = components_for_budget(budget, m, n, pca.dtype)
+    settings = {"n_components": n_components, "dtype": pca.dtype, "seed": ctx.cfg.seed}
 
     def compute(folder: Path) -> dict:
         norm = stages.normalization(prep)
-        model = fit_linear(norm.target(cropped.array("abrdf")), n_components, method.dtype,
+        model = fit_linear(norm.target(cropped.array("abrdf")), n_components, pca.dtype,
                            seed=ctx.cfg.seed)
         rmse, per_direction = linear_error(model, norm.target(cropped.array("abrdf")))
         save_arrays(folder, mean=model.mean, basis=model.basis,
@@ -378,7 +363,7 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
             "bytes_list": 0, "bytes_extra": 0, "bytes_original": m * n * 3 * 4,
         }
         sizes["bytes_total"] = basis_bytes + model.coefficients.nbytes
-        assert sizes["bytes_total"] == pca_bytes(n_components, m, n, method.dtype)
+        assert sizes["bytes_total"] == pca_bytes(n_components, m, n, pca.dtype)
         sizes["compression_ratio"] = sizes["bytes_original"] / sizes["bytes_total"]
         metrics = {"rmse": rmse, "n_components": n_components, **sizes,
                    "rmse_mean_abrdf": mean_abrdf_rmse(cropped.array("abrdf"), norm.alpha)}
@@ -389,18 +374,21 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
 
 
 def run_linear(ctx: Context) -> dict[str, float]:
-    """``method=pca``: load -> crop -> preprocess -> truncated SVD."""
-    check_settings_at_the_door(ctx.cfg)
+    """``model=pca``: load -> crop -> preprocess -> truncated SVD -> export (its compressed
+    file, logged as the other models' are)."""
+    from pipeline.btf.export import export_linear_stage
+
     loaded = stages.load(ctx)
     cropped = stages.crop(ctx, loaded)
     prep = stages.preprocess(ctx, cropped)
     fitted = linear_stage(ctx, cropped, prep)
+    exported = export_linear_stage(ctx, cropped, prep, fitted)
     metrics = {**fitted.json("metrics"), "n_texels": cropped.manifest["summary"]["M"],
                "n_directions": cropped.manifest["summary"]["N"],
                **truth_metrics(ctx, cropped, prep)}
     check_against_baseline(metrics)
-    log_stored_as({"decoder": "+".join(sorted({str(fitted.array("basis").dtype),
-                                               str(fitted.array("mean").dtype)})),
-                   "latents": str(fitted.array("coefficients").dtype)})
+    log_stored_as(exported.manifest["summary"]["stored_as"])
     log_evaluation(fitted, metrics)
+    if mlflow.active_run() is not None:
+        log_compressed(exported)
     return metrics

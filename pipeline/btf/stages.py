@@ -235,11 +235,11 @@ def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
 
 
 def kmeans(ctx: Context, reduced: Entry) -> Entry:
-    """k-means++ on the PCA scores for the run's single ``method.k``."""
+    """k-means++ on the PCA scores for the run's single ``model.k``."""
     # scikit-learn is imported only when a stage needs it: a cached rerun skips it.
     from pipeline.btf.clustering import check_k, kmeans_pp
 
-    k = ctx.cfg.method.k
+    k = ctx.cfg.model.k
     n_texels = reduced.array("scores").shape[0]
     check_k(k, n_texels)
     settings = {"k": k, "seed": ctx.cfg.seed, **plain_settings(ctx.cfg.btf.kmeans)}

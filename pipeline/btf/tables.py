@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.btf.k_verdict import blocked_verdict, describe
+from pipeline.btf.models import models_of
 from pipeline.core.recipe import RECIPE_TAG, RENDER_RECIPE_TAG, recipe_suffixes, with_recipe
 from pipeline.core.report import param
 
@@ -69,17 +70,17 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     shape = [f" {int(c)}²×{int(n)}" if pd.notna(c) and pd.notna(n) else ""
              for c, n in zip(crop, n_dirs, strict=True)]
     runs["dataset"] = label + shape
-    runs["k"] = _num(param(runs, "method.k"))
+    runs["k"] = _num(param(runs, "model.k"))
     runs["seed"] = _num(runs["params.seed"])
-    method = runs["params.method.name"]
-    components = _num(runs.get("metrics.n_components", pd.Series(np.nan, index=runs.index)))
-    label = np.where(method == "neural_btf", "Neural BTF", "k = " + runs["k"].map(_fmt_k))
-    label = np.where(method == "pca", "PCA c = " + components.map(_fmt_k), label)
-    scale = param(runs, "method.texel_scale", "none")
-    label = np.where((method == "clustered") & (scale != "none"), label + " +scale", label)
-    target = param(runs, "method.target", "texel")
-    label = np.where((method == "clustered") & (target == "representative"),
-                     label + " (rep. target)", label)
+    models = models_of(runs)
+    clusters = pd.Series([m is not None and m.clusters for m in models], index=runs.index)
+    label = pd.Series([m.column(run) if m else "?" for m, (_, run) in
+                       zip(models, runs.iterrows(), strict=True)], index=runs.index)
+    # Only the clustered model has these settings: absent elsewhere, so at their defaults.
+    scale = param(runs, "model.texel_scale", "none")
+    label = np.where(scale != "none", label + " +scale", label)
+    target = param(runs, "model.target", "texel")
+    label = np.where(target == "representative", label + " (rep. target)", label)
     # The decoder's products in bfloat16 (train.precision) give other numbers.
     precision = param(runs, "train.precision", "float32")
     label = np.where(precision == "float32", label, label + " (" + precision + ")")
@@ -95,14 +96,21 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
                      label)
     runs["model"] = label
     # A clustered family (Table 2's k columns of one recipe but k), for the k verdict.
-    runs["family"] = np.where(method == "clustered",
+    runs["family"] = np.where(clusters,
                               runs["model"].str.replace(r"^k = \d+", "clustered", regex=True), "")
     runs["family"] = runs["family"] + recipe_suffixes(runs, ["dataset", "family"],
-                                                      ignore=["method.k"], render=render)
+                                                      ignore=["model.k"], render=render)
     runs["model"] = runs["model"] + recipe_suffixes(runs, ["dataset", "model"], render=render)
-    runs["order"] = np.where(method == "neural_btf", -1.0,
-                             np.where(method == "pca", 1e9 + components.fillna(0), runs["k"]))
+    sizes = [_num(pd.Series([run.get(m.size[0]) if m else None])).iloc[0]
+             for m, (_, run) in zip(models, runs.iterrows(), strict=True)]
+    runs["order"] = [1e9 * (m.rank if m else 9) + (0 if pd.isna(s) else s)
+                     for m, s in zip(models, sizes, strict=True)]
     return runs
+
+
+def _clusters(runs: pd.DataFrame) -> pd.Series:
+    """Whether each run's model clusters (Table 2's k columns)."""
+    return pd.Series([m is not None and m.clusters for m in models_of(runs)], index=runs.index)
 
 
 def drop_repeats(runs: pd.DataFrame) -> pd.DataFrame:
@@ -113,10 +121,6 @@ def drop_repeats(runs: pd.DataFrame) -> pd.DataFrame:
         if tag in runs:
             key = runs[tag].where(runs[tag].notna(), key)
     return runs.loc[~key.duplicated()]
-
-
-def _fmt_k(k: float) -> str:
-    return "?" if pd.isna(k) else str(int(k))
 
 
 def model_columns(runs: pd.DataFrame) -> list[str]:
@@ -166,7 +170,7 @@ def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
         parts = {name: int(first[f"metrics.{metric}"]) for metric, name in SIZE_ROWS}
         rows.append(_size_row(dataset, model, parts, float(first["metrics.bytes_original"]),
                               stored_as(first)))
-        if (first["params.method.name"] == "clustered" and parts["per-texel scale"] == 0
+        if (first["params.model.name"] == "clustered" and parts["per-texel scale"] == 0
                 and pd.notna(first.get("metrics.rmse_with_texel_scale"))
                 and pd.notna(first.get("metrics.n_texels"))):
             extra = scale_bytes(first)
@@ -198,7 +202,7 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
     per-texel scale, the bytes of each, and the model of the same family (the same recipe
     but k) without a scale whose total bytes are nearest to the scaled one's, with its
     RMSE: does the scale beat spending its bytes on more clusters? Mean ± std over seeds."""
-    clustered = runs[(runs["params.method.name"] == "clustered")
+    clustered = runs[_clusters(runs)
                      & runs.get("metrics.rmse_with_texel_scale", pd.Series(
                          np.nan, index=runs.index)).notna()]
     if clustered.empty or "metrics.bytes_total" not in runs:
@@ -283,12 +287,12 @@ def failed_runs(runs: pd.DataFrame, near: float = 0.9) -> pd.DataFrame:
 
 def learning_rates(runs: pd.DataFrame) -> str:
     """``"Neural BTF: 0.05; k = 500: 0.08"``: each trained column's learning rate
-    (``train.lr``, or the method's ``method.lr`` where ``train.lr`` is null)."""
+    (``train.lr``, or the model's ``model.lr`` where ``train.lr`` is null)."""
     train = runs.get("params.train.lr", pd.Series(None, index=runs.index))
-    method = runs.get("params.method.lr", pd.Series(None, index=runs.index))
-    rate = train.where(~train.isin([None, "None"]) & train.notna(), method)
-    trained = runs.assign(rate=rate)[rate.notna() & ~rate.isin(["None"])
-                                     & (runs["params.method.name"] != "pca")]  # no training
+    model_lr = runs.get("params.model.lr", pd.Series(None, index=runs.index))
+    rate = train.where(~train.isin([None, "None"]) & train.notna(), model_lr)
+    trains = pd.Series([m is not None and m.trains for m in models_of(runs)], index=runs.index)
+    trained = runs.assign(rate=rate)[rate.notna() & ~rate.isin(["None"]) & trains]
     parts = [f"{model}: {', '.join(sorted(map(str, group['rate'].unique())))}"
              for model, group in trained.sort_values(["order", "model"]).groupby(
                  "model", sort=False)]
@@ -319,7 +323,7 @@ def k_verdict(runs: pd.DataFrame, alpha: float = 0.05, target: float = 0.044) ->
     each step's effect with its 95 % interval and, without evidence, the power.
     """
     rows = []
-    clustered = runs[runs["params.method.name"] == "clustered"]
+    clustered = runs[_clusters(runs)]
     for (dataset, name), group in clustered.groupby(["dataset", "family"]):
         table = group.pivot_table(index="seed", columns="k", values="metrics.rmse",
                                   aggfunc="mean").dropna()

@@ -14,6 +14,7 @@ where its batches come from, the host or arrays kept on the device, is
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -103,6 +104,8 @@ def train(
     seed: int,
     encoder_channels: tuple[int, ...] = (16, 32, 64),
     latent: int = LATENT_DIM,
+    hidden: int = 106,
+    layers: int = 3,
     target_from_source: bool = False,
     on_epoch: Callable[[int, float, int], None] | None = None,
     on_curve: Callable[[dict], None] | None = None,
@@ -125,7 +128,7 @@ def train(
     dir_features : ndarray of shape (N, 4), stereographic light and view coordinates.
     train_dirs : ndarray of int
         Indices of the directions training may query (held-out ones excluded).
-    latent : values per latent (``btf.model.latent``), the encoder's output and the
+    latent : values per latent (``btf.network.latent``), the encoder's output and the
         decoder's input besides the 4 direction coordinates.
     target_from_source : train against the representative's values instead of the texel's.
     on_curve : called with each point of the RMSE-versus-time curve.
@@ -137,7 +140,7 @@ def train(
     rng = np.random.default_rng(seed)
     m, n, _ = abrdf.shape
     encoder = Encoder(n, encoder_channels, latent=latent).to(device)
-    decoder = Decoder(latent=latent).to(device)
+    decoder = Decoder(latent=latent, hidden=hidden, layers=layers).to(device)
     params = list(encoder.parameters()) + list(decoder.parameters())
     # fused: one kernel for all parameters instead of a loop of small ops over each
     # (docs/performance.md). Adam's step differs in the last bit; SGD's is identical.
@@ -161,7 +164,12 @@ def train(
         total = min(total, settings.max_steps)
     if total < 1 or steps_per_pass < 1:
         raise ConfigError(f"no training step: M={m} texels, batch_size={b}, max_steps")
-    if settings.lr_half_life > 0:
+    if settings.schedule == "cosine":
+        # Decays over the whole run: a run twice as long decays twice as slowly, so that
+        # doubling it is a convergence check (the half-life schedule cannot be one).
+        schedule = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: 0.5 * (1 + math.cos(math.pi * min(step / total, 1.0))))
+    elif settings.lr_half_life > 0:
         half_life_steps = settings.lr_half_life * steps_per_epoch
         schedule = torch.optim.lr_scheduler.LambdaLR(
             optimizer, lambda step: 0.5 ** (step / half_life_steps))

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from pipeline.core.errors import ConfigError
-from pipeline.core.settings import check_fields
+from pipeline.core.settings import LOG, RESULT, SPEED, check_fields, setting
 
 PRECISIONS = ("float32", "bfloat16")  # train.precision
 BACKENDS = ("auto", "fused", "autograd")  # train.backend (pipeline.btf.backends)
@@ -37,6 +37,9 @@ class TrainSettings:
     lr_half_life : epochs over which the learning rate halves (per step, exponentially);
         0 keeps it constant. The schedule does not depend on the length of the run, so a
         shorter run is exactly the start of a longer one (the RMSE-versus-time curve).
+    schedule : ``half_life`` (the above) or ``cosine``: from ``lr`` to 0 over the run's
+        steps as half a cosine, ignoring ``lr_half_life``; a longer run stretches it, so
+        doubling the run is a convergence check (``conf/train/converged.yaml``).
     curve_every : steps between two points of the RMSE-versus-time curve (RMSE of
         ``curve_texels`` fixed random texels at every training direction); 0 for none.
     curve_texels : texels of that subsample.
@@ -57,25 +60,26 @@ class TrainSettings:
         on the CPU alike), which rounds the same products to bfloat16.
     """
 
-    epochs: int = 1
-    epoch_texels: int | None = None
-    lr: float = 0.05
-    batch_size: int = 5
-    queries_per_abrdf: int = 512
-    max_steps: int = -1
-    device: str = "auto"
-    momentum: float = 0.0
-    optimizer: str = "sgd"
-    lr_half_life: float = 0.0
-    curve_every: int = 0
-    curve_texels: int = 256
-    threads: int | None = None
-    chunk: int | None = None
-    precision: str = "float32"
-    backend: str = "auto"
-    keep_awake: bool = False
-    omp_spin_count: int | None = None
-    reuse_freed_memory: bool = False
+    epochs: int = setting(1, role=RESULT)
+    epoch_texels: int | None = setting(None, role=RESULT)
+    lr: float = setting(0.05, role=RESULT)
+    batch_size: int = setting(5, role=RESULT)
+    queries_per_abrdf: int = setting(512, role=RESULT)
+    max_steps: int = setting(-1, role=RESULT)
+    device: str = setting("auto", role=SPEED)
+    momentum: float = setting(0.0, role=RESULT)
+    optimizer: str = setting("sgd", role=RESULT)
+    lr_half_life: float = setting(0.0, role=RESULT)
+    schedule: str = setting("half_life", role=RESULT)
+    curve_every: int = setting(0, role=LOG)
+    curve_texels: int = setting(256, role=LOG)
+    threads: int | None = setting(None, role=SPEED)
+    chunk: int | None = setting(None, role=SPEED)
+    precision: str = setting("float32", role=RESULT)
+    backend: str = setting("auto", role=SPEED)
+    keep_awake: bool = setting(False, role=SPEED)
+    omp_spin_count: int | None = setting(None, role=SPEED)
+    reuse_freed_memory: bool = setting(False, role=SPEED)
 
     def __post_init__(self):
         check_fields(self, "train")  # types first: 1.5 epochs, "abc" as lr, NaN as a count
@@ -98,6 +102,8 @@ class TrainSettings:
             raise ConfigError(f"train.momentum={self.momentum} must be in [0, 1)")
         if self.optimizer not in ("sgd", "adam"):
             raise ConfigError(f"train.optimizer={self.optimizer!r} must be sgd or adam")
+        if self.schedule not in ("half_life", "cosine"):
+            raise ConfigError(f"train.schedule={self.schedule!r} must be half_life or cosine")
         if not self.lr_half_life >= 0:  # also NaN
             raise ConfigError(f"train.lr_half_life={self.lr_half_life} must be >= 0")
         if self.curve_every < 0 or self.curve_texels < 1:

@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.core.errors import ConfigError
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # shipped inside the package
 
 
 @dataclass(frozen=True)
@@ -52,6 +52,10 @@ class Method:
     schemas : Hydra structured configs to register before composing, as
         ``(group, name, dataclass)``: the one source of a settings group's defaults,
         which the YAML files extend (``defaults: [/<group>/<name>@_here_, _self_]``).
+    check : ``(cfg) -> None`` raising :class:`ConfigError` for a bad setting, called for
+        every job of a sweep before the first runs, and by the job itself; or None.
+    settings : ``(prefix, dataclass)`` pairs whose fields declare their roles
+        (:func:`pipeline.core.settings.setting`): the recipe leaves out what is not a result.
     """
 
     name: str
@@ -65,6 +69,15 @@ class Method:
     run_name: Callable[[DictConfig], str] | None = None
     unused: Callable[[DictConfig], list[str]] | None = None
     schemas: tuple[tuple[str, str, type], ...] = ()
+    settings: tuple[tuple[str, type], ...] = ()
+    check: Callable[[DictConfig], None] | None = None
+
+    def roles(self) -> dict[str, str]:
+        """``{"prefix.field": role}`` of :attr:`settings`."""
+        from pipeline.core.settings import roles
+
+        return {key: role for prefix, cls in self.settings
+                for key, role in roles(cls, prefix).items()}
 
     def left_out(self, cfg: DictConfig) -> list[str]:
         """The settings :attr:`unused` names for this job (none without it)."""

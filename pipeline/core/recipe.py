@@ -1,8 +1,9 @@
 """A run's recipe: everything in its resolved config that can change a number in a table.
 
-Runs are seeds of one model only when their recipes are equal. :data:`NOT_RECIPE` is the
-one list of settings left out, each with the reason it cannot change any number in any
-table; everything else is in, a null value included (it is logged as ``None``). Rendering
+Runs are seeds of one model only when their recipes are equal. :data:`NOT_RECIPE` lists the
+settings every method leaves out, each with the reason it cannot change any number in any
+table; the methods' own settings say so by their declared role (``speed``, ``log``:
+:func:`pipeline.core.settings.setting`); everything else is in, a null value included (it is logged as ``None``). Rendering
 (``btf.render.*``) is a view of a model, not the model: it has a recipe of its own
 (:func:`render_recipe_id`), and the render tables pool runs only when both are equal.
 
@@ -15,6 +16,7 @@ False
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 from collections.abc import Mapping, Sequence
@@ -35,19 +37,20 @@ NOT_RECIPE: dict[str, str] = {
     "tracking.*": "how the run is filed in MLflow (experiment, tags)",
     "method.spec": "where the code of method.name lives (method.name is in the recipe)",
     "threads": SPEED,
-    "train.threads": SPEED,
-    "train.device": SPEED,
-    "train.backend": SPEED,
-    "train.chunk": SPEED,
-    "train.keep_awake": SPEED,
-    "train.omp_spin_count": SPEED,
-    "train.reuse_freed_memory": SPEED,
-    "train.curve_every": "how often the RMSE-versus-time curve is sampled (a log, not a result)",
-    "train.curve_texels": "how many texels that curve samples (a log, not a result)",
     "btf.render.*": "how a model is rendered: the render recipe (render_recipe_id)",
-    "rd.*": ("a rate-distortion sweep's grid and index (conf/experiment/rate_distortion.yaml): "
-             "read only through the settings it selects, which are logged and in the recipe"),
 }
+WHY = {"speed": SPEED, "log": "what is logged or drawn, not the model"}
+
+
+@functools.cache
+def _patterns() -> dict[str, str]:
+    """:data:`NOT_RECIPE` and every setting a registered method declares with a role other
+    than ``result`` (:func:`pipeline.core.settings.setting`), with its reason."""
+    from pipeline.core.methods import registered
+
+    declared = {key: WHY[role] for method in registered()
+                for key, role in method.roles().items() if role != "result"}
+    return {**NOT_RECIPE, **declared}
 RENDER = "btf.render.*"
 RECIPE_TAG = "tags.recipe"
 RENDER_RECIPE_TAG = "tags.render_recipe"
@@ -57,7 +60,7 @@ ABSENT = "(absent)"  # a setting a run did not log: never equal to a logged valu
 def left_out(key: str, render: bool = False) -> bool:
     """Whether the flattened setting ``key`` is outside the recipe (``render``: the render
     recipe, which also holds ``btf.render.*``)."""
-    return any(fnmatchcase(key, pattern) for pattern in NOT_RECIPE
+    return any(fnmatchcase(key, pattern) for pattern in _patterns()
                if not (render and pattern == RENDER))
 
 

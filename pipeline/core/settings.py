@@ -240,3 +240,43 @@ def _leaf_keys(cfg: DictConfig, prefix: str = "") -> list[str]:
         if isinstance(value, DictConfig):
             keys += _leaf_keys(value, name + ".")
     return keys
+
+
+# A setting's role, declared where the setting is (field metadata "role"): what its value
+# can change. Cache keys hold the RESULT settings of their stage, the recipe that tables
+# group runs by holds every RESULT setting, the logged parameters all that the model uses.
+RESULT = "result"      # can change a number in a table
+SPEED = "speed"        # changes how fast the same numbers are computed (up to float sums)
+LOG = "log"            # changes what is logged or drawn, not the model
+ROLES = (RESULT, SPEED, LOG)
+
+
+def setting(default, constraint: Constraint | None = None, *, role: str = RESULT,
+            help: str = ""):
+    """A dataclass field with its role, its allowed values and one line of help."""
+    if role not in ROLES:
+        raise ValueError(f"role={role!r} must be one of {', '.join(ROLES)}")
+    metadata = {"role": role, "constraint": constraint, "help": help}
+    if isinstance(default, list | dict):
+        return dataclasses.field(default_factory=lambda: type(default)(default),
+                                 metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def roles(settings_class: type, prefix: str) -> dict[str, str]:
+    """``{"prefix.field": role}`` of a dataclass whose fields are :func:`setting` s;
+    raises ``TypeError`` naming a field declared without a role."""
+    found = {}
+    for f in dataclasses.fields(settings_class):
+        if "role" not in f.metadata:
+            raise TypeError(f"{settings_class.__name__}.{f.name} has no role: declare it "
+                            f"with pipeline.core.settings.setting(..., role=...)")
+        found[f"{prefix}.{f.name}"] = f.metadata["role"]
+    return found
+
+
+def constraints(settings_class: type, prefix: str) -> dict[str, Constraint]:
+    """``{"prefix.field": constraint}`` of the :func:`setting` fields that declare one."""
+    return {f"{prefix}.{f.name}": f.metadata["constraint"]
+            for f in dataclasses.fields(settings_class)
+            if f.metadata.get("constraint") is not None}

@@ -32,7 +32,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.core import stopping
-from pipeline.core.errors import StoreError
+from pipeline.core.errors import ConfigError, StoreError
 from pipeline.core.process import process_alive, stop_children
 from pipeline.core.recipe import recipe_id, render_recipe_id
 
@@ -47,6 +47,7 @@ EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
 EXPERIMENT_KIND = (EXPERIMENT_KIND_TAG, "custom_model_development")
 NOTE_TAG = "mlflow.note.content"  # the run's description in the UI (Markdown)
 ENDED_BY_TAG = "ended_by"  # why a run ended FAILED when its own process did not say
+ERROR_TAG = "error"  # the refused setting's message, on a run that ended FAILED for it
 MLFLOW_TABLES = {"experiments", "alembic_version"}  # what makes a SQLite file a store
 _PARTIAL = re.compile(rf"\.{re.escape(DB_NAME)}\.partial-(\d+)(?:-journal|-wal|-shm)?")
 
@@ -373,7 +374,7 @@ def job_run(
         parent_run_id=_parent_run_id(),
         tags=tags,
     ) as run:
-        # Every setting, unset ones (method.k of Neural BTF) as "None": a null is a value
+        # Every setting, unset ones (model.k of Neural BTF) as "None": a null is a value
         # that the tables compare like any other (pipeline.core.recipe).
         mlflow.log_params({k: _param_value(v) for k, v in params.items()})
         mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
@@ -382,7 +383,10 @@ def job_run(
         try:
             yield run
             stopping.check()  # a stop the job's code swallowed: the run ends FAILED
-        except BaseException:
+        except BaseException as error:
+            if isinstance(error, ConfigError):  # a refused setting: the run says which
+                with contextlib.suppress(Exception):
+                    mlflow.set_tag(ERROR_TAG, " ".join(str(error).split())[:5000])
             if stopping.requested() is not None:
                 with contextlib.suppress(Exception):
                     mlflow.set_tag(ENDED_BY_TAG, f"stopped by {stopping.describe()}")

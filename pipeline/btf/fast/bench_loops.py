@@ -15,11 +15,11 @@ from omegaconf import OmegaConf
 from pipeline.btf.model import Decoder, Encoder
 
 N_PAPER = 6561
-CONF = Path(__file__).resolve().parents[3] / "conf"  # pipeline/btf/fast/ -> the repository
+CONF = Path(__file__).resolve().parents[2] / "conf"  # pipeline/btf/fast/ -> pipeline/conf
 
 
 def paper_channels() -> tuple[int, ...]:
-    return tuple(OmegaConf.load(CONF / "btf" / "default.yaml").model.encoder_channels)
+    return tuple(OmegaConf.load(CONF / "btf" / "default.yaml").network.encoder_channels)
 
 
 def naive_training(steps: int, channels):

@@ -41,7 +41,7 @@ import numpy as np
 from pipeline.core import cli
 from pipeline.core.settings import Integer, OneOf
 
-CONF = Path(__file__).resolve().parents[3] / "conf"  # pipeline/btf/fast/ -> the repository
+CONF = Path(__file__).resolve().parents[2] / "conf"  # pipeline/btf/fast/ -> pipeline/conf
 N_PAPER = 6561
 PARTS = ("data", "encoder_forward", "decoder", "encoder_backward", "optimizer")
 DECODER_MACS = 12 * 106 + 2 * 106 * 106 + 106 * 3  # per query, the model's products

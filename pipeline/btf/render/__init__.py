@@ -12,5 +12,5 @@ renderer :mod:`pipeline.render`.
 Nothing is imported here, so importing a submodule does not load Embree or torch.
 """
 
-# The ``method.name`` of the jobs rendered when ``btf.render.enabled``: method A's models.
-RENDERED = ("neural_btf", "clustered", "pca")
+# The ``method.name`` of the jobs rendered when ``btf.render.enabled``: method A.
+RENDERED = ("btf",)

@@ -65,7 +65,7 @@ def materials(crop: int, folder: Path, seed: int = 0) -> dict:
     """The benchmark materials for a crop x crop texture."""
     import torch
 
-    from pipeline.btf.compressed import write_compressed
+    from pipeline.btf.compressed import load_compressed, write_compressed
     from pipeline.btf.model import LATENT_DIM, Decoder
     from pipeline.btf.render.surfaces import (
         AnalyticMaterial,
@@ -87,7 +87,7 @@ def materials(crop: int, folder: Path, seed: int = 0) -> dict:
     return {
         "lambertian": LambertianTexture(np.repeat(checker[..., None], 3, axis=2)),
         "measured": MeasuredMaterial(values, (crop, crop), btf_directions()),
-        "neural": CompressedMaterial.from_file(path),
+        "neural": CompressedMaterial(load_compressed(path)),
         "truth": AnalyticMaterial(SyntheticBTF(size=max(crop, 2), seed=seed), (0, 0),
                                   (crop, crop)),
         "beyond grid": BeyondGridIndicator((crop, crop)),

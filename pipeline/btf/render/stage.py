@@ -341,10 +341,10 @@ def truth_stage(ctx: Context, cropped: Entry) -> Entry:
 
 def compressed_material(exported: Entry):
     """The export stage's compressed BTF file (Neural BTF or clustered) as a material."""
-    from pipeline.btf.compressed import FILE_NAME
+    from pipeline.btf.compressed import FILE_NAME, load_compressed
     from pipeline.btf.render.surfaces import CompressedMaterial
 
-    return CompressedMaterial.from_file(exported.file(FILE_NAME))
+    return CompressedMaterial(load_compressed(exported.file(FILE_NAME)))
 
 
 def linear_material(fitted: Entry, cropped: Entry, prep: Entry):
@@ -433,7 +433,9 @@ def run(ctx: Context) -> dict[str, float]:
     the ``render_*`` metrics."""
     import mlflow
 
-    if ctx.cfg.method.name == "pca":
+    from pipeline.btf.models import model_of
+
+    if model_of(ctx.cfg).stage is None:  # the linear chain
         cropped, prep, fitted = _entries(ctx, "crop", "preprocess", "linear")
         inputs = {"linear": fitted, "preprocess": prep}
 

@@ -35,7 +35,6 @@ model as it is. Light and view are clamped each onto its own set's polygon.
 
 from __future__ import annotations
 
-import os
 from functools import lru_cache
 
 import numpy as np
@@ -70,13 +69,6 @@ class CompressedMaterial(Material):
             raise ValueError(f"{compressed!r} has no query_pairs(texels, directions) method")
         self.crop_size = check_crop_size(compressed.crop_size)
         self.compressed = compressed
-
-    @classmethod
-    def from_file(cls, path: str | os.PathLike) -> CompressedMaterial:
-        """Load a ``btf.safetensors`` file (imports torch)."""
-        from pipeline.btf.compressed import load_compressed
-
-        return cls(load_compressed(path))
 
     def _evaluate(self, texels, directions):
         return np.asarray(self.compressed.query_pairs(texels, directions), dtype=np.float32)

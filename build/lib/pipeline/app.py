@@ -1,0 +1,146 @@
+"""The Hydra job: compose the config, run the method's chain, record it in MLflow.
+
+The job knows no method by name: ``method.spec`` names the method's
+:class:`pipeline.core.methods.Method` (its runner, description, figures, headline
+metrics).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import tempfile
+from pathlib import Path
+
+from omegaconf import DictConfig
+from threadpoolctl import threadpool_limits
+
+from pipeline.core import stopping
+from pipeline.core.errors import ConfigError
+from pipeline.core.memory import process_peak_mb
+from pipeline.core.methods import Method, method_of
+from pipeline.core.stage import Context
+from pipeline.core.tracking import SweepParentRun, job_run
+
+log = logging.getLogger(__name__)
+
+
+def run_job(cfg: DictConfig) -> float | None:
+    """Run one job; returns its first headline metric (for Hydra sweepers), if any."""
+    import mlflow
+
+    method = method_of(cfg)
+    if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool) or cfg.seed < 0:
+        raise ConfigError(f"seed={cfg.seed!r} must be an integer >= 0")
+    threads = cfg.get("threads")
+    if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool)
+                                or threads < 1):
+        raise ConfigError(f"threads={threads!r} must be an integer >= 1 or null (all cores)")
+    if method.check is not None:
+        method.check(cfg)
+    if method.prepare is not None:
+        method.prepare(cfg)
+    # SIGTERM/SIGINT end the run FAILED and the process, wherever they land; its temporary
+    # files under these folders go with it (pipeline.core.stopping).
+    leftovers = [cfg.paths.get(folder) for folder in ("runs", "cache", "data")]
+    with stopping.job_scope(leftovers_in=[f for f in leftovers if f]), \
+            job_run(cfg, run_name=method.name_run(cfg), description=method.description,
+                    unused=method.left_out(cfg)) as run:
+        ctx = Context.from_config(cfg)
+        try:
+            with threadpool_limits(cfg.get("threads")):  # numpy's BLAS and OpenMP pools
+                metrics = method.run(ctx)
+            mlflow.log_metrics(metrics)  # first: the UI lists metrics as they were logged
+        finally:
+            # Grouped under "time/" and "memory/" (the UI folds names by their prefix).
+            mlflow.set_tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
+            mlflow.log_metrics({f"time/{s}_seconds": t for s, t in ctx.seconds.items()})
+            mlflow.log_metrics({f"memory/{s}_peak_rss_mb": v
+                                for s, v in ctx.peak_rss_mb.items()})
+            mlflow.log_metric("memory/peak_rss_mb", process_peak_mb())
+        if method.figures is not None:
+            log_job_figures(method, cfg, ctx.keys)
+        print_result(method, method.name_run(cfg), metrics, run.info.run_id,
+                     mlflow.get_artifact_uri(), cfg.paths.runs)
+    headline = [metrics[name] for name in method.headline if name in metrics]
+    return headline[0] if headline else None
+
+
+def log_job_figures(method: Method, cfg: DictConfig, cache_keys: dict[str, str]) -> None:
+    """Draw the job's figures into a temporary folder and log them under ``figures/``."""
+    import mlflow
+
+    with tempfile.TemporaryDirectory() as folder:
+        if method.figures(cfg, cache_keys, Path(folder)):
+            mlflow.log_artifacts(folder, "figures")
+
+
+def print_result(method: Method, name: str, metrics: dict[str, float], run_id: str,
+                 artifacts: str, runs_dir) -> None:
+    """The job's last words: its headline metrics, its run and where its files are."""
+    from urllib.parse import unquote, urlparse
+
+    lines = [f"{name}: run {run_id} finished"]
+    lines += [f"  {name:<26} {metrics[name]:.6g}" for name in method.headline
+              if name in metrics]
+    uri = urlparse(artifacts)
+    folder = Path(unquote(uri.path)) if uri.scheme in ("", "file") else None
+    lines.append(f"  files    {folder or artifacts}")
+    figures = sorted(p.name for p in (folder / "figures").glob("*.png")) if folder else []
+    if figures:
+        lines.append(f"  figures  {folder / 'figures'}: {', '.join(figures)}")
+    lines.append(f"  tables   python -m pipeline.tables paths.runs={runs_dir}")
+    print("\n".join(lines), flush=True)
+
+
+class SweepRun(SweepParentRun):
+    """The sweep's MLflow parent run (``conf/config.yaml``, ``hydra.callbacks``) and, with
+    ``run_tables``, ``python -m pipeline.tables`` after the last job."""
+
+    def __init__(self, run_tables: bool = False) -> None:
+        super().__init__()
+        self.run_tables = run_tables
+
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        if self.run_id is not None:
+            log_headlines(self.uri, self.run_id)
+        if self.run_tables:
+            from pipeline.tables import build_tables
+
+            # The parent holds the tables and figures too: the UI shows what the disk does.
+            build_tables(config.paths.runs, log_to=self.run_id)
+        super().on_multirun_end(config, **kwargs)
+
+
+def log_headlines(uri: str, parent_id: str) -> None:
+    """Log each finished child run's headline metrics to the sweep's parent run, as
+    ``<job>/<metric>``: the parent shows what the sweep found. ``<job>`` is the child's run
+    name, followed by its swept settings where two children share a name."""
+    from collections import Counter
+
+    from mlflow.entities import Metric
+    from mlflow.tracking import MlflowClient
+
+    from pipeline.core.methods import resolve
+
+    client = MlflowClient(uri)
+    parent = client.get_run(parent_id)
+    swept = {key for key, value in parent.data.params.items() if "," in value}  # a list
+    children = [child for child in client.search_runs(
+        [parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent_id}'")
+        if child.info.status == "FINISHED" and child.data.params.get("method.spec")]
+    names = Counter(child.info.run_name for child in children)
+    values = []
+    for child in children:
+        job = child.info.run_name or child.info.run_id
+        if names[child.info.run_name] > 1:
+            job += " " + " ".join(o for o in child.data.tags.get("overrides", "").split()
+                                  if o.split("=")[0] in swept and not o.startswith("seed="))
+        # MLflow takes letters, digits and "_-. :/" in a metric's name.
+        job = re.sub(r"[^\w\-. :/]", "_", job.strip())
+        for name in resolve(child.data.params["method.spec"]).headline:
+            if name in child.data.metrics:
+                values.append(Metric(f"{job}/{name}", child.data.metrics[name],
+                                     child.info.end_time or 0, 0))
+    if values:
+        client.log_batch(parent_id, metrics=values)

@@ -1,0 +1,100 @@
+"""The clustering step of the clustered Neural BTF (PAPERS.md A, steps 1-4).
+
+PCA of the preprocessed ABRDFs, k-means++ on the reduced vectors, and the element-wise
+median ABRDF of every cluster as its representative.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from sklearn.cluster import KMeans
+from sklearn.decomposition import PCA
+
+from pipeline.core.errors import ConfigError
+
+
+def pca_reduce(
+    features: np.ndarray, n_components: int, random_state: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Project ABRDFs on their first principal components.
+
+    Parameters
+    ----------
+    features : ndarray of shape (M, D), float32
+        Preprocessed ABRDFs, one row per texel (D = 3N).
+    n_components : int
+        Number of components kept.
+    random_state : int
+        Seed of the randomized SVD. It is a PCA setting, not the run's seed, so that runs
+        with different seeds share one cached PCA.
+
+    Returns
+    -------
+    scores : ndarray of shape (M, n_components), float32
+    explained_variance_ratio : ndarray of shape (n_components,)
+    """
+    m, d = features.shape
+    if not 1 <= n_components <= min(m, d):
+        raise ConfigError(
+            f"btf.pca.n_components={n_components} must be between 1 and min(M={m}, D={d})"
+        )
+    # Randomized SVD keeps float32 input as float32 and is far cheaper than a full SVD
+    # when n_components << D (paper size: D = 19683).
+    pca = PCA(n_components=n_components, svd_solver="randomized", random_state=random_state)
+    scores = pca.fit_transform(features).astype(np.float32, copy=False)
+    return scores, pca.explained_variance_ratio_.astype(np.float64)
+
+
+def check_k(k: int, n_texels: int) -> None:
+    if not isinstance(k, int) or k < 1:
+        raise ConfigError(f"model.k={k!r} must be a positive integer")
+    if k > n_texels:
+        raise ConfigError(
+            f"model.k={k} is larger than the number of texels M={n_texels}: "
+            "lower k or enlarge btf.crop.size"
+        )
+
+
+def kmeans_pp(
+    scores: np.ndarray, k: int, seed: int, n_init: int = 1, max_iter: int = 300
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """k-means with k-means++ seeding (Arthur & Vassilvitskii 2007) via scikit-learn.
+
+    Returns
+    -------
+    labels : ndarray of shape (M,), int32 — the paper's "list"
+    centers : ndarray of shape (k, n_components), float32
+    inertia : float
+    """
+    check_k(k, scores.shape[0])
+    kmeans = KMeans(
+        n_clusters=k, init="k-means++", n_init=n_init, max_iter=max_iter, random_state=seed
+    )
+    labels = kmeans.fit_predict(scores).astype(np.int32)
+    return labels, kmeans.cluster_centers_.astype(np.float32), float(kmeans.inertia_)
+
+
+def cluster_medians(abrdf: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    """Element-wise median ABRDF of each cluster.
+
+    Parameters
+    ----------
+    abrdf : ndarray of shape (M, N, 3)
+    labels : ndarray of shape (M,), values in [0, k)
+
+    Returns
+    -------
+    representatives : ndarray of shape (k, N, 3), float32
+    """
+    if labels.shape != (abrdf.shape[0],):
+        raise ValueError(f"labels has shape {labels.shape}, expected ({abrdf.shape[0]},)")
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(k + 1))
+    representatives = np.empty((k,) + abrdf.shape[1:], dtype=np.float32)
+    for cluster in range(k):
+        members = order[bounds[cluster] : bounds[cluster + 1]]
+        if len(members) == 0:
+            raise ValueError(f"cluster {cluster} of k={k} is empty")
+        # Sorted indices make the gather from a memory map sequential.
+        representatives[cluster] = np.median(abrdf[np.sort(members)], axis=0)
+    return representatives

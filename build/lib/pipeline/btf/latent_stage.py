@@ -1,0 +1,69 @@
+"""The train stage of ``model=latent_texture`` (:mod:`pipeline.btf.latent_texture`): a
+NeuMIP-style latent texture and decoder fitted directly to the crop, stored as Neural BTF
+stores its model so that the evaluate and export stages are the same.
+
+The pyramid (``model.levels`` > 1) helps training only: at texel centres, where every
+evaluation of this project queries, it folds into one latent per texel exactly, and that is
+what is stored (so the bytes are Neural BTF's at the same latent size and decoder).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.btf import interpolation, stages
+from pipeline.btf.stereographic import direction_features
+from pipeline.core.cache import Entry, save_arrays, save_json
+from pipeline.core.stage import Context, plain_settings
+from pipeline.data.directions import direction_sets
+
+
+def train_stage(ctx: Context, cropped: Entry, prep: Entry, clusters: Entry | None = None,
+                reps: Entry | None = None) -> Entry:
+    """Fit the latent texture; write ``decoder.pt``, ``latents.npy`` (M, latent),
+    ``latent_of_texel.npy`` (texel t has latent t), ``losses.json`` and ``curve.json``."""
+    cfg = ctx.cfg
+    lights = direction_sets(cropped.array("directions", mmap=False)).lights
+    heldout = interpolation.heldout_light_indices(cfg, lights)
+    model = plain_settings(cfg.model)
+    network = plain_settings(cfg.btf.network)
+    settings = {
+        "model": model, "seed": cfg.seed, "heldout_lights": heldout.tolist(),
+        "network": {key: network[key] for key in ("latent", "hidden", "layers")
+                    if key in network},
+    }
+
+    def compute(folder: Path) -> dict:
+        import torch
+
+        from pipeline.btf.latent_texture import train_latent_texture
+
+        abrdf = cropped.array("abrdf")
+        directions = cropped.array("directions", mmap=False)
+        norm = stages.normalization(prep)
+        size = int(cfg.btf.crop.size)
+        result = train_latent_texture(
+            np.asarray(norm.target(abrdf), dtype=np.float32),
+            direction_features(directions).astype(np.float32),
+            interpolation.training_directions(directions, heldout), (size, size),
+            latent=int(network["latent"]), levels=model["levels"],
+            hidden=int(network.get("hidden", 106)), layers=int(network.get("layers", 3)),
+            steps=model["steps"], batch_texels=model["batch_texels"],
+            queries_per_texel=model["queries_per_texel"], lr=model["lr"], seed=cfg.seed)
+        module = result.module
+        with torch.no_grad():
+            latents = module.texel_latents(torch.arange(size * size)).numpy()
+        torch.save(module.decoder.state_dict(), folder / "decoder.pt")
+        save_arrays(folder, latents=latents.astype(np.float32),
+                    latent_of_texel=np.arange(size * size, dtype=np.int32))
+        losses = [point["loss"] for point in result.curve]
+        save_json(folder, "losses", losses)
+        save_json(folder, "curve", [])  # no RMSE-versus-time curve (train.curve_every)
+        queries = result.steps * model["batch_texels"] * model["queries_per_texel"]
+        return {"steps": result.steps, "seconds": result.seconds, "queries": queries,
+                "final_loss": losses[-1] if losses else float("nan")}
+
+    return ctx.run("train_latent_texture", settings,
+                   {"crop": cropped, "preprocess": prep}, compute, version="1")

@@ -1,0 +1,394 @@
+"""Fig. 8 and Tables 3-4 of the clustering paper, from the runs of ``experiment=render``.
+
+Tables 3 and 4 are the RMSE of the dark and the bright crop of each model's render, mean ±
+std over seeds, at the largest samples per pixel; the graininess table follows both crops
+through every spp, with the ratio of high-frequency energy to the target's (above 1: the
+model adds grain); the cloth table gives the RMSE over every lit-cloth pixel at every spp.
+
+What a row is scored against is read from the runs' metrics (:func:`scored_runs`): the
+analytic truth (``render_truth_*``: the built-in material's generator rendered with the same
+samples) where a dataset's runs have it, with the measured reference render as one more
+column (``render_reference_truth_*``, its own distance from the truth: the floor of what
+scoring against the reference can show); else the measured reference (``render_*``). Each
+table says which in its caption and a ``scored against`` column, and gives the share of
+samples beyond the measured grid (``render_beyond_grid_share*``).
+
+Fig. 8 is the grid of renders (truth when there is one, reference, Neural BTF, each k, PCA)
+of one seed with both crops marked, and the crops enlarged below. Images are read back from
+the stage cache through the cache keys the MLflow runs recorded (``tags.cache.render``,
+``tags.cache.render_reference``, ``tags.cache.render_truth``).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+
+from pipeline.btf import tables
+from pipeline.btf.render import RENDERED
+from pipeline.btf.render.stage import REGIONS
+from pipeline.core.cache import StageCache
+from pipeline.core.report import runs_of, safe_stem, save_figure, write_table
+from pipeline.data.images import gamma_encode, write_exr
+
+log = logging.getLogger(__name__)
+
+COLOURS = {"dark": "tab:cyan", "bright": "tab:orange"}
+TRUTH, REFERENCE = "analytic truth", "measured reference"
+SCORED_AGAINST = "scored against"
+BEYOND_GRID = "beyond grid"
+# One reference render (and its distance from the truth) per pair of these cache keys.
+_REFERENCE_KEYS = ("tags.cache.render_reference", "tags.cache.render_truth")
+
+
+def rendered_runs(runs: pd.DataFrame) -> pd.DataFrame:
+    """Labelled runs (:func:`pipeline.btf.tables.label_runs`) that rendered, one per render
+    (a rerun that found its render cached records the same numbers again)."""
+    if "metrics.render_rmse_dark" not in runs:
+        return runs.iloc[0:0]
+    runs = runs[runs["metrics.render_rmse_dark"].notna()]
+    key = runs.get("tags.cache.render", runs["run_id"]).fillna(runs["run_id"])
+    return runs.loc[~key.duplicated()]
+
+
+def spp_levels(runs: pd.DataFrame) -> list[int]:
+    """The samples-per-pixel levels of which the runs logged metrics."""
+    prefix = "metrics.render_rmse_dark_spp"
+    return sorted(int(c[len(prefix):]) for c in runs.columns if c.startswith(prefix))
+
+
+def scored_against(runs: pd.DataFrame) -> pd.Series:
+    """Per run, what its dataset's rows are scored against: :data:`TRUTH` where any run of
+    the dataset logged truth metrics (``render_truth_rmse_dark``), else :data:`REFERENCE`."""
+    truth = runs.get("metrics.render_truth_rmse_dark", pd.Series(np.nan, index=runs.index))
+    has = truth.notna().groupby(runs["dataset"]).transform("any")
+    return pd.Series(np.where(has, TRUTH, REFERENCE), index=runs.index)
+
+
+def scored_runs(runs: pd.DataFrame) -> pd.DataFrame:
+    """Rendered runs with what the tables show: a :data:`SCORED_AGAINST` column and, for every
+    logged ``render_<name>`` (``rmse_dark``, ``hf_ratio_bright_spp16``, ...), a
+    ``metrics.scored_<name>``: the run's ``render_truth_<name>`` where its dataset is scored
+    against the truth, else its ``render_<name>``.
+
+    Datasets scored against the truth get one more row per reference render (per pair of
+    reference and truth cache keys), model :data:`REFERENCE` (and the render settings in
+    which reference renders of the dataset differ), whose scores are the reference's own
+    ``render_reference_truth_<name>``; it sorts before every model.
+    """
+    runs = runs.copy()
+    runs[SCORED_AGAINST] = against = scored_against(runs)
+    names = [c[len("metrics.render_"):] for c in runs.columns
+             if c.startswith(("metrics.render_rmse_", "metrics.render_hf_ratio_"))]
+    nothing = pd.Series(np.nan, index=runs.index)
+    for name in names:
+        truth = runs.get(f"metrics.render_truth_{name}", nothing)
+        runs[f"metrics.scored_{name}"] = truth.where(against == TRUTH,
+                                                     runs[f"metrics.render_{name}"])
+    keyed = runs[against == TRUTH]
+    if keyed.empty:
+        return runs
+    keys = [k for k in _REFERENCE_KEYS if k in keyed] or ["run_id"]
+    references = keyed.drop_duplicates(["dataset", *keys]).copy()
+    for name in names:
+        references[f"metrics.scored_{name}"] = references.get(
+            f"metrics.render_reference_truth_{name}", np.nan)
+    references["model"] = REFERENCE + _render_differences(references)
+    references["order"] = -np.inf
+    return pd.concat([runs, references], ignore_index=True)
+
+
+def _render_differences(references: pd.DataFrame) -> pd.Series:
+    """``" [btf.render.lights=both]"``: the render settings in which a dataset's reference
+    renders differ, per reference; ``""`` where a dataset has one."""
+    settings = [c for c in references.columns if c.startswith("params.btf.render.")]
+    suffix = pd.Series("", index=references.index)
+    for _, group in references.groupby("dataset"):
+        differ = [c for c in settings if group[c].astype(str).nunique() > 1]
+        if differ:
+            suffix[group.index] = group[differ].astype(str).apply(
+                lambda row: " [" + ", ".join(f"{c[len('params.'):]}={v}"
+                                             for c, v in row.items()) + "]", axis=1)
+    return suffix
+
+
+def beyond_grid_column(runs: pd.DataFrame, metric: str) -> pd.Series:
+    """Per dataset, ``metrics.<metric>`` (a share beyond the grid) of its reference renders
+    as a percentage: one value, or the range where renders differ; "–" where none logged."""
+    def describe(values: pd.Series) -> str:
+        values = values.dropna()
+        if values.empty:
+            return "–"
+        low, high = 100 * values.min(), 100 * values.max()
+        return f"{low:.1f} %" if np.isclose(low, high) else f"{low:.1f}–{high:.1f} %"
+
+    column = f"metrics.{metric}"
+    if column not in runs:
+        return pd.Series("–", index=sorted(runs["dataset"].unique()), name=BEYOND_GRID)
+    keys = [k for k in _REFERENCE_KEYS if k in runs] or ["run_id"]
+    renders = runs.drop_duplicates(["dataset", *keys])
+    return renders.groupby("dataset")[column].agg(describe).rename(BEYOND_GRID)
+
+
+def _against(runs: pd.DataFrame) -> pd.Series:
+    """:data:`SCORED_AGAINST` per dataset."""
+    return runs.groupby("dataset")[SCORED_AGAINST].first()
+
+
+def _target_words(bases) -> str:
+    """What a table scores against, for its caption: "the analytic truth", "the measured
+    reference", or both."""
+    bases = set(bases)
+    if bases == {TRUTH}:
+        return f"the {TRUTH}"
+    if bases == {REFERENCE}:
+        return f"the {REFERENCE}"
+    return f"the {TRUTH} or the {REFERENCE} (column '{SCORED_AGAINST}')"
+
+
+def scoring_note(bases) -> str:
+    """The sentences of a table's note that say what its rows are scored against."""
+    bases = set(bases)
+    parts = []
+    if TRUTH in bases:
+        parts.append(
+            f"Rows scored against the {TRUTH}: each render is compared with the built-in "
+            "material's generator rendered with the same scene, samples and seed, evaluated "
+            "at every direction (no grid, no clamp); models are queried as they are (a neural "
+            "decoder extrapolates beyond the measured grid's 75° ring, the measured BTF and "
+            f"PCA clamp onto it). The column '{REFERENCE}' is the reference render's own "
+            "distance from the truth: the floor of what scoring against the reference can "
+            "show.")
+    if REFERENCE in bases:
+        parts.append(
+            f"Rows scored against the {REFERENCE}: each render is compared with the measured "
+            "BTF's render (interpolated between its 81 × 81 directions), same scene, samples "
+            "and seed; light and view directions beyond the grid's 75° ring are clamped onto "
+            "it for every material alike, so the neural decoders' extrapolation is not "
+            "scored.")
+    parts.append(
+        f"'{BEYOND_GRID}': the share of the (camera sample, light) pairs in the crop (Tables "
+        "3-4) or on the lit cloth (cloth table), weighted by the light's irradiance, whose "
+        "light or view direction lies beyond the measured grid, at the largest samples per "
+        "pixel.")
+    return " ".join(parts)
+
+
+def table_crop(runs: pd.DataFrame, region: str) -> pd.DataFrame:
+    """Table 3 (dark) or 4 (bright) of :func:`scored_runs`: per dataset (rows), what it is
+    scored against, the crop's RMSE per model (columns, mean ± std over seeds) and the
+    crop's share of samples beyond the grid."""
+    table = tables.table_rmse(runs, f"scored_rmse_{region}")
+    table.insert(0, SCORED_AGAINST, _against(runs).reindex(table.index))
+    table[BEYOND_GRID] = beyond_grid_column(runs, f"render_beyond_grid_share_{region}").reindex(
+        table.index).fillna("–")
+    return table
+
+
+def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
+    """Rows (dataset, model, spp) of :func:`scored_runs`: both crops' RMSE and
+    high-frequency energy ratio against the row's target."""
+    target = {TRUTH: "truth", REFERENCE: "reference"}
+    bases = set(runs[SCORED_AGAINST]) if SCORED_AGAINST in runs else {REFERENCE}
+    word = target[bases.pop()] if len(bases) == 1 else "target"
+    rows = []
+    for spp in spp_levels(runs):
+        for (dataset, model), group in runs.groupby(["dataset", "model"], sort=False):
+            row = {"dataset": dataset, SCORED_AGAINST: group[SCORED_AGAINST].iloc[0],
+                   "model": model, "spp": spp}
+            for region in REGIONS:
+                rmse = group.get(f"metrics.scored_rmse_{region}_spp{spp}")
+                hf = group.get(f"metrics.scored_hf_ratio_{region}_spp{spp}")
+                if rmse is None or hf is None:
+                    continue
+                row[f"{region}: RMSE"] = tables.mean_std(rmse)
+                row[f"{region}: HF energy / {word}"] = tables.mean_std(hf)
+            rows.append(row)
+    if not rows:
+        return pd.DataFrame()
+    order = {m: i for i, m in enumerate(tables.model_columns(runs))}
+    table = pd.DataFrame(rows)
+    return table.sort_values(["dataset", "spp", "model"],
+                             key=lambda s: s.map(order) if s.name == "model" else s)
+
+
+def table_cloth(runs: pd.DataFrame) -> pd.DataFrame:
+    """Rows (dataset, spp) x model columns of :func:`scored_runs`: the RMSE over every pixel
+    wholly on lit cloth, mean ± std over seeds; a larger sample than the crops, so a steadier
+    ranking. With what it is scored against and the lit cloth's share beyond the grid."""
+    parts = [tables.table_rmse(runs, f"scored_rmse_cloth_spp{spp}").assign(spp=spp)
+             for spp in spp_levels(runs) if f"metrics.scored_rmse_cloth_spp{spp}" in runs]
+    if not parts:
+        return pd.DataFrame()
+    table = pd.concat(parts).reset_index().fillna("–")  # a model not rendered at that spp
+    table[SCORED_AGAINST] = table["dataset"].map(_against(runs))
+    table[BEYOND_GRID] = table["dataset"].map(
+        beyond_grid_column(runs, "render_beyond_grid_share")).fillna("–")
+    first = ["dataset", SCORED_AGAINST, "spp"]
+    return table[[*first, *[c for c in table.columns if c not in first]]]
+
+
+def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
+    """Tables 3-4, the lit-cloth RMSE and the graininess per spp, and Fig. 8 (when the
+    cache is at hand), from MLflow's runs of every method; nothing when no run rendered.
+    Runs pool as seeds only when their recipe and render settings match
+    (``label_runs(render=True)``)."""
+    runs = runs_of(runs, RENDERED)
+    if runs.empty or "metrics.render_rmse_dark" not in runs:
+        return []
+    runs = rendered_runs(tables.label_runs(runs[runs["metrics.render_rmse_dark"].notna()],
+                                           render=True))
+    if runs.empty:
+        return []
+    scored = scored_runs(runs)
+    bases = set(scored[SCORED_AGAINST])
+    against = _target_words(bases)
+    found = []
+    note = ("RMSE of linear radiance (the key light gives irradiance 1 at the sheet's centre, "
+            "so values are in the BTF's units); mean ± std over seeds (n), at "
+            f"{spp_levels(runs)[-1]} samples per pixel. The crops (marked in Fig. 8) are "
+            f"chosen on the render they are scored against. {scoring_note(bases)}")
+    for number, region in ((3, "dark"), (4, "bright")):
+        found.append(write_table(table_crop(scored, region), out,
+                                 f"table{number}_render_{region}",
+                                 f"Table {number}: RMSE of the rendered {region} crop against "
+                                 f"{against}", note))
+    cloth = table_cloth(scored)
+    if not cloth.empty:
+        found.append(write_table(
+            cloth, out, "render_cloth",
+            f"RMSE of the render over the whole lit cloth against {against}",
+            "As Tables 3-4, over every pixel whose camera samples all land on cloth that a "
+            "light sees (no silhouette, shadow or floor pixels), at each samples-per-pixel "
+            f"level. {scoring_note(bases)}"))
+    grain = table_graininess(scored)
+    if not grain.empty:
+        found.append(write_table(
+            grain, out, "render_graininess",
+            f"Does the graininess survive rendering? Scored against {against}",
+            "Each crop at every samples-per-pixel level: RMSE and the high-frequency energy "
+            "(image minus its Gaussian blur, sigma 1 pixel) of the crop over the target's "
+            "(the render it is scored against): above 1 the model adds grain, near 1 it has "
+            "the target's texture, below 1 it is smoother. Pixel samples are shared with the "
+            f"target, so what differs is the BTF alone. {scoring_note(bases)}"))
+    files = draw_fig8(runs, out)
+    if files:
+        found.append("## Fig. 8: renders\n\n" + "\n".join(
+            f"![{p.stem}]({p.name})" for p in files if p.suffix == ".png") + "\n")
+    return found
+
+
+def draw_fig8(runs: pd.DataFrame, out: Path) -> list[Path]:
+    """One figure per dataset (the lowest seed's renders at the largest spp: the truth when
+    the runs have one, the reference, then each model): PNG, and an EXR of each render;
+    returns the written files. Images come from the runs' stage cache
+    (``params.paths.cache``), the crops from the models' renders (the ones they were scored
+    in); a dataset whose entries are gone is skipped with a warning."""
+    for stale in out.glob("fig8_*"):
+        stale.unlink()
+    written = []
+    for dataset, group in runs.groupby("dataset"):
+        group = group.sort_values(["seed"]).drop_duplicates("model")
+        group = group.sort_values("order")
+        cache = StageCache(group["params.paths.cache"].iloc[0])
+        first = group.iloc[0]
+        reference = cache.lookup("render_reference", str(first["tags.cache.render_reference"]))
+        if reference is None:
+            log.warning("Fig. 8 of %s: its reference render is not in the cache", dataset)
+            continue
+        entries = [("reference", reference)]
+        truth_key = first.get("tags.cache.render_truth")
+        if isinstance(truth_key, str):
+            truth = cache.lookup("render_truth", truth_key)
+            if truth is None:
+                log.warning("Fig. 8 of %s: its truth render is not in the cache", dataset)
+                continue
+            entries.insert(0, ("truth", truth))
+        models = [(run["model"], cache.lookup("render", str(run.get("tags.cache.render"))))
+                  for _, run in group.iterrows()]
+        models = [(name, entry) for name, entry in models if entry is not None]
+        if not models:
+            log.warning("Fig. 8 of %s: none of its model renders is in the cache", dataset)
+            continue
+        crops = models[0][1].json("crops")
+        entries += models
+        levels = sorted(int(s) for s in reference.manifest["summary"]["spp"])
+        spp = levels[-1]
+        size = int(float(group["params.btf.render.crop_size"].iloc[0]))
+        by_spp = {s: [(name, e.array(f"image_spp{s}", mmap=False)) for name, e in entries]
+                  for s in levels}
+        panels = by_spp[spp]
+        stem = "fig8_" + safe_stem(dataset)
+        exposure = float(group["params.btf.render.exposure"].iloc[0])
+        seed = int(group["seed"].min())
+        written.append(_grid(panels, crops, size, exposure, f"{dataset}, {spp} spp, seed {seed}",
+                             out / f"{stem}.png"))
+        written.append(_crops_per_spp(by_spp, crops, size, f"{dataset}, seed {seed}",
+                                      out / f"{stem}_crops_per_spp.png"))
+        for name, image in panels:
+            path = out / f"{stem}_{safe_stem(name)}.exr"
+            write_exr(path, image)
+            written.append(path)
+    return written
+
+
+def _grid(panels, crops: dict, size: int, exposure: float, title: str, path: Path) -> Path:
+    """Renders in a row, both crops marked, each crop enlarged below its render."""
+    columns = len(panels)
+    fig = Figure(figsize=(2.4 * columns, 2.4 * 2 + 0.4))
+    axes = fig.subplots(3, columns, squeeze=False,
+                        gridspec_kw={"height_ratios": [2, 1, 1]})
+    for column, (name, image) in enumerate(panels):
+        shown = gamma_encode(image * np.float32(exposure))
+        axes[0, column].imshow(shown, interpolation="nearest")
+        axes[0, column].set_title(name, fontsize=9)
+        for row, region in enumerate(REGIONS, start=1):
+            r, c = crops[region]
+            axes[0, column].add_patch(Rectangle((c - 0.5, r - 0.5), size, size, fill=False,
+                                                edgecolor=COLOURS[region], linewidth=1.2))
+            axes[row, column].imshow(shown[r : r + size, c : c + size], interpolation="nearest")
+            axes[row, column].set_ylabel(region if column == 0 else "", fontsize=8,
+                                         color=COLOURS[region])
+    for axis in axes.ravel():
+        axis.set_xticks([])
+        axis.set_yticks([])
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path)
+    return path
+
+
+def _crops_per_spp(by_spp: dict, crops: dict, size: int, title: str, path: Path) -> Path:
+    """Both crops of every render at every spp, side by side: one row per (region, spp),
+    one column per render, to see whether a model's grain outlives the pixel's samples.
+    Each region is exposed so that the first render's crop (the truth, else the reference)
+    at the largest spp has its 99th percentile at white (the dark crop would be black at the frame's exposure); a row's
+    renders share it."""
+    levels = sorted(by_spp)
+    columns = len(by_spp[levels[-1]])
+    fig = Figure(figsize=(1.6 * columns + 0.6, 1.6 * 2 * len(levels) + 0.4))
+    axes = fig.subplots(2 * len(levels), columns, squeeze=False)
+    for block, region in enumerate(REGIONS):
+        r, c = crops[region]
+        reference = by_spp[levels[-1]][0][1][r : r + size, c : c + size]
+        exposure = 1.0 / max(float(np.percentile(reference, 99)), 1e-6)
+        for offset, spp in enumerate(levels):
+            row = block * len(levels) + offset
+            for column, (name, image) in enumerate(by_spp[spp]):
+                shown = gamma_encode(image[r : r + size, c : c + size] * np.float32(exposure))
+                axes[row, column].imshow(np.clip(shown, 0, 1), interpolation="nearest")
+                if row == 0:
+                    axes[row, column].set_title(name, fontsize=8)
+            axes[row, 0].set_ylabel(f"{region}, {spp} spp", fontsize=8, color=COLOURS[region])
+    for axis in axes.ravel():
+        axis.set_xticks([])
+        axis.set_yticks([])
+    fig.suptitle(f"{title}\nthe crops at each samples-per-pixel level", fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)
+    return path

@@ -1,0 +1,160 @@
+"""Method A's report: Tables 1 and 2, the graininess fix, interpolation, the k verdict,
+convergence, the RMSE-versus-k plot, training curves and Fig. 7, from a DataFrame of runs.
+
+The tables themselves are pure functions in :mod:`pipeline.btf.tables`; this module picks
+A's runs, writes each table (Markdown, CSV, LaTeX) and figure into ``out`` and returns the
+Markdown sections for ``python -m pipeline.tables``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+from matplotlib.figure import Figure
+from omegaconf import OmegaConf
+
+from pipeline.btf import rate_distortion, tables
+from pipeline.btf.curves import curves_section
+from pipeline.btf.models import models_of
+from pipeline.core.report import runs_of, save_figure, write_table
+
+METHODS = ("btf",)
+
+
+def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
+    """Method A's sections; ``settings`` is the ``tables`` node of ``conf/tables.yaml``."""
+    runs = runs_of(runs, METHODS)
+    if runs.empty or "metrics.rmse" not in runs:
+        return ["No finished Neural BTF run found (method A): `python -m pipeline`.\n"]
+    runs = tables.drop_repeats(runs[runs["metrics.rmse"].notna()])
+    runs = tables.label_runs(runs)
+    if runs.empty:
+        return ["No Neural BTF run with a recipe tag found (method A): `python -m pipeline`.\n"]
+    found = []
+    sizes = tables.table_sizes(runs)
+    if not sizes.empty:
+        found.append(write_table(sizes, out, "table1_sizes", "Table 1: stored sizes in bytes",
+                                 "Bytes as stored, in the types of the 'stored as' column (read "
+                                 "from the written tensors). Ratio (exact) = original bytes / "
+                                 "total bytes. Ratio (paper) = original in MB / total in whole "
+                                 "KB, the paper's convention. Original = M x N x 3 float32."))
+    rmse = tables.with_truth_floor(tables.table_rmse(runs), runs)
+    found.append(write_table(rmse, out, "table2_rmse",
+                             "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
+                             "Over the directions each model was trained on: all N, unless "
+                             "lights were held out (btf.interpolation.holdout_lights; those "
+                             "directions are in the interpolation table). "
+                             "n = number of seeds. Clustered runs use each texel's own values "
+                             "as the training target unless marked (rep. target). data vs "
+                             "truth (built-in data only): the data's own RMSE against the "
+                             "generator's analytic truth (its 8-bit and JPEG rounding): what a "
+                             "model that recovered the truth exactly would score. Learning "
+                             f"rates: {tables.learning_rates(runs) or 'not logged'}."))
+    grain = tables.table_graininess(runs)
+    if not grain.empty:
+        found.append(write_table(
+            grain, out, "graininess",
+            "Graininess fix at equal bytes: clustered RMSE without / with a per-texel scale",
+            "The scale costs one btf.sizes.extra_dtype value per texel (Table 1's "
+            "'+ per-texel scale' rows). 'nearest in bytes': the model without a scale whose "
+            "total bytes are closest to the scaled model's, so that the scale is compared "
+            "with spending its bytes on the model itself (say, more clusters)."))
+    failed = tables.failed_runs(runs)
+    if not failed.empty:
+        found.append(write_table(
+            failed, out, "failed_runs",
+            "WARNING: runs that did not beat the trivial baseline",
+            "These models end within 10 % of the mean-ABRDF baseline (every texel "
+            "reconstructed as the mean ABRDF) or above it: their training failed, and their "
+            "RMSE in Table 2 measures no compression. Check train.* (lr, steps, schedule) "
+            "against the crop size."))
+    interpolation = tables.table_interpolation(runs)
+    if not interpolation.empty:
+        found.append(write_table(interpolation, out, "interpolation",
+                                 "Interpolation at directions never trained on (RMSE)",
+                                 "held-out: light directions removed from training, reference "
+                                 "= measured data. off-grid: random directions off the 81-grid, "
+                                 "reference = the synthetic generator's ground truth. Not a "
+                                 "blind test of the model: its encoder and the normalisation "
+                                 "saw each texel's values at the held-out directions, while "
+                                 "nearest and linear see only the training directions."))
+    verdict = tables.k_verdict(runs, alpha=float(settings.alpha))
+    if not verdict.empty:
+        found.append(write_table(
+            verdict, out, "k_verdict", "Does k change the error?",
+            "Seeds are blocks (a seed shares its initialisation, batch order and k-means "
+            "seed across k): two-way ANOVA without interaction over the seeds run at every k, "
+            "Friedman's rank test (a sign test for two k; its exact permutation p where the "
+            "blocks are few, else the chi-square) as the check without normality, the trend of "
+            "RMSE per doubling of k within seeds, and each step's effect with its Bonferroni "
+            "interval, Holm-adjusted p and size relative to the smaller k's mean. Without "
+            "evidence: the step these runs detect with 80 % power and the seeds needed for a "
+            "4.4 % difference (the paper's largest). Runs pooled only "
+            "within one recipe (see the column labels)."))
+    tolerance = float(settings.convergence_tolerance)
+    convergence = tables.table_convergence(runs, tolerance)
+    if not convergence.empty:
+        found.append(write_table(
+            convergence, out, "convergence",
+            "Converged? RMSE against the same model trained longer",
+            f"excess = RMSE / reference RMSE - 1, the reference being the longest run of the "
+            f"same model and seed; the goal is within {100 * tolerance:g} % of a run 4x as "
+            f"long (`tables.convergence_tolerance`)."))
+    missing = tables.missing_runs(runs, list(settings.paper_ks))
+    found.append("## Missing from the paper grid\n\n" + (
+        "\n".join(f"- {m}" for m in missing) if missing else "Nothing.") + "\n")
+    found.append(plot_rmse_vs_k(runs, out))
+    found.append(curves_section(runs, out, tolerance))
+    if settings.fig7.enabled:
+        from pipeline.btf.fig7 import draw_fig7
+
+        files = draw_fig7(runs, OmegaConf.to_container(settings.fig7.pairs), out)
+        found.append("## Fig. 7\n\n" + "\n\n".join(f"![{p.stem}]({p.name})" for p in files
+                                                   if p.suffix == ".png") + "\n")
+    found.append(rate_distortion.section(runs, out, alpha=float(settings.alpha),
+                                         budgets_kb=tuple(settings.budgets_kb)))
+    return found
+
+
+def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path) -> list[Path]:
+    """Fig. 7 of one finished job (the reference crops and its reconstruction), drawn into
+    ``out`` (PNG and EXR); nothing for PCA, which has no decoder to query."""
+    from pipeline.btf.fig7 import draw_fig7
+    from pipeline.core.recipe import recipe_id
+    from pipeline.core.tracking import flatten
+
+    if "train" not in cache_keys:
+        return []
+    settings = flatten(cfg)
+    row = {f"params.{k}": str(v) for k, v in settings.items()}
+    row["tags.recipe"] = recipe_id(settings)
+    row.update({f"tags.cache.{stage}": key for stage, key in cache_keys.items()})
+    return draw_fig7(tables.label_runs(pd.DataFrame([row])), pairs_degrees, out)
+
+
+def plot_rmse_vs_k(runs: pd.DataFrame, out: Path) -> str:
+    """``rmse_vs_k.png``: clustered RMSE (mean and std over seeds) against k, per dataset,
+    with Neural BTF as a dashed line; returns its Markdown section."""
+    fig = Figure(figsize=(5, 3.5))
+    ax = fig.subplots()
+    for dataset, group in runs.groupby("dataset"):
+        # One line per model family (one recipe but k), never runs of different recipes.
+        clustered = group[[m is not None and m.clusters for m in models_of(group)]]
+        for name, runs_of_family in clustered.groupby("family"):
+            stats = runs_of_family.groupby("k")["metrics.rmse"].agg(["mean", "std"])
+            ax.errorbar(stats.index, stats["mean"], yerr=stats["std"].fillna(0), marker="o",
+                        capsize=3, label=f"{dataset} {name}")
+        neural = group[group["model"].str.startswith("Neural BTF")]
+        for name, runs_of_model in neural.groupby("model"):
+            ax.axhline(runs_of_model["metrics.rmse"].mean(), linestyle="--",
+                       label=f"{dataset} {name}")
+    if not ax.get_legend_handles_labels()[0]:
+        return "## RMSE versus k\n\nNo clustered or Neural BTF run to draw.\n"
+    ax.set_xlabel("k (clusters)")
+    ax.set_ylabel("RMSE (normalized)")
+    ax.set_xscale("log")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, out / "rmse_vs_k.png")
+    return "## RMSE versus k\n\n![rmse_vs_k](rmse_vs_k.png) (error bars: std over seeds)\n"

@@ -1,0 +1,394 @@
+"""Method A's chain: the train and evaluate stages and the job that strings them together.
+
+    load -> crop -> preprocess [-> pca -> kmeans -> representatives] -> train -> evaluate
+                                                    (clustered only)
+
+Training writes the decoder and the stored latents; evaluation decodes them, measures the
+eq. 10 RMSE, the sizes of Table 1 and, on synthetic data, the interpolation errors.
+
+torch and scikit-learn are imported inside the stages that compute, so that a rerun whose
+stages are all cached starts in a fraction of the time.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import mlflow
+import numpy as np
+
+from pipeline.btf import interpolation, stages
+from pipeline.btf.export import export_stage, log_compressed
+from pipeline.btf.models import STORAGE_TYPES, Model, model_of
+from pipeline.btf.stereographic import direction_features
+from pipeline.btf.train_settings import TrainSettings
+from pipeline.core.cache import Entry, save_arrays, save_json
+from pipeline.core.methods import resolve
+from pipeline.core.settings import SPEED, Integer, ListOf, OneOf, check_settings, constraints, roles
+from pipeline.core.stage import Context, plain_settings
+from pipeline.data.directions import direction_sets
+
+log = logging.getLogger(__name__)
+
+
+
+# Method A's settings and what each may be, checked before any stage runs (train.* is
+# checked by TrainSettings itself).
+CONSTRAINTS = {
+    "seed": Integer(0, 2**32 - 1),  # k-means' and PCA's random_state take 32 bits
+    "btf.crop.size": Integer(1),
+    "btf.crop.offset": ListOf(Integer(0), length=2),
+    "btf.pca.n_components": Integer(1),
+    "btf.pca.random_state": Integer(0, 2**32 - 1),
+    "btf.kmeans.n_init": Integer(1),
+    "btf.kmeans.max_iter": Integer(1),
+    "btf.network.encoder_channels": ListOf(Integer(1)),
+    "btf.network.latent": Integer(2, 16),
+    "btf.network.hidden": Integer(1),
+    "btf.network.layers": Integer(1),
+    "btf.sizes.weight_dtype": OneOf(*STORAGE_TYPES),
+    "btf.sizes.list_dtype": OneOf("int32", "uint16"),
+    "btf.sizes.extra_dtype": OneOf(*STORAGE_TYPES),
+    "btf.interpolation.holdout_lights": Integer(0),
+    "btf.interpolation.offgrid": Integer(0),
+    "btf.interpolation.seed": Integer(0),
+}
+
+
+def check_settings_at_the_door(cfg, model: Model) -> None:
+    """Refuse a bad method-A setting before any stage runs, naming it and what it may be:
+    ``btf.*`` from :data:`CONSTRAINTS`, ``model.*`` from the model's declaration."""
+    check_settings(cfg, {**CONSTRAINTS, **constraints(model.config, "model")})
+    if model.trains:
+        _train_settings(cfg)
+
+
+def _train_settings(cfg):
+    """``train.*`` as :class:`TrainSettings` (which checks the values; the structured config
+    of ``conf/train/default.yaml`` has refused unknown keys); lr null: the model's."""
+    settings = plain_settings(cfg.train)
+    lr = settings.pop("lr", None)
+    return TrainSettings(lr=cfg.model.lr if lr is None else lr, **settings)
+
+
+# What only changes how fast training runs (up to the order of floating-point sums) is
+# not in the train stage's key: the roles TrainSettings declares.
+SPEED_ONLY = {key.removeprefix("train.") for key, role in roles(TrainSettings, "train").items()
+               if role == SPEED}
+
+
+def train_stage(
+    ctx: Context, cropped: Entry, prep: Entry, clusters: Entry | None, reps: Entry | None
+) -> Entry:
+    """Train the autoencoder and store decoder weights and latents."""
+    cfg = ctx.cfg
+    settings = _train_settings(cfg)
+    # Indices into the data's own light set (the 81-grid's canonical order for UBO2003).
+    lights = direction_sets(cropped.array("directions", mmap=False)).lights
+    heldout = interpolation.heldout_light_indices(cfg, lights)
+    stage_settings = {
+        "method": cfg.model.name,
+        "target": cfg.model.get("target", "texel"),
+        "train": {k: v for k, v in settings.__dict__.items() if k not in SPEED_ONLY},
+        "model": plain_settings(cfg.btf.network),
+        "seed": cfg.seed,
+        "heldout_lights": heldout.tolist(),
+    }
+    inputs = {"crop": cropped, "preprocess": prep}
+    if clusters is not None:
+        inputs.update(kmeans=clusters, representatives=reps)
+
+    def compute(folder: Path) -> dict:
+        import torch
+
+        from pipeline.btf.train import encode, train
+
+        abrdf = cropped.array("abrdf")
+        directions = cropped.array("directions", mmap=False)
+        norm = stages.normalization(prep)
+        if clusters is None:
+            sources, source_of_texel = abrdf, np.arange(abrdf.shape[0])
+        else:
+            sources = np.asarray(reps.array("representatives"))
+            source_of_texel = clusters.array("labels", mmap=False).astype(np.int64)
+        train_dirs = interpolation.training_directions(directions, heldout)
+
+        def on_epoch(epoch: int, loss: float, step: int) -> None:
+            if mlflow.active_run() is not None:
+                # Keyed by training step, like the curve_* metrics, so that the UI's "Step"
+                # axis means one thing; the epoch is the point's index.
+                mlflow.log_metric("loss", loss, step=step)
+
+        def on_curve(point: dict) -> None:
+            if mlflow.active_run() is not None:
+                log_curve_point(point)
+
+        result = train(
+            abrdf,
+            sources,
+            source_of_texel,
+            norm,
+            direction_features(directions),
+            train_dirs,
+            settings,
+            seed=cfg.seed,
+            encoder_channels=tuple(cfg.btf.network.encoder_channels),
+            latent=int(cfg.btf.network.latent),
+            hidden=int(cfg.btf.network.hidden),
+            layers=int(cfg.btf.network.layers),
+            target_from_source=stage_settings["target"] == "representative",
+            on_epoch=on_epoch,
+            on_curve=on_curve,
+        )
+        latents = encode(result.encoder, sources, norm)
+        torch.save(result.decoder.state_dict(), folder / "decoder.pt")
+        torch.save(result.encoder.state_dict(), folder / "encoder.pt")
+        save_arrays(folder, latents=latents, latent_of_texel=source_of_texel.astype(np.int32))
+        save_json(folder, "losses", result.epoch_losses)
+        save_json(folder, "curve", result.curve)
+        return {
+            "steps": result.steps,
+            "seconds": result.seconds,
+            "queries": result.queries,
+            "final_loss": result.epoch_losses[-1],
+        }
+
+    return ctx.run("train", stage_settings, inputs, compute, version="3")
+
+
+def log_curve_point(point: dict) -> None:
+    """One point of the RMSE-versus-time curve, as MLflow metrics keyed by step."""
+    mlflow.log_metrics({"curve_rmse": point["rmse"], "curve_seconds": point["seconds"],
+                        "curve_queries": point["queries"]}, step=point["step"])
+
+
+def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) -> Entry:
+    """RMSE (eq. 10), per-direction RMSE, sizes, and interpolation errors, of the model as
+    stored: decoder weights and latents rounded to ``btf.sizes.weight_dtype``, the per-texel
+    scale to ``extra_dtype``."""
+    cfg = ctx.cfg
+    clustered = model_of(cfg).clusters
+    texel_scale = cfg.model.get("texel_scale", "none")
+    settings = {
+        "texel_scale": texel_scale,
+        "sizes": plain_settings(cfg.btf.sizes),
+        "interpolation": plain_settings(cfg.btf.interpolation),
+        "dataset": (evaluated_dataset(cfg.dataset) if cfg.dataset.name == "synthetic" else None),
+    }
+
+    def compute(folder: Path) -> dict:
+        from pipeline.btf.evaluate import (
+            as_stored,
+            mean_abrdf_rmse,
+            reconstruction_error,
+            storage_sizes,
+        )
+        from pipeline.btf.model import load_decoder
+
+        abrdf = cropped.array("abrdf")
+        directions = cropped.array("directions", mmap=False)
+        norm = stages.normalization(prep)
+        sizes_settings = cfg.btf.sizes
+        decoder, latents = as_stored(load_decoder(trained.file("decoder.pt")),
+                                     trained.array("latents", mmap=False),
+                                     sizes_settings.weight_dtype)
+        latent_of_texel = trained.array("latent_of_texel", mmap=False)
+        recon = reconstruction_error(
+            decoder, latents, latent_of_texel, abrdf, norm.alpha,
+            direction_features(directions), texel_scale=texel_scale,
+            scale_dtype=sizes_settings.extra_dtype,
+        )
+        m, n, _ = abrdf.shape
+        sizes = storage_sizes(
+            decoder,
+            n_latents=latents.shape[0],
+            n_texels=m,
+            n_directions=n,
+            clustered=clustered,
+            weight_dtype=cfg.btf.sizes.weight_dtype,
+            list_dtype=cfg.btf.sizes.list_dtype,
+            extra_dtype=cfg.btf.sizes.extra_dtype if texel_scale != "none" else None,
+            latent_dim=latents.shape[1],
+        )
+        metrics = {"rmse": recon.rmse, **sizes, "rmse_mean_abrdf": mean_abrdf_rmse(abrdf, norm.alpha)}
+        if recon.rmse_unscaled is not None:
+            metrics["rmse_without_texel_scale"] = recon.rmse_unscaled
+            metrics["rmse_with_texel_scale"] = recon.rmse_scaled
+        heldout = np.asarray(trained.manifest["settings"]["heldout_lights"], dtype=int)
+        metrics.update(
+            interpolation.measure(cfg, cropped, norm, decoder, latents, latent_of_texel,
+                                  recon.rmse_per_direction, heldout, recon.texel_scale)
+        )
+        if "rmse_train_dirs" in metrics:
+            # The headline is over the directions the model was trained on; the held-out
+            # ones are reported apart (rmse_heldout_*), all of them together in rmse_all_dirs.
+            metrics["rmse_all_dirs"], metrics["rmse"] = metrics["rmse"], metrics["rmse_train_dirs"]
+        save_arrays(folder, rmse_per_direction=recon.rmse_per_direction)
+        if recon.texel_scale is not None:
+            save_arrays(folder, texel_scale=recon.texel_scale)
+        save_json(folder, "metrics", metrics)
+        return {"rmse": recon.rmse}
+
+    inputs = {"crop": cropped, "preprocess": prep, "train": trained}
+    return ctx.run("evaluate", settings, inputs, compute, version="5")
+
+
+def evaluated_dataset(dataset) -> dict:
+    """``dataset`` settings as the evaluate stage's key holds them: the generator's
+    direction-set settings left out at their defaults
+    (:func:`pipeline.btf.synthetic_dataset.generator_settings`)."""
+    from pipeline.btf.synthetic_dataset import generator_settings
+
+    settings = plain_settings(dataset)
+    return {**settings, "synthetic": generator_settings(settings["synthetic"])}
+
+
+def run(ctx: Context) -> dict[str, float]:
+    """The whole chain of the job's model (``model=...``)."""
+    model = model_of(ctx.cfg)
+    check_settings_at_the_door(ctx.cfg, model)
+    if model.stage is None:
+        return run_linear(ctx)
+    cfg = ctx.cfg
+    loaded = stages.load(ctx)
+    cropped = stages.crop(ctx, loaded)
+    prep = stages.preprocess(ctx, cropped)
+    clusters = reps = None
+    extra: dict[str, float] = {}
+    if model.clusters:
+        reduced = stages.pca(ctx, cropped, prep)
+        clusters = stages.kmeans(ctx, reduced)
+        reps = stages.representatives(ctx, cropped, clusters)
+        extra["pca_explained_variance"] = reduced.manifest["summary"]["explained_variance"]
+        extra["kmeans_inertia"] = clusters.manifest["summary"]["inertia"]
+    trained = resolve(model.stage)(ctx, cropped, prep, clusters, reps)
+    if trained.hit and model.trains and mlflow.active_run() is not None:
+        # A cached model: replay its loss curve so every run shows one, at the steps where
+        # train() logged it (the end of each pass over the texels; the last may be cut).
+        per_pass = cropped.manifest["summary"]["M"] // cfg.train.batch_size
+        for epoch, loss in enumerate(trained.json("losses")):
+            step = min((epoch + 1) * per_pass, trained.manifest["summary"]["steps"])
+            mlflow.log_metric("loss", loss, step=step)
+        for point in trained.json("curve"):
+            log_curve_point(point)
+    evaluated = evaluate_stage(ctx, cropped, prep, trained)
+    exported = export_stage(ctx, cropped, prep, trained, evaluated)
+    metrics = dict(evaluated.json("metrics"))
+    metrics.update(extra)
+    summary = trained.manifest["summary"]
+    metrics.update(truth_metrics(ctx, cropped, prep))
+    metrics.update(
+        train_steps=summary["steps"], train_seconds=summary["seconds"],
+        train_queries=summary["queries"], final_loss=summary["final_loss"],
+        n_texels=cropped.manifest["summary"]["M"], n_directions=cropped.manifest["summary"]["N"],
+    )
+    check_against_baseline(metrics)
+    log_evaluation(evaluated, metrics)
+    log_stored_as(exported.manifest["summary"]["stored_as"])
+    if mlflow.active_run() is not None:
+        log_compressed(exported)
+    return metrics
+
+
+def log_stored_as(stored_as: dict[str, str]) -> None:
+    """Tags ``stored_as.<part>`` (decoder, latents, list, extra): the type each of Table 1's
+    parts is stored in, read from what was written (Table 1's captions come from them)."""
+    if mlflow.active_run() is not None:
+        mlflow.set_tags({f"stored_as.{part}": dtype for part, dtype in stored_as.items()})
+
+
+def truth_metrics(ctx: Context, cropped: Entry, prep: Entry) -> dict[str, float]:
+    """``rmse_data_vs_truth`` (what a perfect model scores) for the built-in BTF, else {}."""
+    floor = stages.truth_floor(ctx, cropped, prep)
+    return {} if floor is None else dict(floor.manifest["summary"])
+
+
+def log_evaluation(entry: Entry, metrics: dict) -> None:
+    """The per-direction RMSE (``evaluate/``) and ``metrics.json`` on the active run."""
+    if mlflow.active_run() is not None:
+        mlflow.log_artifact(str(entry.file("rmse_per_direction.npy")), "evaluate")
+        mlflow.log_text(json.dumps(metrics, indent=1), "metrics.json")
+
+
+# A model whose error is within this fraction of the mean-ABRDF baseline, or above it, has
+# learnt next to nothing: its training failed, whatever its loss curve says.
+NEAR_BASELINE = 0.9
+
+
+def check_against_baseline(metrics: dict) -> None:
+    """Add ``rmse_ratio_to_mean_abrdf``; warn and tag the run when the model ends within
+    10 % of the trivial mean-ABRDF baseline or above it (``tags.training_failed``)."""
+    ratio = metrics["rmse"] / metrics["rmse_mean_abrdf"]
+    metrics["rmse_ratio_to_mean_abrdf"] = ratio
+    if ratio < NEAR_BASELINE:
+        return
+    message = (f"training failed: RMSE {metrics['rmse']:.4g} is {ratio:.2f} x the mean-ABRDF "
+               f"baseline ({metrics['rmse_mean_abrdf']:.4g}); check train.* (lr, steps) "
+               f"against the crop size")
+    log.warning(message)
+    if mlflow.active_run() is not None:
+        mlflow.set_tag("training_failed", message)
+
+
+def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
+    """The PCA baseline: truncated SVD of the normalized ABRDF matrix."""
+    from pipeline.btf.evaluate import mean_abrdf_rmse, storage_sizes
+    from pipeline.btf.linear import components_for_budget, fit_linear, linear_error, pca_bytes
+    from pipeline.btf.model import Decoder
+
+    pca = ctx.cfg.model
+    m, n = cropped.manifest["summary"]["M"], cropped.manifest["summary"]["N"]
+    n_components = pca.n_components
+    if pca.get("match_clustered_k"):
+        # What clustered k stores with this run's network and storage settings.
+        latent, sizes = int(ctx.cfg.btf.network.latent), ctx.cfg.btf.sizes
+        budget = storage_sizes(Decoder(latent=latent), int(pca.match_clustered_k), m, n,
+                               True, weight_dtype=sizes.weight_dtype,
+                               list_dtype=sizes.list_dtype, latent_dim=latent)["bytes_total"]
+        n_components = components_for_budget(budget, m, n, pca.dtype)
+    settings = {"n_components": n_components, "dtype": pca.dtype, "seed": ctx.cfg.seed}
+
+    def compute(folder: Path) -> dict:
+        norm = stages.normalization(prep)
+        model = fit_linear(norm.target(cropped.array("abrdf")), n_components, pca.dtype,
+                           seed=ctx.cfg.seed)
+        rmse, per_direction = linear_error(model, norm.target(cropped.array("abrdf")))
+        save_arrays(folder, mean=model.mean, basis=model.basis,
+                    coefficients=model.coefficients, rmse_per_direction=per_direction)
+        basis_bytes = model.basis.nbytes + model.mean.nbytes
+        sizes = {
+            "bytes_decoder": basis_bytes, "bytes_latents": model.coefficients.nbytes,
+            "bytes_list": 0, "bytes_extra": 0, "bytes_original": m * n * 3 * 4,
+        }
+        sizes["bytes_total"] = basis_bytes + model.coefficients.nbytes
+        assert sizes["bytes_total"] == pca_bytes(n_components, m, n, pca.dtype)
+        sizes["compression_ratio"] = sizes["bytes_original"] / sizes["bytes_total"]
+        metrics = {"rmse": rmse, "n_components": n_components, **sizes,
+                   "rmse_mean_abrdf": mean_abrdf_rmse(cropped.array("abrdf"), norm.alpha)}
+        save_json(folder, "metrics", metrics)
+        return {"rmse": rmse}
+
+    return ctx.run("linear", settings, {"crop": cropped, "preprocess": prep}, compute, version="1")
+
+
+def run_linear(ctx: Context) -> dict[str, float]:
+    """``model=pca``: load -> crop -> preprocess -> truncated SVD -> export (its compressed
+    file, logged as the other models' are)."""
+    from pipeline.btf.export import export_linear_stage
+
+    loaded = stages.load(ctx)
+    cropped = stages.crop(ctx, loaded)
+    prep = stages.preprocess(ctx, cropped)
+    fitted = linear_stage(ctx, cropped, prep)
+    exported = export_linear_stage(ctx, cropped, prep, fitted)
+    metrics = {**fitted.json("metrics"), "n_texels": cropped.manifest["summary"]["M"],
+               "n_directions": cropped.manifest["summary"]["N"],
+               **truth_metrics(ctx, cropped, prep)}
+    check_against_baseline(metrics)
+    log_stored_as(exported.manifest["summary"]["stored_as"])
+    log_evaluation(fitted, metrics)
+    if mlflow.active_run() is not None:
+        log_compressed(exported)
+    return metrics

@@ -1,0 +1,328 @@
+"""Runners of the BTF chain's data stages: load, crop, preprocess, pca, kmeans, representatives.
+
+Each runner reads only its own settings from the config, calls a pure function, and lets
+:class:`pipeline.core.stage.Context` decide whether anything needs computing; each declares
+its code version where it runs (bump it when a change alters the stage's output).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig
+
+from pipeline.btf.preprocess import Normalization, encoder_inputs, fit_normalization
+from pipeline.core.cache import Entry, canonical_json, save_arrays, save_json
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.files import reserved_memmap
+from pipeline.core.stage import Context, folder_fingerprint, plain_settings
+
+log = logging.getLogger(__name__)
+
+# --------------------------------------------------------------------------- load
+
+
+def synthetic_folder(cfg: DictConfig) -> Path:
+    """Where the built-in BTF of these settings is (or will be) written: named by a hash of
+    the generator's settings and views."""
+    from pipeline.btf.synthetic_dataset import generator_settings
+
+    ds = cfg.dataset
+    gen = plain_settings(ds.synthetic)
+    # A UBO2014 file holds every view of its set: its reader picks dataset.views.
+    views = None if ds.format == "ubo2014" else plain_settings(ds.views)
+    named = {"gen": generator_settings(gen), "views": views}
+    tag = hashlib.sha256(canonical_json(named).encode()).hexdigest()
+    return Path(cfg.paths.data) / f"synthetic_btf-{ds.format}-{gen['ext']}-{tag[:10]}"
+
+
+def dataset_root(cfg: DictConfig) -> Path:
+    """The dataset: a folder or its ``.zip`` archive (UBO2003, UTIA), or a ``.btf`` file
+    (UBO2014); the built-in synthetic BTF is generated into a folder on first use."""
+    ds = cfg.dataset
+    if ds.name == "synthetic" and ds.root is None:
+        from pipeline.btf.synthetic_dataset import write_synthetic_btf
+
+        gen = plain_settings(ds.synthetic)
+        views = plain_settings(ds.views)
+        root = synthetic_folder(cfg)
+        if not root.is_dir():
+            log.info("generating the built-in synthetic BTF into %s", root)
+        return write_synthetic_btf(
+            root,
+            size=gen["size"],
+            seed=gen["seed"],
+            format=ds.format,
+            ext=gen["ext"],
+            views=None if ds.format == "ubo2014" else views,
+            quality=gen["quality"],
+            material=gen["material"],
+            directions=gen["directions"],
+            n_lights=gen["n_lights"],
+            n_views=gen["n_views"],
+        )
+    if ds.root is None:
+        raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/the/dataset")
+    root = Path(ds.root).expanduser()
+    if ds.format == "ubo2014":
+        if not root.is_file():
+            raise DataError(f"dataset root is not a UBO2014 .btf file: {root}")
+        return root
+    from pipeline.data.btf import is_archive
+
+    if not (root.is_dir() or is_archive(root)):
+        raise DataError(f"dataset root does not exist or is not a folder or .zip archive: {root}")
+    return root
+
+
+def file_fingerprint(path: Path) -> dict:
+    """Name, size and modification time of one dataset file (a UBO2014 ``.btf``)."""
+    stat = path.stat()
+    return {"name": path.name, "bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+
+
+def load(ctx: Context) -> Entry:
+    """Decode the dataset once into a memory-mappable ``images.npy`` (n, H, W, 3).
+
+    The key holds the dataset's fingerprint, not its location: a folder, the ``.zip``
+    archive it was unpacked from and a copy that kept its file times share one entry
+    (the location is in the entry's summary)."""
+    from pipeline.data.btf import (
+        DEFAULT_LINEARIZE,
+        archive_fingerprint,
+        check_linearize,
+        count_btf_images,
+        is_archive,
+        load_btf,
+    )
+
+    ds = ctx.cfg.dataset
+    if ds.format == "ubo2014":
+        return _load_ubo2014(ctx)
+    linearize = check_linearize(ds.get("linearize"), ds.format)
+    root = dataset_root(ctx.cfg).resolve()
+    views = plain_settings(ds.views)
+    settings = {
+        "format": ds.format,
+        "views": views,
+        "fingerprint": archive_fingerprint(root) if is_archive(root) else folder_fingerprint(root),
+        "linearize": linearize,
+    }
+    own_encoding = DEFAULT_LINEARIZE[ds.format]
+    if linearize != own_encoding:
+        if ds.name == "synthetic" and ds.root is None and linearize != "none":
+            log.warning(
+                "dataset.linearize=%s, but the built-in BTF is written in the %s layout's "
+                "own encoding (%s): its values will not match the analytic ground truth",
+                linearize,
+                ds.format,
+                own_encoding,
+            )
+
+    def compute(folder: Path) -> dict:
+        n, height, width = count_btf_images(root, format=ds.format, views=views)
+        images = reserved_memmap(folder / "images.npy", (n, height, width, 3), np.float32)
+        btf = load_btf(root, format=ds.format, views=views, out=images, linearize=linearize)
+        images.flush()
+        del images
+        save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))
+        return {"n_images": n, "height": height, "width": width, "root": str(root)}
+
+    return ctx.run("load", settings, {}, compute, version="3")
+
+
+def _load_ubo2014(ctx: Context) -> Entry:
+    """The load stage for a UBO2014 ``.btf`` file: only ``dataset.crop`` of the chosen
+    directions is decoded (from the factors), never the whole file."""
+    from pipeline.data.ubo2014 import count_ubo2014_images, load_ubo2014
+    from pipeline.data.ubo2014_header import describe, read_dfmf
+
+    ds = ctx.cfg.dataset
+    path = dataset_root(ctx.cfg).resolve()
+    views, lights = plain_settings(ds.views), plain_settings(ds.get("lights"))
+    crop_texels = plain_settings(ds.get("crop"))
+    settings = {
+        "format": "ubo2014",
+        "fingerprint": file_fingerprint(path),
+        "views": views,
+        "lights": lights,
+        "crop": crop_texels,
+    }
+
+    def compute(folder: Path) -> dict:
+        # Inside compute: a bad file raises here, and nothing is published.
+        n, height, width = count_ubo2014_images(path, views, lights, crop_texels)
+        images = reserved_memmap(folder / "images.npy", (n, height, width, 3), np.float32)
+        btf = load_ubo2014(path, views, lights, crop_texels, out=images)
+        images.flush()
+        del images
+        save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))
+        return {"n_images": n, "height": height, "width": width, "root": str(path),
+                **describe(read_dfmf(path))}
+
+    return ctx.run("load", settings, {}, compute, version="3")
+
+
+# --------------------------------------------------------------------------- crop
+
+
+def crop(ctx: Context, loaded: Entry) -> Entry:
+    """Cut a ``btf.crop.size`` square at ``btf.crop.offset`` and lay it out as ABRDFs (M, N, 3)."""
+    settings = plain_settings(ctx.cfg.btf.crop)
+    size = int(settings["size"])
+    y0, x0 = (int(v) for v in settings["offset"])
+    images = loaded.array("images")
+    n, height, width, _ = images.shape
+    if size < 1 or y0 < 0 or x0 < 0 or y0 + size > height or x0 + size > width:
+        raise ConfigError(
+            f"btf.crop.size={size} at crop.offset=[{y0}, {x0}] does not fit the texture "
+            f"of {height}x{width} texels ({loaded.manifest.get('summary', {}).get('root')})"
+        )
+
+    def compute(folder: Path) -> dict:
+        abrdf = reserved_memmap(folder / "abrdf.npy", (size * size, n, 3), np.float32)
+        # Image by image: the crop of one image is one column of the ABRDF matrix.
+        for i in range(n):
+            abrdf[:, i, :] = images[i, y0 : y0 + size, x0 : x0 + size, :].reshape(-1, 3)
+        abrdf.flush()
+        del abrdf
+        save_arrays(folder, directions=loaded.array("directions", mmap=False))
+        return {"M": size * size, "N": n}
+
+    return ctx.run("crop", settings, {"load": loaded}, compute, version="1")
+
+
+# --------------------------------------------------------------------------- preprocess
+
+
+def preprocess(ctx: Context, cropped: Entry) -> Entry:
+    """Fit the eq. 1-6 normalization (per-dimension mean/std of log values, alpha)."""
+
+    def compute(folder: Path) -> dict:
+        norm = fit_normalization(cropped.array("abrdf"))
+        save_arrays(folder, mean=norm.mean, std=norm.std)
+        save_json(folder, "alpha", norm.alpha)
+        return {"alpha": norm.alpha}
+
+    return ctx.run("preprocess", {}, {"crop": cropped}, compute, version="1")
+
+
+def normalization(entry: Entry) -> Normalization:
+    return Normalization(
+        entry.array("mean", mmap=False), entry.array("std", mmap=False), entry.json("alpha")
+    )
+
+
+# --------------------------------------------------------------------------- clusters
+
+
+def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
+    """PCA of the preprocessed ABRDFs; independent of k and of the run's seed."""
+    settings = plain_settings(ctx.cfg.btf.pca)
+
+    def compute(folder: Path) -> dict:
+        from pipeline.btf.clustering import pca_reduce
+
+        features = encoder_inputs(cropped.array("abrdf"), normalization(prep))
+        scores, ratio = pca_reduce(features, settings["n_components"], settings["random_state"])
+        save_arrays(folder, scores=scores, explained_variance_ratio=ratio)
+        return {"explained_variance": float(ratio.sum())}
+
+    return ctx.run("pca", settings, {"crop": cropped, "preprocess": prep}, compute, version="1")
+
+
+def kmeans(ctx: Context, reduced: Entry) -> Entry:
+    """k-means++ on the PCA scores for the run's single ``model.k``."""
+    # scikit-learn is imported only when a stage needs it: a cached rerun skips it.
+    from pipeline.btf.clustering import check_k, kmeans_pp
+
+    k = ctx.cfg.model.k
+    n_texels = reduced.array("scores").shape[0]
+    check_k(k, n_texels)
+    settings = {"k": k, "seed": ctx.cfg.seed, **plain_settings(ctx.cfg.btf.kmeans)}
+
+    def compute(folder: Path) -> dict:
+        labels, centers, inertia = kmeans_pp(
+            np.asarray(reduced.array("scores")),
+            k,
+            seed=ctx.cfg.seed,
+            n_init=settings["n_init"],
+            max_iter=settings["max_iter"],
+        )
+        save_arrays(folder, labels=labels, centers=centers)
+        return {"inertia": inertia}
+
+    return ctx.run("kmeans", settings, {"pca": reduced}, compute, version="1")
+
+
+def representatives(ctx: Context, cropped: Entry, clusters: Entry) -> Entry:
+    """The element-wise median ABRDF of each cluster, shape (k, N, 3)."""
+    k = int(clusters.manifest["settings"]["k"])
+
+    def compute(folder: Path) -> dict:
+        from pipeline.btf.clustering import cluster_medians
+
+        medians = cluster_medians(cropped.array("abrdf"), clusters.array("labels"), k)
+        save_arrays(folder, representatives=medians)
+        return {"k": k}
+
+    return ctx.run("representatives", {}, {"crop": cropped, "kmeans": clusters}, compute, version="1")
+
+
+# --------------------------------------------------------------------------- truth floor
+
+
+def built_in(cfg: DictConfig) -> bool:
+    """Whether the run's data is the built-in synthetic BTF (which has an analytic truth)."""
+    return cfg.dataset.name == "synthetic" and cfg.dataset.root is None
+
+
+def data_truth_rmse(abrdf: np.ndarray, directions: np.ndarray, truth_of, alpha: float,
+                    chunk: int = 256) -> float:
+    """Eq. 10's RMSE of the data against the analytic truth: what a perfect model scores.
+
+    Parameters
+    ----------
+    abrdf : ndarray of shape (M, N, 3), the data's values (a memory map is read in chunks).
+    directions : ndarray of shape (N, 4), the data's directions (radians).
+    truth_of : callable, directions (n, 4) -> ndarray (M, n, 3), the truth at the crop.
+    alpha : the normalisation of eq. 10 (values / alpha lie in [0, 1]).
+    """
+    squares = 0.0
+    for start in range(0, len(directions), chunk):
+        stop = min(start + chunk, len(directions))
+        data = np.asarray(abrdf[:, start:stop], dtype=np.float64)
+        squares += float(np.square(data - truth_of(directions[start:stop])).sum())
+    return float(np.sqrt(squares / abrdf.size)) / alpha
+
+
+def truth_floor(ctx: Context, cropped: Entry, prep: Entry) -> Entry | None:
+    """For the built-in BTF: the data's RMSE against the generator's analytic truth (the
+    JPEG and 8-bit rounding of the written images), over the crop and all its directions;
+    None for other data."""
+    cfg = ctx.cfg
+    if not built_in(cfg):
+        return None
+    from pipeline.btf.synthetic import SyntheticBTF
+    from pipeline.btf.synthetic_dataset import generator_settings
+
+    gen = plain_settings(cfg.dataset.synthetic)
+    size = int(cfg.btf.crop.size)
+    y0, x0 = (int(v) for v in cfg.btf.crop.offset)
+    generator = SyntheticBTF(size=gen["size"], seed=gen["seed"], material=gen["material"])
+
+    def truth_of(directions: np.ndarray) -> np.ndarray:
+        values = generator.evaluate(directions)[:, y0 : y0 + size, x0 : x0 + size]
+        return values.reshape(len(directions), -1, 3).transpose(1, 0, 2)
+
+    def compute(folder: Path) -> dict:
+        rmse = data_truth_rmse(cropped.array("abrdf"), cropped.array("directions", mmap=False),
+                               truth_of, prep.json("alpha"))
+        return {"rmse_data_vs_truth": rmse}
+
+    settings = {"synthetic": generator_settings(gen), "crop": plain_settings(cfg.btf.crop)}
+    return ctx.run("truth_floor", settings, {"crop": cropped, "preprocess": prep}, compute,
+                   version="1")

@@ -1,0 +1,432 @@
+"""``python -m pipeline.cache``: list, verify and clean up the stage cache.
+
+    python -m pipeline.cache ls [entries=true]    # entries and size per stage (entries: each)
+    python -m pipeline.cache verify [fix=true]    # every file's hash; exit status 1 if any damaged
+    python -m pipeline.cache gc [dry_run=true]    # remove what no finished run uses
+
+Settings are ``key=value``, as for ``python -m pipeline``: ``paths.runs`` (default ``runs``)
+says where the MLflow store is (``MLFLOW_TRACKING_URI`` wins, as for the jobs),
+``paths.cache`` (default ``<paths.runs>/cache``) where the cache is::
+
+    python -m pipeline.cache gc dry_run=true paths.runs=/data/runs
+
+An unknown key is refused, naming the closest real one. The older spellings ``--runs``,
+``--cache``, ``--entries``, ``--fix`` and ``--dry-run`` are still accepted.
+
+``gc`` keeps every entry whose key a FINISHED run records (its tags ``cache.<stage>``,
+:func:`pipeline.app.run_job`), the entries those were computed from (each manifest lists
+its inputs' keys), and anything used since the oldest RUNNING run started (a job records
+its keys when it ends; :class:`~pipeline.core.cache.StageCache` marks each hit on the
+manifest's mtime). Keys are matched whatever the stage. It removes nothing when the store
+cannot be read, nor when the store knows none of the entries (the wrong ``paths.runs``).
+A RUNNING run whose process is gone from this machine (killed with ``kill -9``) is not
+running: ``gc`` marks it FAILED first (``ls`` and ``dry_run`` only leave it out).
+
+The command line is read before anything heavy (MLflow, Hydra, pandas) is imported, so
+that a mistyped setting is answered at once.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from pipeline.core.cache import StageCache
+
+# Hosts of a shared cache may disagree on the time by this much (seconds).
+CLOCK_SKEW_S = 600
+IN_PROGRESS = ("RUNNING", "SCHEDULED")
+
+
+@dataclass
+class Usage:
+    """What the MLflow store says about cache keys."""
+
+    uri: str
+    finished: set[str] = field(default_factory=set)  # keys recorded by FINISHED runs
+    n_finished: int = 0
+    running_since: float | None = None  # start (time.time()) of the oldest RUNNING run
+    dead: list[str] = field(default_factory=list)  # RUNNING runs whose process is gone
+
+
+@dataclass
+class Row:
+    """One folder under a stage of the cache."""
+
+    stage: str
+    key: str
+    path: Path
+    bytes: int
+    created: float | None  # None: no readable manifest
+    used: float  # published or last hit (time.time())
+    inputs: list[str]
+
+
+def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
+    """The keys that FINISHED runs of the store of ``runs`` record, over all experiments.
+    RUNNING runs whose process is gone from this machine count as ended (``fail_dead``:
+    they are marked FAILED in the store)."""
+    from pipeline.core.errors import StoreError
+    from pipeline.core.tracking import (
+        all_pages,
+        check_sqlite_store,
+        fail_dead_runs,
+        process_gone,
+        sqlite_path,
+        tracking_uri,
+    )
+
+    uri = tracking_uri(runs)
+    db = sqlite_path(uri)
+    if db is not None:
+        if not db.is_file():  # MLflow would create an empty store, which uses nothing
+            raise StoreError(f"there is no MLflow store at {db} (see paths.runs)")
+        check_sqlite_store(db)  # nor may it write its tables into another program's file
+    try:
+        from mlflow.entities import ViewType
+        from mlflow.tracking import MlflowClient
+
+        client = MlflowClient(uri)
+        experiments = [e.experiment_id for e in all_pages(
+            client.search_experiments, view_type=ViewType.ACTIVE_ONLY)]
+        usage = Usage(uri)
+        if fail_dead and experiments:
+            usage.dead = fail_dead_runs(client, experiments,
+                                        ended_by="its process was gone at a cache gc")
+        starts = []
+        runs_found = all_pages(client.search_runs, experiment_ids=experiments,
+                                run_view_type=ViewType.ACTIVE_ONLY) if experiments else []
+        for run in runs_found:
+            if run.info.status == "FINISHED":
+                usage.n_finished += 1
+                usage.finished |= {value for name, value in run.data.tags.items()
+                                   if name.startswith("cache.")}
+            elif run.info.status in IN_PROGRESS and process_gone(run):
+                usage.dead.append(run.info.run_id)
+            elif run.info.status in IN_PROGRESS:
+                starts.append(run.info.start_time / 1000)
+    except Exception as err:  # any failure of the store or its client: delete nothing
+        raise StoreError(
+            f"cannot read the MLflow store {uri} ({type(err).__name__}: {err})") from err
+    usage.running_since = min(starts, default=None)
+    return usage
+
+
+def scan(cache: StageCache) -> list[Row]:
+    """Every folder under a stage of ``cache``, with its size and manifest's facts."""
+    from pipeline.core.cache import folder_bytes, last_used
+
+    rows = []
+    for stage in cache.stages():
+        for key in cache.keys(stage):
+            entry, _ = cache.read(stage, key)  # the manifest only: no file is checked
+            manifest = entry.manifest if entry is not None else {}
+            path = cache.entry_path(stage, key)
+            rows.append(Row(stage, key, path, folder_bytes(path),
+                            manifest.get("created") if entry is not None else None,
+                            last_used(path), list(manifest.get("inputs", {}).values())))
+    return rows
+
+
+def kept(rows: list[Row], usage: Usage) -> dict[str, str]:
+    """``{key: why it is kept}`` for the entries gc keeps (see the module's docstring)."""
+    by_key = {row.key: row for row in rows}
+    todo = deque((key, "used by a finished run") for key in sorted(usage.finished & set(by_key)))
+    if usage.running_since is not None:
+        since = usage.running_since - CLOCK_SKEW_S
+        todo += [(row.key, "used since a RUNNING run started") for row in rows if row.used >= since]
+    why: dict[str, str] = {}
+    while todo:
+        key, reason = todo.popleft()
+        if key in why:
+            continue
+        why[key] = reason
+        row = by_key[key]
+        todo += [(k, f"input of {row.stage} {key}") for k in row.inputs if k in by_key]
+    return why
+
+
+def _when(seconds: float | None) -> str:
+    if seconds is None:
+        return "no manifest    "
+    return time.strftime("%Y-%m-%d %H:%M", time.localtime(seconds))
+
+
+def ls(cache: StageCache, runs: Path, entries: bool) -> int:
+    from pipeline.core.cache import folder_bytes
+    from pipeline.core.errors import StoreError
+    from pipeline.core.files import human
+
+    rows = scan(cache)
+    why: dict[str, str] | None = None
+    if entries and rows:
+        try:
+            why = kept(rows, read_usage(runs))
+        except StoreError as err:
+            print(f"ls: {err}; whether runs use the entries is unknown (?)", file=sys.stderr)
+    print(f"{'stage':<24} {'entries':>7} {'size':>10}   cache {cache.root}")
+    for stage in sorted({row.stage for row in rows}):
+        mine = [row for row in rows if row.stage == stage]
+        print(f"{stage:<24} {len(mine):>7} {human(sum(r.bytes for r in mine)):>10}")
+        for row in mine if entries else ():
+            used = "?" if why is None else why.get(row.key, "no finished run uses it")
+            print(f"  {row.key}  {human(row.bytes):>10}  {_when(row.created)}  {used}")
+    print(f"{'total':<24} {len(rows):>7} {human(sum(r.bytes for r in rows)):>10}")
+    temporaries = cache.temporaries()
+    if temporaries:
+        size = human(sum(folder_bytes(t) for t in temporaries))
+        print(f"{'temporary folders':<24} {len(temporaries):>7} {size:>10}   (computing, or "
+              f"left by killed jobs: gc removes those)")
+    return 0
+
+
+def verify(cache: StageCache, fix: bool) -> int:
+    """Check every entry's files, sizes and hashes, and its lineage; an entry computed
+    from a damaged one is damaged too. ``fix``: remove them all (unless a job is
+    computing them again)."""
+    from tqdm import tqdm
+
+    from pipeline.core.cache import folder_bytes
+    from pipeline.core.digests import is_hashed, listed_files
+    from pipeline.core.files import human
+
+    started = time.time()
+    folders = [(stage, key) for stage in cache.stages() for key in cache.keys(stage)]
+    total = sum(folder_bytes(cache.entry_path(*f)) for f in folders)
+    problems: dict[str, str] = {}
+    children: dict[str, list[str]] = {}
+    unhashed = 0
+    with tqdm(total=total, unit="B", unit_scale=True, unit_divisor=1024, desc="verify",
+              file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
+        for stage, key in folders:
+            entry, problem = cache.check(stage, key, hashes=True, progress=bar.update)
+            if problem is not None:
+                problems[key] = problem
+            if entry is None:
+                continue
+            for parent in (entry.manifest.get("inputs") or {}).values():
+                children.setdefault(parent, []).append(key)
+            if problem is None and not all(
+                    is_hashed(record) for record in listed_files(entry.manifest).values()):
+                unhashed += 1
+    todo = sorted(problems)
+    stage_of = {key: stage for stage, key in folders}
+    while todo:  # descendants of damaged entries, whatever their own state
+        parent = todo.pop()
+        for child in children.get(parent, []):
+            if child not in problems:
+                problems[child] = (f"computed from the damaged entry "
+                                   f"{cache.entry_path(stage_of[parent], parent)}")
+                todo.append(child)
+    damaged = [(stage, key) for stage, key in folders if key in problems]
+    for stage, key in damaged:
+        print(f"damaged {cache.entry_path(stage, key)}: {problems[key]}")
+        if fix:
+            removed = cache.remove(stage, key, unless_used_since=started)
+            print("  removed" if removed else "  kept: a job is computing it again")
+    print(f"verified {len(folders)} entries ({human(total)}) in {time.time() - started:.1f} s: "
+          f"{len(damaged)} damaged" + (" (removed)" if fix and damaged else ""))
+    if unhashed:
+        print(f"{unhashed} entries were written before hashes were recorded: only their files' "
+              f"presence was checked")
+    return 1 if damaged else 0
+
+
+def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
+    from pipeline.core.cache import folder_bytes
+    from pipeline.core.errors import StoreError
+    from pipeline.core.files import human
+
+    started = time.time()
+    try:
+        usage = read_usage(runs, fail_dead=not dry_run)
+    except StoreError as err:
+        print(f"gc: {err}; nothing removed", file=sys.stderr)
+        return 2
+    if usage.dead:
+        print(f"{'would mark' if dry_run else 'marked'} {len(usage.dead)} RUNNING runs FAILED: "
+              f"their processes on this host are gone ({', '.join(usage.dead)})")
+    rows = scan(cache)
+    why = kept(rows, usage)
+    if rows and not why:
+        print(f"gc: no finished run in {usage.uri} ({usage.n_finished} finished) uses any of "
+              f"the {len(rows)} entries under {cache.root}; nothing removed (is paths.runs right? "
+              f"to empty the cache, delete the folder)", file=sys.stderr)
+        return 2
+    verb = "would remove" if dry_run else "removed"
+    freed, n_removed = 0, 0
+    for row in rows:
+        if row.key in why:
+            continue
+        if dry_run or cache.remove(row.stage, row.key, unless_used_since=started):
+            print(f"{verb} {row.path} ({human(row.bytes)})")
+            freed, n_removed = freed + row.bytes, n_removed + 1
+        else:
+            print(f"kept {row.path}: used or locked by a job meanwhile")
+    sizes = {folder: folder_bytes(folder) for folder in cache.temporaries()}
+    stale = cache.remove_stale_temporaries(dry_run=dry_run)
+    for folder, reason in stale:
+        print(f"{verb} {folder} ({human(sizes.get(folder, 0))}; {reason})")
+        freed += sizes.get(folder, 0)
+    running = "" if usage.running_since is None else (
+        f", and what was used since {_when(usage.running_since)} (a run is still RUNNING)")
+    print(f"kept {len(why)} entries ({human(sum(r.bytes for r in rows if r.key in why))}): those "
+          f"of {usage.n_finished} finished runs and their inputs{running}")
+    print(f"{verb} {n_removed} entries and {len(stale)} temporary folders: "
+          f"{human(freed)} {'would be ' if dry_run else ''}freed")
+    return 0
+
+
+# ------------------------------------------------------------------ the command line
+
+COMMANDS = {"ls": "entries and size per stage", "verify": "check every file's hash",
+            "gc": "remove entries no finished run uses"}
+ALL = tuple(COMMANDS)
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One ``key=value`` of the command line: the commands it applies to, whether it is
+    true/false (else a path), and what it means."""
+
+    commands: tuple[str, ...]
+    boolean: bool
+    help: str
+
+
+SETTINGS = {
+    "paths.runs": Setting(ALL, False, "the runs folder (MLflow store: <runs>/mlflow.db); "
+                                      "default runs"),
+    "paths.cache": Setting(ALL, False, "the cache folder; default <paths.runs>/cache"),
+    "entries": Setting(("ls",), True, "one line per entry: key, size, created, whether a run "
+                                      "uses it"),
+    "fix": Setting(("verify",), True, "remove the damaged entries"),
+    "dry_run": Setting(("gc",), True, "list what would be removed, remove nothing"),
+}
+# The spellings of before, still accepted: flag -> key (a flag of a true/false key is true).
+OLD_FLAGS = {"--runs": "paths.runs", "--cache": "paths.cache", "--entries": "entries",
+             "--fix": "fix", "--dry-run": "dry_run"}
+TRUE, FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+
+
+class UsageError(Exception):
+    """A bad command line; the message names the word at fault."""
+
+
+@dataclass(frozen=True)
+class Options:
+    command: str
+    runs: Path
+    cache: Path
+    flags: dict[str, bool]  # entries, fix, dry_run: those of the command
+
+
+def usage() -> str:
+    lines = [f"usage: python -m pipeline.cache {{{','.join(COMMANDS)}}} [key=value ...]", ""]
+    lines += [f"  {name:<8} {text}" for name, text in COMMANDS.items()]
+    lines += ["", "settings (key=value):"]
+    spelled = {key: f"{key}={'true|false' if s.boolean else 'PATH'}" for key, s in SETTINGS.items()}
+    width = max(map(len, spelled.values()))
+    for key, setting in SETTINGS.items():
+        where = "" if setting.commands == ALL else f" ({', '.join(setting.commands)})"
+        lines.append(f"  {spelled[key]:<{width}}  {setting.help}{where}")
+    return "\n".join(lines)
+
+
+def _closest(word: str, choices) -> str:
+    """:func:`pipeline.core.cli.closest`, imported only for a bad word: it loads omegaconf,
+    which a good command line here does not need."""
+    from pipeline.core.cli import closest
+
+    return closest(word, list(choices))
+
+
+def parse(argv: list[str]) -> Options:
+    """Read ``argv`` (without the program's name) into :class:`Options`; a
+    :class:`UsageError` names the first word at fault and, for a misspelt key or
+    command, the closest real one."""
+    command = None
+    given: dict[str, str] = {}
+    words = list(argv)
+    while words:
+        word = words.pop(0)
+        if word.startswith("--"):
+            flag, _, attached = word.partition("=")
+            key = OLD_FLAGS.get(flag)
+            if key is None:
+                hint = _closest(flag, SETTINGS)
+                raise UsageError(f"unknown option {flag}{hint}; settings are key=value: "
+                                 f"{', '.join(SETTINGS)}")
+            if SETTINGS[key].boolean:
+                value = attached or "true"
+            elif attached:
+                value = attached
+            elif words and not words[0].startswith("-"):
+                value = words.pop(0)
+            else:
+                raise UsageError(f"{flag} needs a value (or write {key}=...)")
+            word = f"{key}={value}"
+        if "=" not in word:
+            if word not in COMMANDS:
+                raise UsageError(f"unknown command {word!r}{_closest(word, COMMANDS)}; "
+                                 f"commands: {', '.join(COMMANDS)}")
+            if command is not None:
+                raise UsageError(f"two commands, {command} and {word}: give one")
+            command = word
+            continue
+        key, _, value = word.partition("=")
+        if key not in SETTINGS:
+            raise UsageError(f"unknown setting {key!r}{_closest(key, SETTINGS)}; settings: "
+                             f"{', '.join(SETTINGS)}")
+        if key in given:
+            raise UsageError(f"{key} is given twice ({key}={given[key]} and {word})")
+        given[key] = value
+    if command is None:
+        raise UsageError(f"no command: give one of {', '.join(COMMANDS)}")
+    flags = {}
+    for key, value in given.items():
+        setting = SETTINGS[key]
+        if command not in setting.commands:
+            raise UsageError(f"{key} is a setting of {' and '.join(setting.commands)}, "
+                             f"not of {command}")
+        if setting.boolean:
+            if value.lower() not in TRUE + FALSE:
+                raise UsageError(f"{key}={value!r} must be true or false")
+            flags[key] = value.lower() in TRUE
+        elif not value:
+            raise UsageError(f"{key}= needs a folder")
+    for key, setting in SETTINGS.items():
+        if setting.boolean and command in setting.commands:
+            flags.setdefault(key, False)
+    runs = Path(given.get("paths.runs", "runs"))
+    return Options(command, runs, Path(given.get("paths.cache", runs / "cache")), flags)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if {"-h", "--help", "help"} & set(argv):
+        print(f"python -m pipeline.cache: list, verify and clean up the stage cache.\n\n{usage()}")
+        return 0
+    try:
+        options = parse(argv)
+    except UsageError as err:
+        print(f"{usage().splitlines()[0]}\npython -m pipeline.cache: error: {err}",
+              file=sys.stderr)
+        return 2
+    from pipeline.core.cache import StageCache
+
+    cache = StageCache(options.cache)
+    if options.command == "ls":
+        return ls(cache, options.runs, options.flags["entries"])
+    if options.command == "verify":
+        return verify(cache, options.flags["fix"])
+    return gc(cache, options.runs, options.flags["dry_run"])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

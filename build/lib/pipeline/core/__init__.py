@@ -1,0 +1,2 @@
+"""What every method shares: the stage context and cache, MLflow tracking, errors, memory
+measurement and report writing."""

@@ -1,0 +1,555 @@
+"""A small config-hash-keyed artifact cache for pipeline stages.
+
+Every stage's artifacts live in ``<cache root>/<stage>/<key>/`` where ``key`` is the
+sha256 of (stage name, the stage's code version, its own resolved settings in canonical
+JSON, the keys of the stages it reads). There is no maintained library that does this for
+Hydra configs, and the contract is small, so it is written here.
+
+Atomicity: an entry is computed into a temporary sibling folder
+``.tmp-<key>-<random>-<pid>@<host>``; a ``manifest.json`` is written last, then the folder
+is renamed onto its final name. A folder without a manifest is never read. When two sweep
+jobs compute the same key at once, the first rename wins and the loser discards its copy,
+so one good entry remains. A killed run leaves only a ``.tmp-*`` folder, which no reader
+looks at and :meth:`StageCache.remove_stale_temporaries` removes once its owner is gone.
+
+Integrity: the manifest lists every file with its size and sha256 (files above 64 MiB one
+sha256 per chunk, which threads check at once: :mod:`pipeline.core.digests`). Every hit checks
+every byte, whatever the entry's size, and ``python -m pipeline.cache verify`` checks every
+entry. A damaged entry is never read: :meth:`StageCache.run` logs it, removes it and
+computes it again. Entries written before sizes and hashes were recorded are checked for
+presence only.
+
+Lineage: the manifest also records the entries the stage read (``parents``: each one's
+stage and the ``id`` its manifest got when it was computed). An entry whose parent has
+been computed again since (after damage, say), or is gone, is not a hit: it is computed
+again from the new parent, and so are its own descendants in turn. An ancestor's files
+are hashed when its own stage is hit, which a runner does before reading it;
+``verify --fix`` removes a damaged entry with its descendants. An entry written before
+lineage was recorded is not used once one of its inputs is newer than it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import json
+import logging
+import math
+import os
+import re
+import shutil
+import time
+import uuid
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.core.digests import describe_files, first_changed, listed_files
+from pipeline.core.errors import DataError
+from pipeline.core.files import DiskFullError, disk_full_is_named, no_space, write_atomic
+from pipeline.core.process import host_name, process_alive
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "manifest.json"
+# What a full disk while a stage writes its entry advises.
+CACHE_HINT = "free some space (python -m pipeline.cache gc) or point paths.cache elsewhere"
+# A temporary folder whose owner cannot be asked (another host, or written before owners
+# were recorded) is stale once untouched this long and its key's lock is free.
+STALE_AFTER_S = 24 * 3600
+TEMPORARY = ".tmp-"
+TRASH = (".trash-", ".stale-")  # folders moved aside to be deleted (.stale-: older code)
+
+
+def canonical(value: Any) -> Any:
+    """Return ``value`` in a canonical, JSON-ready form.
+
+    Mappings get sorted string keys, tuples become lists, integral floats become ints (so
+    ``1`` and ``1.0`` hash the same), numpy scalars become Python scalars. NaN and infinity
+    are rejected: they have no stable meaning as a setting.
+    """
+    if isinstance(value, Mapping):
+        return {str(k): canonical(value[k]) for k in sorted(value, key=str)}
+    if isinstance(value, list | tuple):
+        return [canonical(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, bool) or value is None or isinstance(value, str):
+        return value
+    if isinstance(value, int):
+        return value
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"cannot hash a non-finite setting: {value!r}")
+        return int(value) if value.is_integer() else value
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot hash a setting of type {type(value).__name__}: {value!r}")
+
+
+def canonical_json(value: Any) -> str:
+    return json.dumps(canonical(value), sort_keys=True, separators=(",", ":"))
+
+
+def stage_key(stage: str, version: str, settings: Mapping, inputs: Mapping[str, str]) -> str:
+    """The cache key of one stage computation.
+
+    Parameters
+    ----------
+    stage : name of the stage (``"pca"``).
+    version : version string of the stage's code; bump it when its output changes.
+    settings : the stage's own resolved settings (only those; not the whole config).
+    inputs : ``{input stage name: its key}`` for every stage it reads.
+    """
+    payload = canonical_json(
+        {"stage": stage, "version": version, "settings": settings, "inputs": inputs}
+    )
+    return hashlib.sha256(payload.encode()).hexdigest()[:20]
+
+
+@dataclass
+class Entry:
+    """A complete cache entry: a folder of artifacts plus its manifest."""
+
+    stage: str
+    key: str
+    path: Path
+    hit: bool = False
+    seconds: float = 0.0
+    manifest: dict = field(default_factory=dict)
+
+    def file(self, name: str) -> Path:
+        return self.path / name
+
+    def array(self, name: str, mmap: bool = True) -> np.ndarray:
+        """Load ``<name>.npy``, memory-mapped read-only by default."""
+        path = self.path / f"{name}.npy"
+        try:
+            return np.load(path, mmap_mode="r" if mmap else None)
+        except (OSError, ValueError, EOFError) as err:
+            raise DataError(_unreadable(path, err)) from err
+
+    def json(self, name: str) -> Any:
+        path = self.path / f"{name}.json"
+        try:
+            return json.loads(path.read_text())
+        except (OSError, ValueError) as err:
+            raise DataError(_unreadable(path, err)) from err
+
+    def damage(self, hashes: bool = True, progress: Callable[[int], Any] | None = None
+               ) -> str | None:
+        """What is wrong with the entry's own files (naming the first bad one), or None.
+
+        Every listed file must exist with its recorded size and, with ``hashes``, its
+        recorded sha256 (per chunk for large files). ``progress(n)`` is called with the
+        bytes of each file or chunk hashed.
+        """
+        listed = listed_files(self.manifest)
+        for name, record in listed.items():
+            path = self.path / name
+            try:
+                size = path.stat().st_size
+            except FileNotFoundError:
+                return f"{path} is missing"
+            if "bytes" in record and size != record["bytes"]:
+                return f"{path} has {size} bytes, its manifest says {record['bytes']}"
+        return first_changed(self.path, listed, progress) if hashes else None
+
+
+def _unreadable(path: Path, err: BaseException) -> str:
+    return (f"cache file {path} cannot be read ({type(err).__name__}: {err}); the entry is "
+            f"damaged: remove it (python -m pipeline.cache verify --fix) and run again")
+
+
+def folder_bytes(folder: Path) -> int:
+    """Total size of the files under ``folder`` (0 when it is gone)."""
+    total = 0
+    for parent, _dirs, files in os.walk(folder):
+        for name in files:
+            try:
+                total += os.stat(os.path.join(parent, name)).st_size
+            except OSError:  # removed meanwhile
+                pass
+    return total
+
+
+class StageCache:
+    """The on-disk cache: ``root/<stage>/<key>/``."""
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+        # The entries run() returned, by key: a stage computed from them records the ids
+        # they had when they were handed out (their files are what it read).
+        self._handed_out: dict[str, Entry] = {}
+
+    def entry_path(self, stage: str, key: str) -> Path:
+        return self.root / stage / key
+
+    def stages(self) -> list[str]:
+        """The stages that have a folder in the cache."""
+        if not self.root.is_dir():
+            return []
+        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and p.name[0] != ".")
+
+    def keys(self, stage: str) -> list[str]:
+        """The keys of the folders under ``stage`` (complete entries or not)."""
+        folder = self.root / stage
+        if not folder.is_dir():
+            return []
+        return sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name[0] != ".")
+
+    def read(self, stage: str, key: str) -> tuple[Entry | None, str | None]:
+        """The entry with its manifest, files unchecked: ``(None, None)`` when there is
+        none, ``(None, problem)`` when its manifest is missing or unreadable."""
+        path = self.entry_path(stage, key)
+        manifest = path / MANIFEST
+        if not path.is_dir():
+            return None, None
+        if not manifest.is_file():
+            return None, f"{path} has no {MANIFEST} (not a complete entry)"
+        try:
+            content = json.loads(manifest.read_text())
+        except (OSError, ValueError) as err:
+            return None, f"{manifest} cannot be read ({type(err).__name__}: {err})"
+        if not isinstance(content, dict):
+            return None, f"{manifest} is not a JSON object"
+        return Entry(stage, key, path, hit=True, manifest=content), None
+
+    def check(self, stage: str, key: str, hashes: bool = True,
+              progress: Callable[[int], Any] | None = None) -> tuple[Entry | None, str | None]:
+        """The entry and what is wrong with it: ``(None, None)`` when there is none,
+        ``(entry, None)`` when it can be used, ``(entry or None, problem)`` when not.
+
+        Checked: its files' sizes, its lineage (:meth:`lineage_problem`), then, with
+        ``hashes``, its files' hashes (``progress``: as in :meth:`Entry.damage`)."""
+        entry, problem = self.read(stage, key)
+        if entry is None:
+            return None, problem
+        problem = (entry.damage(hashes=False) or self.lineage_problem(entry)
+                   or (entry.damage(True, progress) if hashes else None))
+        return entry, problem
+
+    def lineage_problem(self, entry: Entry) -> str | None:
+        """Why ``entry`` must not be used for what it was computed from, or None.
+
+        Each ancestor (the parents its manifest records, theirs in turn) must still be
+        there, complete, with the id it had when its child was computed and its files at
+        their recorded sizes. An entry that records no parents (written before lineage
+        was) must be newer than the inputs it names."""
+        seen: set[str] = set()
+        todo = [entry]
+        while todo:
+            child = todo.pop()
+            for key, stage, expected in self._parents(child):
+                if key in seen:
+                    continue
+                seen.add(key)
+                parent, problem = self.read(stage, key) if stage else (None, None)
+                where = self.entry_path(stage, key) if stage else f"the entry {key}"
+                if parent is None:
+                    if expected is None:
+                        continue  # never an entry of this cache (written before lineage)
+                    return f"{child.path} was computed from {where}, which {problem or 'is gone'}"
+                if expected is None and parent.manifest.get("created", 0) > child.manifest.get(
+                        "created", 0):
+                    return (f"{child.path} is older than its input {where}, which has been "
+                            f"computed again since (it records no lineage)")
+                if expected is not None and lineage_id(parent.manifest) != expected:
+                    return (f"{child.path} was computed from {where}, which has been computed "
+                            f"again since")
+                problem = parent.damage(hashes=False)
+                if problem is not None:
+                    return f"{child.path} was computed from {where}, which is damaged: {problem}"
+                todo.append(parent)
+        return None
+
+    def _parents(self, entry: Entry) -> list[tuple[str, str | None, str | None]]:
+        """``(key, stage or None, expected id or None)`` of each parent of ``entry``;
+        for an entry written before lineage was recorded, its inputs with no id."""
+        recorded = entry.manifest.get("parents")
+        if isinstance(recorded, dict):
+            return [(key, str(parent.get("stage")), str(parent.get("id")))
+                    for key, parent in sorted(recorded.items())]
+        inputs = entry.manifest.get("inputs", {})
+        return [(key, self._stage_of(key, name), None)
+                for name, key in sorted(inputs.items()) if isinstance(key, str)]
+
+    def _stage_of(self, key: str, hint: str | None = None) -> str | None:
+        """The stage whose folder holds the entry ``key`` (keys differ between stages:
+        the stage's name is hashed into them), or None."""
+        for stage in ([hint] if hint else []) + self.stages():
+            if (self.entry_path(stage, key) / MANIFEST).is_file():
+                return stage
+        return None
+
+    def lookup(self, stage: str, key: str) -> Entry | None:
+        """The entry if it can be used, or None (a damaged one is logged and left)."""
+        entry, problem = self.check(stage, key)
+        if problem is not None:
+            log.warning("cache entry %s cannot be used: %s", self.entry_path(stage, key), problem)
+            return None
+        return entry
+
+    def run(
+        self,
+        stage: str,
+        version: str,
+        settings: Mapping,
+        inputs: Mapping[str, str],
+        compute: Callable[[Path], Mapping | None],
+    ) -> Entry:
+        """Return the entry for this stage computation, computing it if absent, damaged
+        or computed from inputs that have been computed again since.
+
+        ``inputs`` maps a name to the key of each entry the stage reads. ``compute(folder)``
+        writes the artifacts into ``folder`` (a fresh temporary folder) and may return a
+        small JSON-able summary stored in the manifest. If it raises, nothing is left
+        behind under the entry's name.
+
+        Raises
+        ------
+        DataError
+            Naming the file (or the entry) and the space left, when the disk is full.
+        """
+        key = stage_key(stage, version, settings, inputs)
+        start = time.perf_counter()
+        found, problem = self.check(stage, key)
+        if found is not None and problem is None:
+            return self._hand_out(_hit(found, start, ""))
+
+        final = self.entry_path(stage, key)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        # Jobs of a sweep that need the same entry wait for the one computing it instead of
+        # computing it again. The lock is an optimization only: publishing stays atomic
+        # without it (file systems where flock does nothing are still safe).
+        with open(final.parent / f".lock-{key}", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            found, problem = self.check(stage, key)
+            if found is not None and problem is None:
+                return self._hand_out(_hit(found, start, ", after waiting for another job"))
+            if problem is not None:
+                log.warning("cache entry %s cannot be used: %s; computing it again",
+                            final, problem)
+                discard(final)
+            entry = self._compute(stage, version, settings, inputs, compute, key, final, start)
+            return self._hand_out(entry)
+
+    def _hand_out(self, entry: Entry) -> Entry:
+        self._handed_out[entry.key] = entry
+        return entry
+
+    def _lineage(self, inputs: Mapping[str, str]) -> dict[str, dict]:
+        """``{key: {"stage", "id"}}`` of the entries behind ``inputs``: those this cache
+        handed out, else those on disk now (keys that are no entry are left out)."""
+        parents = {}
+        for name, key in sorted(inputs.items()):
+            parent = self._handed_out.get(key)
+            if parent is None:
+                stage = self._stage_of(key, name)
+                parent = self.read(stage, key)[0] if stage else None
+            if parent is not None:
+                parents[key] = {"stage": parent.stage, "id": lineage_id(parent.manifest)}
+        return parents
+
+    def _compute(self, stage, version, settings, inputs, compute, key, final, start) -> Entry:
+        tmp = final.parent / temporary_name(key)
+        tmp.mkdir()
+        try:
+            parents = self._lineage(inputs)
+            # Libraries that lose the errno of a full disk (numpy, torch) raise other
+            # errors; a failed write on a full disk names the entry and the space left.
+            with disk_full_is_named(final, CACHE_HINT):
+                summary = compute(tmp) or {}
+                manifest = {
+                    "stage": stage,
+                    "version": version,
+                    "key": key,
+                    "id": uuid.uuid4().hex,
+                    "settings": canonical(settings),
+                    "inputs": dict(inputs),
+                    "parents": parents,
+                    "summary": canonical(summary),
+                    "files": describe_files(tmp, skip=MANIFEST),
+                    "created": time.time(),
+                }
+                # No fsync: the folder is published by its rename, and an entry a crash
+                # left short is found by the sizes and hashes of its manifest.
+                write_atomic(tmp / MANIFEST, json.dumps(manifest, indent=1), sync=False,
+                             hint=CACHE_HINT)
+            if not publish(tmp, final):
+                # Another job published the same key first: hand out its entry (its id).
+                entry, _ = self.read(stage, key)
+                manifest = entry.manifest if entry is not None else manifest
+        except DiskFullError as error:
+            shutil.rmtree(tmp, ignore_errors=True)
+            # Named as the entry's file (not its temporary folder's), with the space that
+            # is free now that the partial entry is gone.
+            named = Path(str(error.path).replace(str(tmp), str(final)))
+            raise no_space(named, needed=error.needed, hint=error.hint) from error
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        seconds = time.perf_counter() - start
+        log.info("stage %-16s computed key=%s (%.2f s)", stage, key, seconds)
+        return Entry(stage, key, final, hit=False, seconds=seconds, manifest=manifest)
+
+    def remove(self, stage: str, key: str, unless_used_since: float | None = None) -> bool:
+        """Delete an entry unless a job holds its key's lock (computing it) or, with
+        ``unless_used_since`` (a time.time()), it was used or rewritten since then.
+        Returns whether it was removed."""
+        path = self.entry_path(stage, key)
+        if not path.parent.is_dir():
+            return False
+        with open(path.parent / f".lock-{key}", "a") as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                return False
+            if unless_used_since is not None and last_used(path) >= unless_used_since:
+                return False
+            return discard(path)
+
+    def temporaries(self) -> list[Path]:
+        """The temporary and moved-aside folders of every stage (a glob, nothing more)."""
+        patterns = (f"{TEMPORARY}*", *(f"{prefix}*" for prefix in TRASH))
+        return sorted(p for pattern in patterns for p in self.root.glob(f"*/{pattern}"))
+
+    def remove_stale_temporaries(self, dry_run: bool = False) -> list[tuple[Path, str]]:
+        """Remove the temporary folders of computations that died, and folders left moved
+        aside; returns ``(folder, why)`` for each (with ``dry_run``, removes nothing).
+
+        A temporary folder of a process on this host is stale once that process is gone;
+        one of another host, or of unknown owner, once nothing in it changed for
+        :data:`STALE_AFTER_S` and no job holds its key's lock."""
+        removed = []
+        for folder in self.temporaries():
+            why = _why_stale(folder)
+            if why is None:
+                continue
+            if not dry_run:
+                shutil.rmtree(folder, ignore_errors=True)
+                if folder.exists():
+                    continue
+                log.info("removed %s (%s)", folder, why)
+            removed.append((folder, why))
+        return removed
+
+
+def _hit(entry: Entry, start: float, note: str) -> Entry:
+    entry.seconds = time.perf_counter() - start
+    # The manifest's mtime says when the entry was last used (gc keeps what running jobs
+    # used); a read-only cache simply does not record it.
+    with contextlib.suppress(OSError):
+        os.utime(entry.path / MANIFEST)
+    log.info("stage %-16s hit      key=%s (%.2f s%s)", entry.stage, entry.key, entry.seconds, note)
+    return entry
+
+
+def last_used(path: Path) -> float:
+    """When the entry at ``path`` was published or last hit by :meth:`StageCache.run`
+    (its manifest's mtime, a time.time(); 0 when there is none)."""
+    try:
+        return (path / MANIFEST).stat().st_mtime
+    except OSError:
+        return 0.0
+
+
+def temporary_name(key: str) -> str:
+    """The name of the folder an entry is computed in: its key and owner (pid@host)."""
+    return f"{TEMPORARY}{key}-{uuid.uuid4().hex[:8]}-{os.getpid()}@{host_name()}"
+
+
+
+def _why_stale(folder: Path) -> str | None:
+    """Why ``folder`` (a temporary or moved-aside folder) may go, or None to keep it."""
+    if folder.name.startswith(TRASH):
+        return "moved aside to be deleted"
+    match = re.fullmatch(rf"{re.escape(TEMPORARY)}([^-]+)-[^-]+(?:-(\d+)@(.+))?", folder.name)
+    if match is None:
+        return None
+    key, pid, host = match.groups()
+    if pid is not None and host == host_name():
+        return None if process_alive(int(pid)) else f"its process {pid} on this host is gone"
+    age = time.time() - _newest_mtime(folder)
+    if age < STALE_AFTER_S:
+        return None
+    with open(folder.parent / f".lock-{key}", "a") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return None  # a job is computing this key
+        fcntl.flock(lock, fcntl.LOCK_UN)
+    owner = f"of {pid}@{host}" if pid is not None else "of unknown owner"
+    return f"{owner}, untouched for {age / 3600:.0f} h, its key unlocked"
+
+
+def _newest_mtime(folder: Path) -> float:
+    newest = 0.0
+    for path in [folder, *folder.iterdir()] if folder.is_dir() else []:
+        with contextlib.suppress(OSError):
+            newest = max(newest, path.stat().st_mtime)
+    return newest
+
+
+def discard(path: Path) -> bool:
+    """Move ``path`` aside (atomically: no reader sees half of it) and delete it."""
+    trash = path.with_name(f"{TRASH[0]}{path.name}-{uuid.uuid4().hex[:8]}")
+    try:
+        os.rename(path, trash)
+    except FileNotFoundError:
+        return False
+    shutil.rmtree(trash, ignore_errors=True)
+    return True
+
+
+def publish(tmp: Path, final: Path) -> bool:
+    """Rename ``tmp`` onto ``final`` unless a complete entry is already there; returns
+    whether ``tmp`` became the entry (False: another job's entry was kept)."""
+    try:
+        os.rename(tmp, final)
+        return True
+    except OSError:
+        if (final / MANIFEST).is_file():
+            # Another job finished the same key first: its entry is as good as ours.
+            shutil.rmtree(tmp, ignore_errors=True)
+            return False
+    # A folder without a manifest under the final name is not an entry (it can only come
+    # from outside the cache): move it aside and publish ours.
+    discard(final)
+    try:
+        os.rename(tmp, final)
+    except OSError:
+        if not (final / MANIFEST).is_file():
+            raise
+        shutil.rmtree(tmp, ignore_errors=True)
+        return False
+    return True
+
+
+def lineage_id(manifest: Mapping) -> str:
+    """What tells one computation of an entry from another: the ``id`` of its manifest
+    (for manifests written before ids were, the time it was created)."""
+    return str(manifest.get("id") or f"created {manifest.get('created')!r}")
+
+
+def save_arrays(folder: Path, **arrays: np.ndarray) -> None:
+    """Write each array as ``<name>.npy`` (memory-mappable).
+
+    Raises :class:`DataError` naming the file and the space left when the disk is full."""
+    for name, array in arrays.items():
+        path = folder / f"{name}.npy"
+        with disk_full_is_named(path, CACHE_HINT):
+            np.save(path, np.asarray(array))
+
+
+def save_json(folder: Path, name: str, value: Any) -> None:
+    """Write ``value`` as ``<name>.json`` (canonical: sorted keys, 1.0 as 1).
+
+    Raises :class:`DataError` naming the file and the space left when the disk is full."""
+    path = folder / f"{name}.json"
+    with disk_full_is_named(path, CACHE_HINT):
+        path.write_text(json.dumps(canonical(value), indent=1))

@@ -1,0 +1,282 @@
+"""Settings checked at the door, declaratively: each setting's allowed values in one table
+that a single validator reads (as scikit-learn's ``_parameter_constraints``), so that a
+bad value is refused before any stage runs, with a message naming it and what it may be.
+
+>>> check_settings({"k": 8}, {"k": Integer(1)})
+>>> check_settings({"k": True}, {"k": Integer(1)})
+Traceback (most recent call last):
+...
+pipeline.core.errors.ConfigError: k=True must be an integer >= 1
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Integer:
+    """An integer (not a bool, not 1.5) in [low, high]; None too when ``optional``."""
+
+    low: int | None = None
+    high: int | None = None
+    optional: bool = False
+
+    def ok(self, value) -> bool:
+        if value is None:
+            return self.optional
+        return (isinstance(value, int) and not isinstance(value, bool)
+                and (self.low is None or value >= self.low)
+                and (self.high is None or value <= self.high))
+
+    def __str__(self) -> str:
+        bounds = [f">= {self.low}" if self.low is not None else "",
+                  f"<= {self.high}" if self.high is not None else ""]
+        text = " and ".join(b for b in bounds if b)
+        return f"an integer {text}".rstrip() + (" or null" if self.optional else "")
+
+
+@dataclass(frozen=True)
+class Real:
+    """A finite number (not a bool, not a string) above ``low`` (or at it when
+    ``closed``); None too when ``optional``."""
+
+    low: float | None = None
+    closed: bool = True
+    optional: bool = False
+
+    def ok(self, value) -> bool:
+        if value is None:
+            return self.optional
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return False
+        if not math.isfinite(value):
+            return False
+        return self.low is None or value > self.low or (self.closed and value == self.low)
+
+    def __str__(self) -> str:
+        bound = "" if self.low is None else f" {'>=' if self.closed else '>'} {self.low:g}"
+        return f"a finite number{bound}" + (" or null" if self.optional else "")
+
+
+@dataclass(frozen=True)
+class OneOf:
+    """One of the given values."""
+
+    values: tuple
+
+    def __init__(self, *values):
+        object.__setattr__(self, "values", values)
+
+    def ok(self, value) -> bool:
+        return any(value == v and type(value) is type(v) for v in self.values)
+
+    def __str__(self) -> str:
+        return "one of " + ", ".join("null" if v is None else str(v) for v in self.values)
+
+
+@dataclass(frozen=True)
+class ListOf:
+    """A list whose items each satisfy ``item``, of ``length`` items when given."""
+
+    item: Integer | Real | OneOf
+    length: int | None = None
+
+    def ok(self, value) -> bool:
+        return (isinstance(value, list | tuple)
+                and (self.length is None or len(value) == self.length)
+                and all(self.item.ok(v) for v in value))
+
+    def __str__(self) -> str:
+        count = f"{self.length} " if self.length is not None else ""
+        return f"a list of {count}items, each {self.item}"
+
+
+Constraint = Integer | Real | OneOf | ListOf
+
+
+def check_settings(cfg: Mapping | DictConfig, constraints: Mapping[str, Constraint]) -> None:
+    """Raise :class:`ConfigError` naming the first setting (dotted name) whose value breaks
+    its constraint; settings absent from ``cfg`` are not checked."""
+    if isinstance(cfg, DictConfig):
+        cfg = OmegaConf.to_container(cfg, resolve=True)
+    missing = object()
+    for name, constraint in constraints.items():
+        value = _select(cfg, name, missing)
+        if value is not missing and not constraint.ok(value):
+            raise ConfigError(f"{name}={value!r} must be {constraint}")
+
+
+def _select(cfg: Mapping, name: str, default):
+    node = cfg
+    for part in name.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return default
+        node = node[part]
+    return node
+
+
+def check_fields(settings, prefix: str) -> None:
+    """Check a dataclass's fields against their annotations (``int``, ``float``, ``str``,
+    ``bool``, ``X | None``): an ``int`` field refuses 1.5, True and NaN, a ``float`` field
+    refuses strings and non-finite values. Raises :class:`ConfigError` naming
+    ``prefix.field``."""
+    hints = typing.get_type_hints(type(settings))
+    for field in dataclasses.fields(settings):
+        value = getattr(settings, field.name)
+        constraint = _constraint_of(hints[field.name])
+        if constraint is not None and not constraint.ok(value):
+            raise ConfigError(f"{prefix}.{field.name}={value!r} must be {constraint}")
+
+
+def _constraint_of(hint) -> Constraint | None:
+    args = typing.get_args(hint) if isinstance(hint, types.UnionType) else (hint,)
+    optional = type(None) in args
+    kinds = [a for a in args if a is not type(None)]
+    if kinds == [int]:
+        return Integer(optional=optional)
+    if kinds == [float]:
+        return Real(optional=optional)
+    if kinds == [bool]:
+        return OneOf(True, False, *([None] if optional else []))
+    if kinds == [str]:
+        return _String(optional)
+    return None
+
+
+@dataclass(frozen=True)
+class _String:
+    optional: bool = False
+
+    def ok(self, value) -> bool:
+        return isinstance(value, str) or (value is None and self.optional)
+
+    def __str__(self) -> str:
+        return "a string" + (" or null" if self.optional else "")
+
+
+def schema(settings_class: type, class_name: str | None = None, **extra: object) -> type:
+    """A Hydra structured config with the fields and defaults of ``settings_class``.
+
+    The settings dataclass stays the one source of defaults and checks (it is frozen and
+    checks itself when the job builds it; a structured config must be mutable, so this is
+    a plain copy of its fields). ``extra`` adds fields the config group holds besides
+    (name: default; a dict default becomes an open ``dict[str, Any]`` field), or gives a
+    field of the class another default in the config, which may then be null.
+    """
+    hints = typing.get_type_hints(settings_class)
+    fields = []
+    for f in dataclasses.fields(settings_class):
+        if f.name in extra:  # the config's own default, e.g. null for "the method's"
+            value = extra.pop(f.name)
+            fields.append((f.name, hints[f.name] | None, dataclasses.field(default=value)))
+            continue
+        default = (dataclasses.field(default_factory=f.default_factory)
+                   if f.default is dataclasses.MISSING else dataclasses.field(default=f.default))
+        fields.append((f.name, hints[f.name], default))
+    for key, value in extra.items():
+        if isinstance(value, dict):
+            fields.append((key, dict[str, typing.Any],
+                           dataclasses.field(default_factory=lambda v=value: dict(v))))
+        else:
+            fields.append((key, type(value) if value is not None else typing.Any, value))
+    return dataclasses.make_dataclass(class_name or f"{settings_class.__name__}Schema", fields)
+
+
+def check_added_keys(cfg: DictConfig, overrides: list[str], conf_dir: Path,
+                     open_maps: tuple[str, ...] = ("tracking.tags",),
+                     compose=None) -> None:
+    """Refuse a setting added with ``+key=value`` (or ``++``) that the config does not have.
+
+    Hydra refuses ``btf.crop.szie=32`` but adds ``+btf.crop.szie=32`` as a new key that no
+    code reads, so the run would go on with the default. Adding is allowed for config
+    groups (``+experiment=...``) and under the maps meant to be open (``tracking.tags``).
+    ``++key`` sets a key whether or not it exists: it is refused when the config composed
+    without it (``compose(overrides)``) lacks the key. The error names the closest setting.
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    base = None
+    for override in parsed:
+        if not (override.is_add() or override.is_force_add()):
+            continue
+        key = override.key_or_group
+        if "/" in key or (conf_dir / key.replace(".", "/")).is_dir():
+            continue  # a config group, e.g. +experiment=smoke
+        if any(key == m or key.startswith(m + ".") for m in open_maps):
+            continue
+        if override.is_force_add() and compose is not None:
+            if base is None:
+                base = compose([o.input_line for o in parsed if not o.is_force_add()])
+            if OmegaConf.select(base, key, default=_ABSENT) is not _ABSENT:
+                continue  # ++ on a real setting: a plain change
+        known = [k for k in _leaf_keys(cfg) if k != key]
+        close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+        hint = f"; did you mean {close[0]}?" if close else ""
+        raise ConfigError(f"+{key}: no such setting{hint} (a + adds a new key that no code "
+                          f"reads; only {', '.join(open_maps)} take new keys)")
+
+
+_ABSENT = object()
+
+
+def _leaf_keys(cfg: DictConfig, prefix: str = "") -> list[str]:
+    keys = []
+    for key, value in cfg.items():
+        name = f"{prefix}{key}"
+        keys.append(name)
+        if isinstance(value, DictConfig):
+            keys += _leaf_keys(value, name + ".")
+    return keys
+
+
+# A setting's role, declared where the setting is (field metadata "role"): what its value
+# can change. Cache keys hold the RESULT settings of their stage, the recipe that tables
+# group runs by holds every RESULT setting, the logged parameters all that the model uses.
+RESULT = "result"      # can change a number in a table
+SPEED = "speed"        # changes how fast the same numbers are computed (up to float sums)
+LOG = "log"            # changes what is logged or drawn, not the model
+ROLES = (RESULT, SPEED, LOG)
+
+
+def setting(default, constraint: Constraint | None = None, *, role: str = RESULT,
+            help: str = ""):
+    """A dataclass field with its role, its allowed values and one line of help."""
+    if role not in ROLES:
+        raise ValueError(f"role={role!r} must be one of {', '.join(ROLES)}")
+    metadata = {"role": role, "constraint": constraint, "help": help}
+    if isinstance(default, list | dict):
+        return dataclasses.field(default_factory=lambda: type(default)(default),
+                                 metadata=metadata)
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def roles(settings_class: type, prefix: str) -> dict[str, str]:
+    """``{"prefix.field": role}`` of a dataclass whose fields are :func:`setting` s;
+    raises ``TypeError`` naming a field declared without a role."""
+    found = {}
+    for f in dataclasses.fields(settings_class):
+        if "role" not in f.metadata:
+            raise TypeError(f"{settings_class.__name__}.{f.name} has no role: declare it "
+                            f"with pipeline.core.settings.setting(..., role=...)")
+        found[f"{prefix}.{f.name}"] = f.metadata["role"]
+    return found
+
+
+def constraints(settings_class: type, prefix: str) -> dict[str, Constraint]:
+    """``{"prefix.field": constraint}`` of the :func:`setting` fields that declare one."""
+    return {f"{prefix}.{f.name}": f.metadata["constraint"]
+            for f in dataclasses.fields(settings_class)
+            if f.metadata.get("constraint") is not None}

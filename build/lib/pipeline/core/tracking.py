@@ -1,0 +1,516 @@
+"""MLflow tracking: one run per Hydra job, a parent run per sweep.
+
+The store is SQLite at ``${paths.runs}/mlflow.db`` with artifacts in
+``${paths.runs}/artifacts`` unless ``MLFLOW_TRACKING_URI`` points at a shared server.
+MLflow 3.x creates its SQLite schema on first use and several processes doing that at
+once crash ("duplicate column"), so :func:`init_store` creates it under a file lock
+before any job logs; sweeps call it once in the launching process as well.
+
+A run records who runs it (tags ``host`` and ``pid``): any later start, ``cache gc`` and a
+stopping sweep mark FAILED the RUNNING runs whose process is gone from this machine.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import fcntl
+import logging
+import os
+import re
+import socket
+import sqlite3
+import subprocess
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from hydra.experimental.callback import Callback
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from pipeline.core import stopping
+from pipeline.core.errors import ConfigError, StoreError
+from pipeline.core.process import process_alive, stop_children
+from pipeline.core.recipe import recipe_id, render_recipe_id
+
+log = logging.getLogger(__name__)
+
+_OWN_URI = "PIPELINE_TRACKING_URI_SET_BY_PIPELINE"
+PARENT_RUN_FILE = "mlflow_parent_run_id"
+DB_NAME = "mlflow.db"
+PACKAGES = ("torch", "numpy", "scikit-learn", "mlflow", "hydra-core", "OpenEXR", "pandas")
+# MLflow 3's UI opens an experiment of this kind on its runs view (not the GenAI overview).
+EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
+EXPERIMENT_KIND = (EXPERIMENT_KIND_TAG, "custom_model_development")
+NOTE_TAG = "mlflow.note.content"  # the run's description in the UI (Markdown)
+ENDED_BY_TAG = "ended_by"  # why a run ended FAILED when its own process did not say
+ERROR_TAG = "error"  # the refused setting's message, on a run that ended FAILED for it
+MLFLOW_TABLES = {"experiments", "alembic_version"}  # what makes a SQLite file a store
+_PARTIAL = re.compile(rf"\.{re.escape(DB_NAME)}\.partial-(\d+)(?:-journal|-wal|-shm)?")
+
+
+def tracking_uri(runs: str | os.PathLike) -> str:
+    """The tracking URI: ``MLFLOW_TRACKING_URI`` if set, else SQLite under ``runs``."""
+    env = os.environ.get("MLFLOW_TRACKING_URI")
+    # mlflow.set_tracking_uri exports MLFLOW_TRACKING_URI for subprocesses; a value that we
+    # set ourselves is not the user's choice of server and must not outlive paths.runs.
+    if env and env != os.environ.get(_OWN_URI):
+        return env
+    return _sqlite_uri(runs)
+
+
+def _sqlite_uri(runs: str | os.PathLike) -> str:
+    return f"sqlite:///{Path(runs).resolve() / DB_NAME}"
+
+
+def use_store(runs: str | os.PathLike) -> str:
+    """Point this process's MLflow client at the store of ``runs``; returns the URI."""
+    import mlflow
+
+    uri = tracking_uri(runs)
+    mlflow.set_tracking_uri(uri)
+    if uri == _sqlite_uri(runs):
+        os.environ[_OWN_URI] = uri
+    else:  # the user's server: it stays the choice for every later call and subprocess
+        os.environ.pop(_OWN_URI, None)
+    return uri
+
+
+def init_store(runs: str | os.PathLike, experiment: str) -> str:
+    """Create (or upgrade) the store and the experiment once; return the experiment id.
+
+    A new SQLite store is built under another name and renamed into place, so a process
+    killed while MLflow creates its tables never leaves a half-made ``mlflow.db``; such
+    a process's partial file is removed here. Runs of any experiment left RUNNING by a
+    process of this machine that no longer exists (killed with ``kill -9``, or the
+    machine went down) are marked FAILED.
+
+    Raises
+    ------
+    StoreError
+        Naming the store, when it cannot be opened (a damaged database, say), is empty,
+        or holds another program's tables.
+    """
+    from mlflow.tracking import MlflowClient
+
+    runs = Path(runs).resolve()
+    runs.mkdir(parents=True, exist_ok=True)
+    uri = use_store(runs)
+    # The lock serializes schema creation between processes that share this folder.
+    with open(runs / ".mlflow.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            db = sqlite_path(uri)
+            if db is not None and db == runs / DB_NAME:
+                remove_partial_stores(runs)
+                if not db.exists():
+                    _create_sqlite_store(db)
+            if db is not None and db.exists():
+                check_sqlite_store(db)
+            try:
+                client = MlflowClient(uri)
+                found = client.get_experiment_by_name(experiment)
+                fail_dead_runs(client)
+            except Exception as error:  # SQLAlchemy's and MLflow's errors alike
+                raise StoreError(
+                    f"the MLflow store {uri} cannot be opened ({type(error).__name__}: "
+                    f"{error}); move it aside to start a new one (artifacts stay in "
+                    f"{runs / 'artifacts'})"
+                ) from error
+            if found is not None:
+                if EXPERIMENT_KIND_TAG not in found.tags:
+                    client.set_experiment_tag(found.experiment_id, *EXPERIMENT_KIND)
+                return found.experiment_id
+            location = None
+            if uri.startswith("sqlite:"):
+                location = (runs / "artifacts").as_uri()
+            return client.create_experiment(
+                experiment, artifact_location=location, tags=dict([EXPERIMENT_KIND])
+            )
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` tracking URI, else None."""
+    prefix = "sqlite:///"
+    return Path(uri[len(prefix):].split("?", 1)[0]) if uri.startswith(prefix) else None
+
+
+def _create_sqlite_store(db: Path) -> None:
+    """Let MLflow create its tables in a temporary file, then rename it to ``db``."""
+    from mlflow.tracking import MlflowClient
+
+    partial = db.with_name(f".{db.name}.partial-{os.getpid()}")
+    partial.unlink(missing_ok=True)
+    try:
+        MlflowClient(f"sqlite:///{partial}").search_experiments(max_results=1)
+        os.replace(partial, db)
+    finally:
+        partial.unlink(missing_ok=True)
+        partial.with_name(f"{partial.name}-journal").unlink(missing_ok=True)
+
+
+def remove_partial_stores(runs: Path) -> list[Path]:
+    """Remove the half-made stores (``.mlflow.db.partial-<pid>`` and its ``-journal``)
+    of processes killed while they created the store. Call it holding the store's lock:
+    a partial file is only written under that lock, so any found then is a leftover."""
+    removed = []
+    for path in sorted(runs.glob(f".{DB_NAME}.partial-*")):
+        match = _PARTIAL.fullmatch(path.name)
+        if match is None or int(match[1]) == os.getpid():
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+            removed.append(path)
+    if removed:
+        log.info("removed %s: left by processes killed while they created the store",
+                 ", ".join(p.name for p in removed))
+    return removed
+
+
+def check_sqlite_store(db: Path) -> None:
+    """Refuse a file at ``db`` that is not an MLflow store, before MLflow writes its
+    tables into it: an empty file, a file that is not SQLite, a database holding
+    another program's tables (none of :data:`MLFLOW_TABLES`).
+
+    Raises
+    ------
+    StoreError
+        Naming ``db``, what is wrong and what to do.
+    """
+    aside = ("move it aside (or point paths.runs, or MLFLOW_TRACKING_URI, elsewhere) and "
+             "a new store is created")
+    if db.stat().st_size == 0:
+        raise StoreError(
+            f"the MLflow store {db} is an empty file (0 bytes: a copy or a write cut short?); "
+            f"delete it to start a new store, or put the real store in its place"
+        )
+    with open(db, "rb") as head:
+        if head.read(16) != b"SQLite format 3\x00":
+            raise StoreError(f"the MLflow store {db} is not a SQLite database; {aside}")
+    try:
+        # Not read-only: a journal left by a killed writer must be rolled back first.
+        with contextlib.closing(sqlite3.connect(db, timeout=30)) as connection:
+            tables = {name for (name,) in connection.execute(
+                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+    except sqlite3.Error as error:
+        raise StoreError(
+            f"the MLflow store {db} cannot be read ({type(error).__name__}: {error}); {aside}"
+        ) from error
+    if not tables:
+        raise StoreError(f"the MLflow store {db} is a SQLite database without tables, "
+                         f"not an MLflow store; {aside}")
+    if not MLFLOW_TABLES <= tables:
+        listed = ", ".join(sorted(tables)[:8]) + (", ..." if len(tables) > 8 else "")
+        raise StoreError(
+            f"the MLflow store {db} holds another program's tables ({listed}), not MLflow's "
+            f"(no {' or '.join(sorted(MLFLOW_TABLES - tables))} table); {aside}"
+        )
+
+
+def process_gone(run) -> bool:
+    """Whether ``run`` (an MLflow Run) was started by a process of this machine (tags
+    ``host``, ``pid``) that no longer exists. Runs of other machines: False."""
+    tags = run.data.tags
+    if tags.get("host") != socket.gethostname() or not tags.get("pid", "").isdigit():
+        return False
+    return not process_alive(int(tags["pid"]))
+
+
+def fail_dead_runs(client, experiment_ids: list[str] | None = None, *,
+                   ended_by: str = "its process was gone at a later start",
+                   also_pid: int | None = None) -> list[str]:
+    """Mark FAILED the RUNNING runs whose process is gone from this machine (and, with
+    ``also_pid``, those of that process: this one, as it stops); returns their ids. All
+    experiments' runs unless ``experiment_ids`` says which. Other machines' are left."""
+    if experiment_ids is None:
+        experiment_ids = [e.experiment_id for e in all_pages(client.search_experiments)]
+    if not experiment_ids:
+        return []
+    host = socket.gethostname()
+    ended = []
+    for run in all_pages(client.search_runs, experiment_ids=experiment_ids,
+                          filter_string="attributes.status = 'RUNNING'"):
+        tags = run.data.tags
+        own = also_pid is not None and tags.get("host") == host and tags.get("pid") == str(
+            also_pid)
+        if not (own or process_gone(run)):
+            continue
+        client.set_tag(run.info.run_id, ENDED_BY_TAG, ended_by)
+        client.set_terminated(run.info.run_id, status="FAILED")
+        if own:
+            log.warning("marked run %s FAILED (%s)", run.info.run_id, ended_by)
+        else:
+            log.warning("marked run %s FAILED: its process %s is gone", run.info.run_id,
+                        tags["pid"])
+        ended.append(run.info.run_id)
+    return ended
+
+
+def all_pages(search, **kwargs) -> list:
+    """Every item of a paged MLflow search (``client.search_runs`` and the like)."""
+    found, token = [], None
+    while True:
+        page = search(**kwargs, page_token=token)
+        found += list(page)
+        token = page.token
+        if not token:
+            return found
+
+
+def _fail_runs_when_stopped(uri: str) -> None:
+    """At a stop (:mod:`pipeline.core.stopping`), end FAILED this process's RUNNING runs and
+    those of processes now gone (a sweep's killed workers, or its killed launcher)."""
+    from mlflow.tracking import MlflowClient
+
+    fail_dead_runs(MlflowClient(uri), ended_by=f"stopped by {stopping.describe()}",
+                   also_pid=os.getpid())
+
+
+_STOP_CLEANUPS: dict[str, int] = {}  # tracking URI -> its cleanup's token (one per store)
+
+
+def _on_stop_fail_runs(uri: str) -> None:
+    if uri not in _STOP_CLEANUPS:
+        _STOP_CLEANUPS[uri] = stopping.on_stop(lambda: _fail_runs_when_stopped(uri))
+
+
+def flatten(config: Mapping | DictConfig, prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``; lists are kept whole as strings."""
+    if isinstance(config, DictConfig):
+        config = OmegaConf.to_container(config, resolve=True)
+    flat: dict[str, Any] = {}
+    for key, value in config.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            flat.update(flatten(value, name + "."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def environment_tags() -> dict[str, str]:
+    """Git commit of the code and the versions of the packages that shape results."""
+    tags = {"git.commit": _git_commit()}
+    for package in PACKAGES:
+        try:
+            tags[f"version.{package}"] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            tags[f"version.{package}"] = "absent"
+    return tags
+
+
+def _git_commit() -> str:
+    here = Path(__file__).resolve().parent
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=here,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return "unknown"
+    if out.returncode != 0:
+        return "unknown"
+    return out.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
+def _sweep_dir() -> Path | None:
+    """The sweep folder when this process is a job of a Hydra multirun, else None."""
+    hydra_cfg = _hydra_config()
+    if hydra_cfg is None or hydra_cfg.mode != RunMode.MULTIRUN:
+        return None
+    return Path(hydra_cfg.sweep.dir)
+
+
+def _parent_run_id() -> str | None:
+    sweep = _sweep_dir()
+    if sweep is None:
+        return None
+    marker = sweep / PARENT_RUN_FILE
+    return marker.read_text().strip() if marker.is_file() else None
+
+
+@contextmanager
+def job_run(
+    cfg: DictConfig, run_name: str | None = None, description: str = "",
+    unused: Sequence[str] = (),
+) -> Iterator[Any]:
+    """Start the MLflow run of one job; it ends FAILED if the body raises.
+
+    Besides the flattened config as params, the run holds the resolved config
+    (``config/resolved.yaml``), the command-line overrides (``config/overrides.yaml`` and
+    the tag ``overrides``), ``description`` as its note in the UI and, when the job runs
+    under Hydra, Hydra's own files and the job's log (``hydra/``), logged as it ends.
+    """
+    import mlflow
+
+    experiment_id = init_store(cfg.paths.runs, cfg.tracking.experiment)
+    _on_stop_fail_runs(tracking_uri(cfg.paths.runs))
+    tags = environment_tags()
+    tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
+    params = {k: v for k, v in flatten(cfg).items() if k not in set(unused)}
+    tags["recipe"] = recipe_id(params)  # equal for seeds of one model (pipeline.core.recipe)
+    if any(key.startswith("btf.render.") for key in params):
+        tags["render_recipe"] = render_recipe_id(params)  # and rendered alike
+    # Who runs it: a later start marks it FAILED if this process dies without ending it.
+    tags.update(host=socket.gethostname(), pid=str(os.getpid()))
+    overrides = _task_overrides()
+    tags["overrides"] = " ".join(overrides)
+    if description:
+        tags[NOTE_TAG] = description
+    with mlflow.start_run(
+        experiment_id=experiment_id,
+        run_name=run_name,
+        parent_run_id=_parent_run_id(),
+        tags=tags,
+    ) as run:
+        # Every setting, unset ones (model.k of Neural BTF) as "None": a null is a value
+        # that the tables compare like any other (pipeline.core.recipe).
+        mlflow.log_params({k: _param_value(v) for k, v in params.items()})
+        mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
+        mlflow.log_text(OmegaConf.to_yaml(overrides), "config/overrides.yaml")
+        log.info("MLflow run %s in %s", run.info.run_id, tracking_uri(cfg.paths.runs))
+        try:
+            yield run
+            stopping.check()  # a stop the job's code swallowed: the run ends FAILED
+        except BaseException as error:
+            if isinstance(error, ConfigError):  # a refused setting: the run says which
+                with contextlib.suppress(Exception):
+                    mlflow.set_tag(ERROR_TAG, " ".join(str(error).split())[:5000])
+            if stopping.requested() is not None:
+                with contextlib.suppress(Exception):
+                    mlflow.set_tag(ENDED_BY_TAG, f"stopped by {stopping.describe()}")
+            raise
+        finally:
+            _log_hydra_output()
+
+
+def _hydra_config():
+    """Hydra's config of this job, or None outside a Hydra app (a test, a notebook)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return HydraConfig.get()
+    except (ImportError, ValueError):
+        return None
+
+
+def _task_overrides() -> list[str]:
+    hydra_cfg = _hydra_config()
+    return list(hydra_cfg.overrides.task) if hydra_cfg is not None else []
+
+
+def _log_hydra_output() -> None:
+    """Log the job's Hydra folder (``.hydra/``: config, overrides; the job's ``.log``)."""
+    import mlflow
+
+    hydra_cfg = _hydra_config()
+    if hydra_cfg is None or not hydra_cfg.runtime.output_dir:
+        return
+    output = Path(hydra_cfg.runtime.output_dir)
+    for handler in logging.getLogger().handlers:
+        handler.flush()  # the job's .log file holds every line written so far
+    for path in sorted(output.glob(".hydra/*.yaml")) + sorted(output.glob("*.log")):
+        mlflow.log_artifact(str(path), "hydra")
+
+
+def _param_value(value: Any) -> str:
+    text = str(value)
+    return text if len(text) <= 6000 else text[:5997] + "..."
+
+
+def swept_settings(config: DictConfig) -> dict[str, str]:
+    """The multirun's settings from its config's sweeper and its command line, in order:
+    ``{"variant": "neural_btf,k128", "seed": "0", ...}`` (the command line wins)."""
+    settings = {str(k): str(v) for k, v in (config.hydra.sweeper.get("params") or {}).items()}
+    for override in config.hydra.overrides.task:
+        key, _, value = override.partition("=")
+        settings[key.lstrip("+~")] = value
+    return settings
+
+
+class SweepParentRun(Callback):
+    """Hydra callback: one MLflow parent run per multirun, its jobs as children.
+
+    Registered in ``conf/config.yaml`` under ``hydra.callbacks``. The parent's id is
+    written into the sweep folder, where every job (joblib worker or SLURM task) reads it.
+    When the launching process is stopped by a signal (:mod:`pipeline.core.stopping`), the
+    parent run ends FAILED at once, then the joblib workers are stopped (their runs end
+    FAILED too); workers also stop by themselves when the launcher is killed outright.
+    """
+
+    def __init__(self) -> None:
+        self.run_id: str | None = None
+        self.uri: str | None = None
+        self._on_stop: list[int] = []  # tokens of pipeline.core.stopping.on_stop
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        from mlflow.tracking import MlflowClient
+
+        experiment_id = init_store(config.paths.runs, config.tracking.experiment)
+        self.uri = tracking_uri(config.paths.runs)
+        client = MlflowClient(self.uri)
+        sweep_dir = Path(config.hydra.sweep.dir)
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        tags = environment_tags()
+        tags["sweep.dir"] = str(sweep_dir)
+        swept = swept_settings(config)
+        tags["sweep.overrides"] = " ".join(f"{k}={v}" for k, v in swept.items())
+        # As for a job's run: a later start marks the parent FAILED if this process dies.
+        tags.update(host=socket.gethostname(), pid=str(os.getpid()))
+        tags[NOTE_TAG] = (
+            f"**Hydra sweep** over `{tags['sweep.overrides'] or 'one job'}`. Its jobs are the "
+            "child runs below; each one's headline metrics are logged here as "
+            "`<job>/<metric>` when the sweep ends, and the tables (when the experiment "
+            "builds them) under `tables/`."
+        )
+        run = client.create_run(experiment_id, run_name=f"sweep {sweep_dir.name}", tags=tags)
+        self.run_id = run.info.run_id
+        # What the sweep varies (each job's value is among its own params) and what it fixes.
+        for key, value in swept.items():
+            client.log_param(self.run_id, key, _param_value(value))
+        (sweep_dir / PARENT_RUN_FILE).write_text(self.run_id)
+        # If a job fails, Hydra exits without on_multirun_end: mark the parent FAILED then.
+        atexit.register(self._end, "FAILED")
+        # At a stop signal: the parent first, then the workers, then their runs (LIFO).
+        _on_stop_fail_runs(self.uri)
+        os.environ[stopping.LAUNCHER_ENV] = f"{os.getpid()}@{socket.gethostname()}"
+        folders = [config.paths.get(name) for name in ("runs", "cache", "data")]
+        self._on_stop = [
+            stopping.on_stop(lambda: stop_children([f for f in folders if f])),
+            stopping.on_stop(self._stopped),
+        ]
+        log.info("MLflow parent run %s for sweep %s", self.run_id, sweep_dir)
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        for token in self._on_stop:
+            stopping.forget(token)
+        self._end("FINISHED")
+
+    def _stopped(self) -> None:
+        run_id = self.run_id
+        if run_id is not None:
+            from mlflow.tracking import MlflowClient
+
+            why = f"stopped by {stopping.describe()}"
+            MlflowClient(self.uri).set_tag(run_id, ENDED_BY_TAG, why)
+            self._end("FAILED")
+            log.error("sweep run %s ends FAILED; stopping its workers", run_id)
+
+    def _end(self, status: str) -> None:
+        if self.run_id is None:
+            return
+        from mlflow.tracking import MlflowClient
+
+        MlflowClient(self.uri).set_terminated(self.run_id, status=status)
+        self.run_id = None

@@ -1,0 +1,205 @@
+"""Decoding UBO2014 DFMF values: only the direction rows and the texels of a crop wanted
+are multiplied out, the factors read through memory maps, a block of directions at a time
+(a 100 × 100 crop of a 400 × 400 texture reads 1/16 of the texel factors).
+
+Conventions of this decoder, each as btflib decodes:
+
+- Row ``view · n_lights + light``: view-major, as :mod:`pipeline.data.btf` orders images.
+- Column ``y · width + x`` with ``y`` counted from the bottom: btflib flips the rows
+  ("Flip origin") so that image row 0 is the top, and so does this decoder (pysmtb does
+  not flip).
+- Colour model 0: the channels are linear RGB. Colour model 11: channel 0 is the log of
+  the luminance with the dynamic-range reduction undone as ``Y = exp(c0) − ε``, channels 1
+  and 2 chroma ratios, ``U = c1·Y + ε``, ``V = c2·Y + ε`` (ε =
+  :data:`~pipeline.data.ubo2014_format.DRR_EPS`, hard-coded in btflib and pysmtb, not
+  stored), then BT.601 YUV → RGB (:data:`~pipeline.data.ubo2014_format.YUV_TO_RGB`),
+  clipped to [0, 1] as btflib does (``clip=False`` keeps the unclipped values). The
+  colour mean and transform and the RGB scale are read but not applied: btflib ignores
+  them too.
+- The incident cosine. Method A expects it *in* the data, as UBO2003 photographs have it.
+  A file whose cosine flag is 0 (or a version-1 file, which has no flag: pysmtb reads that
+  as "not in the data") stores values with the cosine divided out; the decoder multiplies
+  each row by cos θ_light (clamped at 0) so that every dataset reaches the chain the same
+  way. ``include_cosine=False`` returns the stored values unchanged. btflib leaves this
+  case a stub.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.files import output_array
+from pipeline.data.ubo2014_format import DRR_EPS, YUV_TO_RGB, DFMFFile
+
+
+def channel_factors(dfmf: DFMFFile, channel: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """S, U and SV of one channel as read-only memory maps, in the file's dtype.
+
+    Returns
+    -------
+    S : ndarray of shape (K,)
+    U : ndarray of shape (n_directions, K)
+    SV : ndarray of shape (width × height, K)
+        Column ``y · width + x``, ``y`` counted from the bottom (the file's order).
+    """
+    factors = dfmf.channels[channel]
+    k = factors.components
+
+    def mapped(offset: int, shape: tuple[int, ...]) -> np.ndarray:
+        return np.memmap(dfmf.path, dtype=factors.dtype, mode="r", offset=offset, shape=shape)
+
+    return (
+        mapped(factors.offset, (k,)),
+        mapped(factors.u_offset, (factors.rows, k)),
+        mapped(factors.sv_offset, (factors.columns, k)),
+    )
+
+
+def check_crop(crop, dfmf: DFMFFile) -> tuple[int, int, int, int]:
+    """``crop`` = [row, col, height, width] texels (None: all) checked against the texture.
+
+    Raises
+    ------
+    ConfigError
+        Naming the crop and the texture size, when it does not fit.
+    """
+    if crop is None:
+        return 0, 0, dfmf.height, dfmf.width
+    try:
+        row, col, height, width = (int(value) for value in crop)
+    except (TypeError, ValueError):
+        raise ConfigError(f"dataset.crop={crop!r} is not [row, col, height, width]") from None
+    if height < 1 or width < 1 or row < 0 or col < 0 or row + height > dfmf.height or (
+        col + width > dfmf.width
+    ):
+        raise ConfigError(
+            f"dataset.crop={[row, col, height, width]} does not fit the texture of "
+            f"{dfmf.height} × {dfmf.width} texels (height × width): {dfmf.path}"
+        )
+    return row, col, height, width
+
+
+def _compute_dtype(dfmf: DFMFFile) -> np.dtype:
+    # btflib sums float16 and float32 factors in float32, float64 factors in float64.
+    return np.dtype(np.float64 if dfmf.channels[0].dtype.itemsize == 8 else np.float32)
+
+
+def crop_texel_factors(dfmf: DFMFFile, channel: int, crop=None) -> np.ndarray:
+    """SV rows of the crop's texels, image row 0 at the top, shape (height × width, K)."""
+    row, col, height, width = check_crop(crop, dfmf)
+    sv = channel_factors(dfmf, channel)[2].reshape(dfmf.height, dfmf.width, -1)
+    # Image row r is the file's row height - 1 - r (btflib's origin flip): read the
+    # file's rows of the crop, then reverse them. Only those rows' pages are touched.
+    bottom = dfmf.height - row - height
+    block = sv[bottom : bottom + height, col : col + width][::-1]
+    return np.ascontiguousarray(block, dtype=_compute_dtype(dfmf)).reshape(height * width, -1)
+
+
+def decode_block(
+    direction_factors, texel_factors, color_model: int, clip: bool = True
+) -> np.ndarray:
+    """Values of some directions at some texels from their factors.
+
+    Parameters
+    ----------
+    direction_factors : sequence of 3 ndarrays of shape (n, K_c)
+        The U rows of each channel.
+    texel_factors : sequence of 3 ndarrays of shape (m, K_c)
+        The SV rows of each channel.
+    color_model : {0, 11}
+    clip : bool
+        Colour model 11 only: clip RGB to [0, 1] as btflib does.
+
+    Returns
+    -------
+    ndarray of shape (n, m, 3), float32
+        Linear RGB (before any cosine).
+    """
+    channels = [
+        (u @ sv.T).astype(np.float32, copy=False)
+        for u, sv in zip(direction_factors, texel_factors, strict=True)
+    ]
+    if color_model == 0:
+        return np.stack(channels, axis=-1)
+    luminance = np.exp(channels[0]) - DRR_EPS
+    yuv = np.stack(
+        [luminance, channels[1] * luminance + DRR_EPS, channels[2] * luminance + DRR_EPS], axis=-1
+    )
+    rgb = yuv @ YUV_TO_RGB.T
+    return np.clip(rgb, 0.0, 1.0, out=rgb) if clip else rgb
+
+
+def decode_dfmf(
+    dfmf: DFMFFile,
+    rows=None,
+    crop=None,
+    *,
+    out: np.ndarray | None = None,
+    include_cosine: bool = True,
+    clip: bool = True,
+    block_bytes: int = 32 << 20,
+) -> np.ndarray:
+    """Decode the chosen direction rows at a crop of texels, and nothing else.
+
+    Parameters
+    ----------
+    dfmf : DFMFFile
+    rows : array-like of int, or None
+        Direction rows (:func:`pipeline.data.ubo2014.select_rows`); None: all ``n_directions``.
+    crop : [row, col, height, width] or None
+        Texels, image row 0 at the top; None: the whole texture.
+    out : ndarray of shape (n_rows, height, width, 3), float32, optional
+        Writable array (e.g. a ``.npy`` memory map) to decode into.
+    include_cosine : bool
+        Multiply by cos θ_light when the file says the cosine is not in its data (see the
+        module docstring); False returns the stored values.
+    clip : bool
+        See :func:`decode_block`.
+    block_bytes : int
+        About how many bytes of values are computed at once: memory stays at the
+        direction factors of ``rows``, the crop's texel factors and one such block.
+
+    Returns
+    -------
+    ndarray of shape (n_rows, height, width, 3), float32
+        Linear RGB, ``out`` when given.
+
+    Raises
+    ------
+    DataError
+        When the file does not have three channels.
+    ConfigError
+        For rows out of range, a crop that does not fit, or an ``out`` of the wrong
+        shape or dtype.
+    """
+    if len(dfmf.channels) != 3:
+        raise DataError(
+            f"UBO2014 file has {len(dfmf.channels)} channels {list(dfmf.channel_names)}; "
+            f"the decoder needs 3: {dfmf.path}"
+        )
+    rows = np.arange(dfmf.n_directions) if rows is None else np.asarray(rows, dtype=np.int64)
+    if rows.ndim != 1 or (len(rows) and (rows.min() < 0 or rows.max() >= dfmf.n_directions)):
+        raise ConfigError(f"direction rows must be a list of 0..{dfmf.n_directions - 1}")
+    _, _, height, width = check_crop(crop, dfmf)
+    shape = (len(rows), height, width, 3)
+    out = output_array(out, shape)
+    dtype = _compute_dtype(dfmf)
+    texel_factors = [crop_texel_factors(dfmf, channel, crop) for channel in range(3)]
+    direction_factors = [
+        np.asarray(channel_factors(dfmf, channel)[1][rows], dtype=dtype) for channel in range(3)
+    ]
+    cosine = None
+    if include_cosine and not dfmf.cosine_in_data:
+        theta_light = dfmf.light_angles.reshape(-1, 2)[rows, 0]
+        cosine = np.maximum(np.cos(theta_light), 0.0).astype(np.float32)
+    # Three float32 values per texel and direction, and about as much in temporaries.
+    step = max(1, block_bytes // (2 * 3 * 4 * height * width))
+    for start in range(0, len(rows), step):
+        stop = min(start + step, len(rows))
+        block = decode_block([u[start:stop] for u in direction_factors], texel_factors,
+                             dfmf.color_model, clip)
+        if cosine is not None:
+            block *= cosine[start:stop, None, None]
+        out[start:stop] = block.reshape(stop - start, height, width, 3)
+    return out

@@ -1,0 +1,1 @@
+"""The project's Hydra plugins: the arms sweeper (arms_sweeper.py)."""

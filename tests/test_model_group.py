@@ -1,0 +1,159 @@
+"""Method A's model group (pipeline/btf/models.py) and the sweeps that compose exactly what
+the command line says (pipeline/core/sweeper.py): each setting declared once, with its role,
+and everything else derived from that declaration."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+from helpers import PACKAGE, compose_config
+from omegaconf import OmegaConf
+
+from pipeline.btf.methods import BTF, unused
+from pipeline.btf.models import MODELS, model_of
+from pipeline.btf.runner import SPEED_ONLY
+from pipeline.btf.train_settings import TrainSettings
+from pipeline.core.recipe import left_out
+from pipeline.core.settings import RESULT, roles, setting
+from pipeline.core.sweeper import expand
+from pipeline.core.tracking import flatten
+
+
+def _jobs(*command_line: str) -> list[list[str]]:
+    """The jobs ``python -m pipeline -m <command_line>`` launches (what the arms sweeper
+    computes from the composed ``hydra.sweeper``), each composed as Hydra validates it."""
+    experiment = [o for o in command_line if o.startswith("experiment=")]
+    given = [o for o in command_line if not o.startswith("experiment=")]
+    sweeper = compose_config(*experiment, return_hydra_config=True).hydra.sweeper
+    arms = OmegaConf.to_container(sweeper.arms) if sweeper.get("arms") else None
+    params = OmegaConf.to_container(sweeper.params) if sweeper.get("params") else None
+    return [experiment + job for job in expand(arms, params, given)]
+
+
+def test_a_k_by_seed_sweep_composes_nine_jobs_not_twenty_seven():
+    """The issue's sweep: the default experiment's three arms are replaced by the command
+    line's model, never crossed with it."""
+    jobs = _jobs("model=clustered", "model.k=500,1000,2000", "seed=0,1,2")
+    assert len(jobs) == 9
+    found = set()
+    for job in jobs:
+        cfg = compose_config(*job)
+        assert cfg.model.name == "clustered" and set(cfg.model) == {
+            "name", "k", "lr", "target", "texel_scale"}
+        found.add((cfg.model.k, cfg.seed))
+    assert found == {(k, s) for k in (500, 1000, 2000) for s in (0, 1, 2)}
+
+
+def test_the_default_and_paper_experiments_compose_their_arms():
+    default = [compose_config(*job).model for job in _jobs()]
+    assert [m.name for m in default] == ["neural_btf", "clustered", "pca"]
+    assert default[1].k == 128 and default[2].match_clustered_k == 128
+    assert default[2].dtype == "float16"
+    paper = [compose_config(*job).model for job in _jobs("experiment=paper", "seed=0,1")]
+    assert len(paper) == 10 and sorted(m.k for m in paper if m.name == "clustered") == [
+        500, 500, 1000, 1000, 2000, 2000]
+    # A command-line value replaces the arm's: k = 64 in the clustered arm only.
+    jobs = _jobs("experiment=paper", "model=clustered", "model.k=64")
+    assert [compose_config(*job).model.k for job in jobs] == [64]
+
+
+def test_a_setting_of_another_model_is_refused_naming_it():
+    from hydra.errors import ConfigCompositionException
+
+    with pytest.raises(ConfigCompositionException, match="model.n_components"):
+        compose_config("model=clustered", "model.n_components=8")
+    with pytest.raises(ConfigCompositionException, match="model.k"):
+        compose_config("model=neural_btf", "model.k=8")
+
+
+def test_an_experiment_sets_a_models_own_settings_only_for_that_model():
+    """experiment=smoke's k = 8 (conf/experiment_model/smoke_clustered.yaml) applies to the
+    clustered model, and the command line still wins."""
+    assert compose_config("experiment=smoke").model.k == 8
+    assert compose_config("experiment=smoke", "model.k=4").model.k == 4
+    assert "k" not in compose_config("experiment=smoke", "model=neural_btf").model
+    assert compose_config("experiment=render_smoke").model.k == 8
+
+
+def test_every_setting_declares_its_role():
+    for model in MODELS.values():
+        assert set(roles(model.config, "model").values()) <= {"result", "speed", "log"}
+    assert roles(TrainSettings, "train")["train.threads"] == "speed"
+
+    @dataclasses.dataclass
+    class Undeclared:
+        size: int = setting(1)
+        other: int = 2
+
+    with pytest.raises(TypeError, match="Undeclared.other has no role"):
+        roles(Undeclared, "x")
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_keys_recipe_and_logged_settings_follow_from_the_declaration(name):
+    """For each model, from the one declaration (field roles): the train stage's key holds
+    no speed setting, the recipe holds exactly the result settings, and the logged
+    settings leave out what the model does not read."""
+    cfg = compose_config("experiment=smoke", f"model={name}")
+    model = model_of(cfg)
+    declared = {**roles(TrainSettings, "train"), **roles(model.config, "model")}
+    for key, role in declared.items():
+        assert left_out(key) == (role != RESULT), key
+    assert SPEED_ONLY == {k.removeprefix("train.") for k, r in declared.items()
+                           if r == "speed"}
+    logged = set(flatten(cfg)) - set(unused(cfg))
+    assert {f"model.{f.name}" for f in dataclasses.fields(model.config)} - {"model.lr"} <= logged
+    assert ("train.epochs" in logged) == model.trains
+    # A model trained by train.* logs the train.lr it trains at, not its default model.lr.
+    assert ("model.lr" in logged) == (not model.trains and "lr" in model.config.__annotations__)
+    assert BTF.roles()["train.device"] == "speed"
+
+
+def test_no_model_is_chosen_by_comparing_names():
+    pattern = re.compile(r'name == "(pca|clustered|neural_btf)"')
+    found = [f"{path}:{number}" for path in PACKAGE.rglob("*.py")
+             for number, line in enumerate(path.read_text().splitlines(), 1)
+             if pattern.search(line)]
+    assert found == []
+
+
+def test_the_latent_texture_model_runs_through_the_chain(smoke_cfg):
+    """``model=latent_texture`` (NeuMIP-style, no encoder) through the job: its file's
+    payload is its bytes_total, the file's numpy reader equals the torch decoder on the
+    stored latents, and it ends far below the mean-ABRDF baseline."""
+    import numpy as np
+    import torch
+    from mlflow.tracking import MlflowClient
+
+    from pipeline.app import run_job
+    from pipeline.btf.compressed import FILE_NAME, load_compressed, payload_bytes
+    from pipeline.btf.model import load_decoder
+    from pipeline.btf.stereographic import direction_features
+    from pipeline.core.tracking import tracking_uri
+
+    cfg = smoke_cfg("model=latent_texture")
+    run_job(cfg)
+    client = MlflowClient(tracking_uri(cfg.paths.runs))
+    [run] = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
+    metrics = run.data.metrics
+    assert run.data.params["model.name"] == "latent_texture" and "train.lr" not in run.data.params
+    assert metrics["rmse"] < 0.5 * metrics["rmse_mean_abrdf"]
+    cache = Path(cfg.paths.cache)
+    [path] = (cache / "export").glob(f"*/{FILE_NAME}")
+    assert payload_bytes(path) == metrics["bytes_total"]
+    [trained] = (cache / "train_latent_texture").glob("*/")
+    decoder = load_decoder(trained / "decoder.pt")
+    latents = np.load(trained / "latents.npy")
+    compressed = load_compressed(path)
+    rng = np.random.default_rng(0)
+    texels = rng.integers(0, latents.shape[0], 50)
+    directions = np.column_stack([rng.uniform(0, 1.3, 50), rng.uniform(-3, 3, 50),
+                                  rng.uniform(0, 1.3, 50), rng.uniform(-3, 3, 50)])
+    with torch.no_grad():
+        expected = decoder(torch.from_numpy(latents[texels]),
+                           torch.from_numpy(direction_features(directions)).float()).numpy()
+    np.testing.assert_allclose(compressed.query_pairs(texels, directions),
+                               expected * compressed.alpha, rtol=1e-4, atol=1e-6)
