@@ -19,7 +19,7 @@ demo: $(STAMP)  ## the main job: default experiment on the built-in synthetic BT
 	$(PY) -m pipeline
 
 test: $(STAMP)  ## the default (fast) test suite
-	$(PY) -m ruff check pipeline tests
+	$(PY) -m ruff check pipeline tests hydra_plugins
 	$(PY) -m pytest -q
 
 tables: $(STAMP)

@@ -105,11 +105,41 @@ class SweepRun(SweepParentRun):
         if self.run_id is not None:
             log_headlines(self.uri, self.run_id)
         if self.run_tables:
-            from pipeline.tables import build_tables
-
-            # The parent holds the tables and figures too: the UI shows what the disk does.
-            build_tables(config.paths.runs, log_to=self.run_id)
+            print_sweep_result(config, self.uri, self.run_id)
         super().on_multirun_end(config, **kwargs)
+
+
+def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | None) -> None:
+    """Build the tables of the sweep's experiment, then print what the sweep found in a few
+    lines (each method's verdict on its jobs: :func:`pipeline.tables.verdict`) and where
+    the tables are; the parent run's description leads with the same lines."""
+    from pipeline.core.report import fetch_runs
+    from pipeline.core.tracking import NOTE_TAG
+    from pipeline.tables import build_tables, default_settings, verdict
+
+    experiment = config.tracking.experiment
+    settings = default_settings()
+    settings.experiments = [experiment]
+    # The parent holds the tables and figures too: the UI shows what the disk does.
+    out = build_tables(config.paths.runs, settings, log_to=parent_id)
+    runs = fetch_runs(config.paths.runs, [experiment], None)
+    if parent_id is not None and "tags.mlflow.parentRunId" in runs:
+        runs = runs[runs["tags.mlflow.parentRunId"] == parent_id]
+    found = verdict(runs)
+    head = f"Sweep finished: {len(runs)} jobs, MLflow experiment {experiment!r}"
+    if parent_id is not None:
+        head += f", parent run {parent_id}"
+    tables = Path(config.paths.runs) / "tables"
+    lines = [head, *found, f"Tables: {(tables / 'summary.html').resolve()} (this "
+             f"experiment's: {(out / 'summary.html').resolve()})"]
+    print("\n".join(lines), flush=True)
+    if parent_id is not None and uri is not None and found:
+        from mlflow.tracking import MlflowClient
+
+        client = MlflowClient(uri)
+        note = client.get_run(parent_id).data.tags.get(NOTE_TAG, "")
+        client.set_tag(parent_id, NOTE_TAG, "**Result**\n\n```\n" + "\n".join(found)
+                       + "\n```\n\n" + note)
 
 
 def log_headlines(uri: str, parent_id: str) -> None:

@@ -4,14 +4,14 @@
     python -m pipeline.cache verify [fix=true]    # every file's hash; exit status 1 if any damaged
     python -m pipeline.cache gc [dry_run=true]    # remove what no finished run uses
 
-Settings are ``key=value``, as for ``python -m pipeline``: ``paths.runs`` (default ``runs``)
-says where the MLflow store is (``MLFLOW_TRACKING_URI`` wins, as for the jobs),
-``paths.cache`` (default ``<paths.runs>/cache``) where the cache is::
+Settings are ``key=value`` after the command (:data:`KEYS`; :mod:`pipeline.core.cli` reads
+them): ``paths.runs`` (default ``runs``) says where the MLflow store is
+(``MLFLOW_TRACKING_URI`` wins, as for the jobs), ``paths.cache`` (default
+``<paths.runs>/cache``) where the cache is::
 
     python -m pipeline.cache gc dry_run=true paths.runs=/data/runs
 
-An unknown key is refused, naming the closest real one. The older spellings ``--runs``,
-``--cache``, ``--entries``, ``--fix`` and ``--dry-run`` are still accepted.
+An unknown key is refused, naming the closest real one.
 
 ``gc`` keeps every entry whose key a FINISHED run records (its tags ``cache.<stage>``,
 :func:`pipeline.app.run_job`), the entries those were computed from (each manifest lists
@@ -34,6 +34,10 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from pipeline.core import cli
+from pipeline.core.errors import ConfigError
+from pipeline.core.settings import OneOf
 
 if TYPE_CHECKING:
     from pipeline.core.cache import StageCache
@@ -192,7 +196,6 @@ def verify(cache: StageCache, fix: bool) -> int:
     from tqdm import tqdm
 
     from pipeline.core.cache import folder_bytes
-    from pipeline.core.digests import is_hashed, listed_files
     from pipeline.core.files import human
 
     started = time.time()
@@ -200,7 +203,6 @@ def verify(cache: StageCache, fix: bool) -> int:
     total = sum(folder_bytes(cache.entry_path(*f)) for f in folders)
     problems: dict[str, str] = {}
     children: dict[str, list[str]] = {}
-    unhashed = 0
     with tqdm(total=total, unit="B", unit_scale=True, unit_divisor=1024, desc="verify",
               file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
         for stage, key in folders:
@@ -211,9 +213,6 @@ def verify(cache: StageCache, fix: bool) -> int:
                 continue
             for parent in (entry.manifest.get("inputs") or {}).values():
                 children.setdefault(parent, []).append(key)
-            if problem is None and not all(
-                    is_hashed(record) for record in listed_files(entry.manifest).values()):
-                unhashed += 1
     todo = sorted(problems)
     stage_of = {key: stage for stage, key in folders}
     while todo:  # descendants of damaged entries, whatever their own state
@@ -231,9 +230,6 @@ def verify(cache: StageCache, fix: bool) -> int:
             print("  removed" if removed else "  kept: a job is computing it again")
     print(f"verified {len(folders)} entries ({human(total)}) in {time.time() - started:.1f} s: "
           f"{len(damaged)} damaged" + (" (removed)" if fix and damaged else ""))
-    if unhashed:
-        print(f"{unhashed} entries were written before hashes were recorded: only their files' "
-              f"presence was checked")
     return 1 if damaged else 0
 
 
@@ -284,148 +280,70 @@ def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
 
 # ------------------------------------------------------------------ the command line
 
+PROG = "python -m pipeline.cache"
 COMMANDS = {"ls": "entries and size per stage", "verify": "check every file's hash",
             "gc": "remove entries no finished run uses"}
-ALL = tuple(COMMANDS)
 
 
 @dataclass(frozen=True)
-class Setting:
-    """One ``key=value`` of the command line: the commands it applies to, whether it is
-    true/false (else a path), and what it means."""
+class CacheSettings:
+    """The command and its settings; :data:`KEYS` describes each."""
 
-    commands: tuple[str, ...]
-    boolean: bool
-    help: str
+    command: str = "ls"
+    runs: str = "runs"
+    cache: str | None = None
+    entries: bool = False
+    fix: bool = False
+    dry_run: bool = False
+
+    @property
+    def cache_dir(self) -> Path:
+        """``paths.cache``, by default ``<paths.runs>/cache``."""
+        return Path(self.cache) if self.cache is not None else Path(self.runs) / "cache"
 
 
-SETTINGS = {
-    "paths.runs": Setting(ALL, False, "the runs folder (MLflow store: <runs>/mlflow.db); "
-                                      "default runs"),
-    "paths.cache": Setting(ALL, False, "the cache folder; default <paths.runs>/cache"),
-    "entries": Setting(("ls",), True, "one line per entry: key, size, created, whether a run "
-                                      "uses it"),
-    "fix": Setting(("verify",), True, "remove the damaged entries"),
-    "dry_run": Setting(("gc",), True, "list what would be removed, remove nothing"),
+BOOLEAN = OneOf(True, False)
+# Each key of the command line: its field, what it may be, and what it sets.
+KEYS = {
+    "paths.runs": ("runs", cli.Text(), "the runs folder (MLflow store: <runs>/mlflow.db)"),
+    "paths.cache": ("cache", cli.Text(optional=True), "the cache folder (null: <paths.runs>/cache)"),
+    "entries": ("entries", BOOLEAN, "ls: one line per entry (key, size, created, whether a run "
+                                    "uses it)"),
+    "fix": ("fix", BOOLEAN, "verify: remove the damaged entries"),
+    "dry_run": ("dry_run", BOOLEAN, "gc: list what would be removed, remove nothing"),
 }
-# The spellings of before, still accepted: flag -> key (a flag of a true/false key is true).
-OLD_FLAGS = {"--runs": "paths.runs", "--cache": "paths.cache", "--entries": "entries",
-             "--fix": "fix", "--dry-run": "dry_run"}
-TRUE, FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+ONLY_FOR = {"entries": "ls", "fix": "verify", "dry_run": "gc"}  # key -> its one command
+
+COMMAND = cli.Command(
+    PROG, KEYS, CacheSettings,
+    "\n".join(f"  {name:<6} {text}" for name, text in COMMANDS.items())
+    + "\n\nSettings and their defaults:",
+    synopsis=f"{{{','.join(COMMANDS)}}} [key=value ...]")
 
 
-class UsageError(Exception):
-    """A bad command line; the message names the word at fault."""
-
-
-@dataclass(frozen=True)
-class Options:
-    command: str
-    runs: Path
-    cache: Path
-    flags: dict[str, bool]  # entries, fix, dry_run: those of the command
-
-
-def usage() -> str:
-    lines = [f"usage: python -m pipeline.cache {{{','.join(COMMANDS)}}} [key=value ...]", ""]
-    lines += [f"  {name:<8} {text}" for name, text in COMMANDS.items()]
-    lines += ["", "settings (key=value):"]
-    spelled = {key: f"{key}={'true|false' if s.boolean else 'PATH'}" for key, s in SETTINGS.items()}
-    width = max(map(len, spelled.values()))
-    for key, setting in SETTINGS.items():
-        where = "" if setting.commands == ALL else f" ({', '.join(setting.commands)})"
-        lines.append(f"  {spelled[key]:<{width}}  {setting.help}{where}")
-    return "\n".join(lines)
-
-
-def _closest(word: str, choices) -> str:
-    """:func:`pipeline.core.cli.closest`, imported only for a bad word: it loads omegaconf,
-    which a good command line here does not need."""
-    from pipeline.core.cli import closest
-
-    return closest(word, list(choices))
-
-
-def parse(argv: list[str]) -> Options:
-    """Read ``argv`` (without the program's name) into :class:`Options`; a
-    :class:`UsageError` names the first word at fault and, for a misspelt key or
-    command, the closest real one."""
-    command = None
-    given: dict[str, str] = {}
-    words = list(argv)
-    while words:
-        word = words.pop(0)
-        if word.startswith("--"):
-            flag, _, attached = word.partition("=")
-            key = OLD_FLAGS.get(flag)
-            if key is None:
-                hint = _closest(flag, SETTINGS)
-                raise UsageError(f"unknown option {flag}{hint}; settings are key=value: "
-                                 f"{', '.join(SETTINGS)}")
-            if SETTINGS[key].boolean:
-                value = attached or "true"
-            elif attached:
-                value = attached
-            elif words and not words[0].startswith("-"):
-                value = words.pop(0)
-            else:
-                raise UsageError(f"{flag} needs a value (or write {key}=...)")
-            word = f"{key}={value}"
-        if "=" not in word:
-            if word not in COMMANDS:
-                raise UsageError(f"unknown command {word!r}{_closest(word, COMMANDS)}; "
-                                 f"commands: {', '.join(COMMANDS)}")
-            if command is not None:
-                raise UsageError(f"two commands, {command} and {word}: give one")
-            command = word
-            continue
-        key, _, value = word.partition("=")
-        if key not in SETTINGS:
-            raise UsageError(f"unknown setting {key!r}{_closest(key, SETTINGS)}; settings: "
-                             f"{', '.join(SETTINGS)}")
-        if key in given:
-            raise UsageError(f"{key} is given twice ({key}={given[key]} and {word})")
-        given[key] = value
-    if command is None:
-        raise UsageError(f"no command: give one of {', '.join(COMMANDS)}")
-    flags = {}
-    for key, value in given.items():
-        setting = SETTINGS[key]
-        if command not in setting.commands:
-            raise UsageError(f"{key} is a setting of {' and '.join(setting.commands)}, "
-                             f"not of {command}")
-        if setting.boolean:
-            if value.lower() not in TRUE + FALSE:
-                raise UsageError(f"{key}={value!r} must be true or false")
-            flags[key] = value.lower() in TRUE
-        elif not value:
-            raise UsageError(f"{key}= needs a folder")
-    for key, setting in SETTINGS.items():
-        if setting.boolean and command in setting.commands:
-            flags.setdefault(key, False)
-    runs = Path(given.get("paths.runs", "runs"))
-    return Options(command, runs, Path(given.get("paths.cache", runs / "cache")), flags)
+def parse(argv: list[str]) -> CacheSettings:
+    """:class:`CacheSettings` from the command and its ``key=value`` arguments; raises
+    :class:`ConfigError` naming the first bad one."""
+    command, rest = cli.command_of(argv, list(COMMANDS))
+    given = cli.read(rest, KEYS, f"the {command} command")
+    for key, only in ONLY_FOR.items():
+        if KEYS[key][0] in given and command != only:
+            raise ConfigError(f"{key} is a setting of {only}, not of {command}")
+    return CacheSettings(command, **given)
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if {"-h", "--help", "help"} & set(argv):
-        print(f"python -m pipeline.cache: list, verify and clean up the stage cache.\n\n{usage()}")
-        return 0
-    try:
-        options = parse(argv)
-    except UsageError as err:
-        print(f"{usage().splitlines()[0]}\npython -m pipeline.cache: error: {err}",
-              file=sys.stderr)
-        return 2
+    """Run the command; a bad command line prints one line and exits 2
+    (:func:`pipeline.core.cli.parse_args`)."""
+    args = COMMAND.parse_args(argv, parse)
     from pipeline.core.cache import StageCache
 
-    cache = StageCache(options.cache)
-    if options.command == "ls":
-        return ls(cache, options.runs, options.flags["entries"])
-    if options.command == "verify":
-        return verify(cache, options.flags["fix"])
-    return gc(cache, options.runs, options.flags["dry_run"])
+    cache = StageCache(args.cache_dir)
+    if args.command == "ls":
+        return ls(cache, Path(args.runs), args.entries)
+    if args.command == "verify":
+        return verify(cache, args.fix)
+    return gc(cache, Path(args.runs), args.dry_run)
 
 
 if __name__ == "__main__":

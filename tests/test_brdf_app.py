@@ -15,8 +15,8 @@ from helpers import CONF_DIR, compose_config
 from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job
-from pipeline.brdf_map.microfacet_em import MicrofacetEMSettings
 from pipeline.brdf_map.runner import em_settings, load_reconstruction, merl_lookup
+from pipeline.brdf_map.settings import MicrofacetEMSettings
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.tracking import tracking_uri
 from pipeline.data.brdf import (

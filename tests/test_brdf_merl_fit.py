@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.brdf_map.microfacet_em import MicrofacetEMSettings, fit_microfacet_em
+from pipeline.brdf_map.microfacet_em import fit_microfacet_em
+from pipeline.brdf_map.settings import MicrofacetEMSettings
 from pipeline.brdf_map.synthetic import SyntheticAnisotropicBRDF
 from pipeline.data.brdf import (
     half_diff_to_directions,

@@ -5,8 +5,9 @@ import pytest
 import torch
 
 from pipeline.btf.evaluate import reconstruction_error, storage_sizes
-from pipeline.btf.model import Decoder, Encoder, MaxPool3, parameter_count, stereographic
+from pipeline.btf.model import Decoder, Encoder, MaxPool3, parameter_count
 from pipeline.btf.preprocess import fit_normalization
+from pipeline.btf.stereographic import stereographic
 from pipeline.btf.train import TrainSettings, encode, train
 from pipeline.core.errors import ConfigError
 

@@ -71,7 +71,7 @@ def test_changed_values_of_a_small_entry_are_found_on_hit_and_recomputed(tmp_pat
     assert cache.run("s", "1", {"value": 1.0}, {}, compute).hit
 
 
-LARGE = (64 << 20) + (2 << 20)  # above the 64 MiB that older code checked by size only
+LARGE = (64 << 20) + (2 << 20)  # two chunks of digests.CHUNK_BYTES, hashed apart
 
 
 def _stages(cache: StageCache, big: np.ndarray, value: float = 1.0) -> tuple[list, list]:
@@ -124,16 +124,16 @@ def test_verify_fix_removes_a_damaged_large_entry_and_its_descendants(tmp_path, 
     first, _ = _stages(cache, big)
     other, _ = _stages(cache, big[:1000], value=2.0)  # another chain, intact
     _flip_bytes(first[0].path / "images.npy", offset=5000)
-    assert command.main(["verify", "--cache", str(tmp_path)]) == 1
+    assert command.main(["verify", f"paths.cache={tmp_path}"]) == 1
     out = capsys.readouterr().out
     assert f"damaged {first[0].path}: {first[0].path / 'images.npy'} has changed" in out
     for child in first[1:]:
         assert f"damaged {child.path}: computed from the damaged entry" in out
     assert "verified 6 entries" in out and "3 damaged" in out
-    assert all(e.path.is_dir() for e in first)  # without --fix nothing is removed
-    assert command.main(["verify", "--fix", "--cache", str(tmp_path)]) == 1
+    assert all(e.path.is_dir() for e in first)  # without fix=true nothing is removed
+    assert command.main(["verify", "fix=true", f"paths.cache={tmp_path}"]) == 1
     assert not any(e.path.exists() for e in first) and all(e.path.is_dir() for e in other)
-    assert command.main(["verify", "--cache", str(tmp_path)]) == 0
+    assert command.main(["verify", f"paths.cache={tmp_path}"]) == 0
     again, computes = _stages(cache, big)
     assert [c.calls for c in computes] == [1, 1, 1]
 
@@ -142,11 +142,11 @@ def test_an_entry_whose_input_was_computed_again_or_is_gone_is_not_used(tmp_path
     cache = StageCache(tmp_path)
     big = np.arange(100, dtype=np.uint8)
     first, _ = _stages(cache, big)
-    # Recomputed (by verify --fix and another job, say): crop was made from the old one.
+    # Recomputed (by verify fix=true and another job, say): crop was made from the old one.
     cache.remove("load", first[0].key)
     cache.run("load", "1", {"value": 1.0}, {}, Counting(images=big))
     assert cache.lookup("crop", first[1].key) is None
-    assert command.main(["verify", "--cache", str(tmp_path)]) == 1
+    assert command.main(["verify", f"paths.cache={tmp_path}"]) == 1
     out = capsys.readouterr().out
     for child in first[1:]:  # both read load
         assert f"damaged {child.path}: {child.path} was computed from {first[0].path}" in out
@@ -154,21 +154,6 @@ def test_an_entry_whose_input_was_computed_again_or_is_gone_is_not_used(tmp_path
     cache.remove("load", first[0].key)
     entry, problem = cache.check("evaluate", first[2].key)
     assert entry is not None and f"{first[0].path}, which is gone" in problem
-
-
-def test_an_entry_written_before_lineage_is_older_than_a_recomputed_input(tmp_path):
-    cache = StageCache(tmp_path)
-    big = np.arange(100, dtype=np.uint8)
-    first, _ = _stages(cache, big)
-    for entry in first:
-        manifest = json.loads((entry.path / MANIFEST).read_text())
-        del manifest["parents"], manifest["id"]
-        (entry.path / MANIFEST).write_text(json.dumps(manifest))
-    again, computes = _stages(cache, big)
-    assert [c.calls for c in computes] == [0, 0, 0]  # its input is older: used
-    cache.remove("load", first[0].key)
-    again, computes = _stages(cache, big)
-    assert [c.calls for c in computes] == [1, 1, 1]
 
 
 def test_chunks_of_a_file_are_hashed_by_several_threads(tmp_path, monkeypatch):
@@ -242,19 +227,24 @@ def test_lookup_of_a_damaged_entry_is_none_with_a_warning(tmp_path, caplog):
     assert entry.path.is_dir()  # lookup leaves it; the next run replaces it
 
 
-def test_entries_written_before_hashes_are_still_hits(tmp_path, capsys):
-    """An old manifest lists file names only: the entry is used, its key unchanged."""
+@pytest.mark.parametrize("strip, said", [
+    (lambda m: m.update(files=sorted(m["files"])), "records no size and sha256 of each file"),
+    (lambda m: m["files"]["x.npy"].pop("sha256"), "records no size and sha256 of each file"),
+    (lambda m: m.pop("parents"), "records no parents"),
+    (lambda m: m.pop("id"), "records no id"),
+])
+def test_a_manifest_without_hashes_or_lineage_is_not_read(tmp_path, capsys, strip, said):
+    """Every manifest this code writes has them: one without is damage, never a hit."""
     cache = StageCache(tmp_path)
     entry, _ = _entry(cache)
     manifest = json.loads((entry.path / MANIFEST).read_text())
-    manifest["files"] = sorted(manifest["files"])
+    strip(manifest)
     (entry.path / MANIFEST).write_text(json.dumps(manifest))
+    assert command.main(["verify", f"paths.cache={tmp_path}"]) == 1
+    assert f"damaged {entry.path}: {entry.path / MANIFEST} {said}" in capsys.readouterr().out
     again, compute = _entry(cache)
-    assert again.hit and compute.calls == 0 and again.key == entry.key
-    assert command.main(["verify", "--cache", str(tmp_path)]) == 0
-    assert "1 entries were written before hashes" in capsys.readouterr().out
-    (entry.path / "y.npy").unlink()  # a listed name that is gone is still found
-    assert not _entry(cache)[0].hit
+    assert not again.hit and compute.calls == 1 and again.key == entry.key
+    assert cache.lookup("s", entry.key) is not None
 
 
 # ---------------------------------------------------------------------- dataset fingerprint
@@ -289,20 +279,21 @@ def test_temporary_of_a_dead_process_is_removed_a_live_ones_kept(tmp_path):
     live = stage / temporary_name("k1")
     dead = stage / live.name.replace(f"-{os.getpid()}@", f"-{_dead_pid()}@").replace("k1", "k2", 1)
     elsewhere = stage / ".tmp-k3-0000abcd-12@another-host"
-    old_unknown = stage / ".tmp-k4-0000abcd"
-    old_locked = stage / ".tmp-k5-0000abcd"
-    for folder in (live, dead, elsewhere, old_unknown, old_locked):
+    old_elsewhere = stage / ".tmp-k4-0000abcd-12@another-host"
+    old_locked = stage / ".tmp-k5-0000abcd-12@another-host"
+    not_ours = stage / ".tmp-k6-0000abcd"  # not named by temporary_name: left alone
+    for folder in (live, dead, elsewhere, old_elsewhere, old_locked, not_ours):
         folder.mkdir()
         save_arrays(folder, x=np.arange(2))
     day_ago = time.time() - cache_module.STALE_AFTER_S - 60
-    for folder in (old_unknown, old_locked):
+    for folder in (old_elsewhere, old_locked, not_ours):
         for path in (folder / "x.npy", folder):
             os.utime(path, (day_ago, day_ago))
     with open(stage / ".lock-k5", "w") as lock:  # a job computing k5 holds its lock
         fcntl.flock(lock, fcntl.LOCK_EX)
         Context.from_config(OmegaConf.create({"paths": {"cache": str(tmp_path)}}))
     left = sorted(p.name for p in stage.iterdir() if not p.name.startswith(".lock-"))
-    assert left == sorted([live.name, elsewhere.name, old_locked.name])
+    assert left == sorted([live.name, elsewhere.name, old_locked.name, not_ours.name])
 
 
 # ------------------------------------------------------------------------------ the command
@@ -345,20 +336,20 @@ def test_gc_keeps_what_finished_runs_use_and_their_inputs(store, capsys):
     old = time.time() - 2 * cache_module.STALE_AFTER_S
     os.utime(stale, (old, old))
 
-    assert command.main(["gc", "--dry-run", "--runs", str(runs)]) == 0
+    assert command.main(["gc", "dry_run=true", f"paths.runs={runs}"]) == 0
     out = capsys.readouterr().out
     for name in "cd":
         assert f"would remove {entries[name].path}" in out
     assert f"would remove {stale}" in out and "would be freed" in out
     assert all(e.path.is_dir() for e in entries.values()) and stale.is_dir()
 
-    assert command.main(["gc", "--runs", str(runs)]) == 0
+    assert command.main(["gc", f"paths.runs={runs}"]) == 0
     out = capsys.readouterr().out
     assert "removed 2 entries and 1 temporary folders" in out
     assert [name for name, e in entries.items() if e.path.is_dir()] == ["a", "b"]
     assert not stale.exists()
 
-    assert command.main(["ls", "--entries", "--runs", str(runs)]) == 0
+    assert command.main(["ls", "entries=true", f"paths.runs={runs}"]) == 0
     out = capsys.readouterr().out
     assert f"{entries['b'].key}" in out and "used by a finished run" in out
     assert f"input of b {entries['b'].key}" in out
@@ -370,7 +361,7 @@ def test_gc_keeps_what_was_used_since_a_running_run_started(store, capsys):
     entries = _chain(cache)
     _finish(client, experiment, "FINISHED", b=entries["b"].key)
     client.create_run(experiment)  # a job in progress records its keys when it ends
-    assert command.main(["gc", "--runs", str(runs)]) == 0
+    assert command.main(["gc", f"paths.runs={runs}"]) == 0
     assert all(e.path.is_dir() for e in entries.values())
     assert "a run is still RUNNING" in capsys.readouterr().out
 
@@ -379,16 +370,16 @@ def test_gc_refuses_without_a_store_or_when_it_knows_no_entry(tmp_path, store, c
     runs, _, _ = store
     lone = tmp_path / "elsewhere"
     entries = _chain(StageCache(lone / "cache"))
-    assert command.main(["gc", "--runs", str(lone)]) == 2
+    assert command.main(["gc", f"paths.runs={lone}"]) == 2
     assert "no MLflow store" in capsys.readouterr().err
-    assert command.main(["gc", "--runs", str(runs), "--cache", str(lone / "cache")]) == 2
+    assert command.main(["gc", f"paths.runs={runs}", f"paths.cache={lone / 'cache'}"]) == 2
     assert "nothing removed" in capsys.readouterr().err
     assert all(e.path.is_dir() for e in entries.values())
 
 
 def test_ls_prints_each_stage(tmp_path, capsys):
     _chain(StageCache(tmp_path / "runs" / "cache"))
-    assert command.main(["--runs", str(tmp_path / "runs"), "ls"]) == 0
+    assert command.main(["ls", f"paths.runs={tmp_path / 'runs'}"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert [line.split()[:2] for line in lines[1:]] == [
         ["a", "1"], ["b", "1"], ["c", "1"], ["d", "1"], ["total", "4"]]
@@ -396,7 +387,7 @@ def test_ls_prints_each_stage(tmp_path, capsys):
 
 def test_command_runs_as_a_module(tmp_path):
     _entry(StageCache(tmp_path / "cache"), "load")
-    done = subprocess.run([sys.executable, "-m", "pipeline.cache", "ls", "--runs", str(tmp_path)],
+    done = subprocess.run([sys.executable, "-m", "pipeline.cache", "ls", f"paths.runs={tmp_path}"],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     assert re.search(r"^load\s+1\s", done.stdout, re.MULTILINE)

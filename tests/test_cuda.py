@@ -20,8 +20,9 @@ import torch
 
 from pipeline.btf.backends import AutogradStep
 from pipeline.btf.batches import DeviceBatches, HostBatches, Sampling
-from pipeline.btf.model import Decoder, Encoder, stereographic
+from pipeline.btf.model import Decoder, Encoder
 from pipeline.btf.preprocess import fit_normalization
+from pipeline.btf.stereographic import stereographic
 from pipeline.btf.train import train
 from pipeline.btf.train_settings import TrainSettings
 

@@ -5,6 +5,7 @@ folder."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 
@@ -17,9 +18,16 @@ def installed(tmp_path_factory):
     """``pip install --no-deps --target`` of this checkout: the package as a wheel installs
     it (the dependencies are this environment's)."""
     target = tmp_path_factory.mktemp("installed")
+    # A copy of what the wheel is built from, so that setuptools' build/ lands there.
+    source = tmp_path_factory.mktemp("source")
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, source / name)
+    for name in ("pipeline", "hydra_plugins"):
+        shutil.copytree(ROOT / name, source / name,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
     done = subprocess.run(
         [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
-         "--no-build-isolation", "--target", str(target), str(ROOT)],
+         "--no-build-isolation", "--target", str(target), str(source)],
         capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     return target

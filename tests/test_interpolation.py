@@ -9,7 +9,7 @@ from pipeline.btf.interpolation import (
     offgrid_directions,
     training_directions,
 )
-from pipeline.btf.model import stereographic
+from pipeline.btf.stereographic import stereographic
 from pipeline.data.directions import btf_directions, grid_81
 
 

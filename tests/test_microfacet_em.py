@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize
 
+from pipeline.brdf_map.ashikhmin_shirley import fit_ashikhmin_shirley
 from pipeline.brdf_map.figures import (
     plot_distribution_heatmaps,
     plot_distribution_slices,
@@ -15,9 +16,7 @@ from pipeline.brdf_map.figures import (
     render_sphere,
 )
 from pipeline.brdf_map.microfacet_em import (
-    MicrofacetEMSettings,
     em_step,
-    fit_ashikhmin_shirley,
     fit_microfacet_em,
     fit_without_prior,
     initial_params,
@@ -31,6 +30,7 @@ from pipeline.brdf_map.microfacet_model import (
     g_values,
     mean_cos_normal,
 )
+from pipeline.brdf_map.settings import MicrofacetEMSettings
 from pipeline.brdf_map.synthetic import SyntheticAnisotropicBRDF, write_synthetic_utia_brdf
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.brdf import read_utia_brdf, utia_interpolator

@@ -104,7 +104,7 @@ def test_scores_name_what_each_render_is_compared_with():
                            "render_reference_truth_": (reference, truth)}.items():
         for name, value in compare(a, b, coverage, crops, 8).items():
             assert found[prefix + name] == value, prefix + name
-    assert len(found) == 15
+    assert len(found) == 3 * 8
     assert set(scores(model, reference, coverage, crops, 8)) == {
         f"render_{name}" for name in compare(model, reference, coverage, crops, 8)}
 

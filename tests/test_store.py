@@ -86,7 +86,7 @@ def _entry(cache: StageCache, stage: str, value: float):
 def test_cache_gc_ends_dead_runs_and_no_longer_keeps_what_they_used(
         tmp_path, mlflow_template, monkeypatch, capsys):
     """A run killed with kill -9 stays RUNNING; gc used to keep everything used since
-    it started. gc marks it FAILED (--dry-run only says so) and removes what no finished
+    it started. gc marks it FAILED (dry_run=true only says so) and removes what no finished
     run uses."""
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     runs = tmp_path / "runs"
@@ -100,13 +100,13 @@ def test_cache_gc_ends_dead_runs_and_no_longer_keeps_what_they_used(
     killed = client.create_run(experiment, tags={"host": socket.gethostname(),
                                                  "pid": str(_dead_pid())})
 
-    assert cache_command.main(["gc", "--dry-run", "--runs", str(runs)]) == 0
+    assert cache_command.main(["gc", "dry_run=true", f"paths.runs={runs}"]) == 0
     out = capsys.readouterr().out
     assert "would mark 1 RUNNING runs FAILED" in out and killed.info.run_id in out
     assert f"would remove {unused.path}" in out
     assert client.get_run(killed.info.run_id).info.status == "RUNNING"
 
-    assert cache_command.main(["gc", "--runs", str(runs)]) == 0
+    assert cache_command.main(["gc", f"paths.runs={runs}"]) == 0
     out = capsys.readouterr().out
     assert "marked 1 RUNNING runs FAILED" in out and "still RUNNING" not in out
     assert client.get_run(killed.info.run_id).info.status == "FAILED"

@@ -101,7 +101,7 @@ def test_cache_gc_refuses_a_foreign_store_and_leaves_it_untouched(tmp_path, caps
         connection.execute("CREATE TABLE inventory (item TEXT)")
     connection.close()
     before = _digest(db)
-    assert cache_command.main(["gc", "--runs", str(runs)]) == 2
+    assert cache_command.main(["gc", f"paths.runs={runs}"]) == 2
     err = capsys.readouterr().err
     assert str(db) in err and "another program's tables (inventory)" in err
     assert "nothing removed" in err

@@ -143,7 +143,7 @@ def test_filters_select_experiments(tmp_path, settings):
 
 def test_no_runs_says_so(tmp_path, settings):
     out = build_tables(tmp_path, settings)
-    assert "No finished Neural BTF run" in (out / "summary.md").read_text()
+    assert "No finished run in the store" in (out / "summary.md").read_text()
 
 
 def test_a_rerun_of_the_same_job_is_not_another_seed(tmp_path, settings):
@@ -249,8 +249,8 @@ def test_runs_of_two_recipes_are_never_averaged_as_seeds(tmp_path, settings):
                                "train.optimizer": optimizer, "train.threads": threads},
                  {"rmse": rmse}, {"cache.evaluate": f"{optimizer}{seed}"})
     rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
-    assert rmse.loc[0, "k = 500 [train.optimizer=adam]"] == "0.0300 ± 0.0141 (n=2)"
-    assert rmse.loc[0, "k = 500 [train.optimizer=sgd]"] == "0.0600 ± 0.0141 (n=2)"
+    assert rmse.loc[0, "k = 500 (adam)"] == "0.0300 ± 0.0141 (n=2)"
+    assert rmse.loc[0, "k = 500 (sgd)"] == "0.0600 ± 0.0141 (n=2)"
     assert "k = 500" not in rmse.columns
 
 

@@ -84,10 +84,6 @@ from dataclasses import replace
 
 import numpy as np
 
-from pipeline.brdf_map.ashikhmin_shirley import (  # noqa: F401  (re-exported baseline)
-    AshikhminShirleyFit,
-    fit_ashikhmin_shirley,
-)
 from pipeline.brdf_map.microfacet_model import (
     HemisphereGrid,
     MicrofacetFit,
@@ -98,11 +94,7 @@ from pipeline.brdf_map.microfacet_model import (
     mixture_images,
     schlick_fresnel,
 )
-from pipeline.brdf_map.settings import (  # noqa: F401  (re-exported)
-    RS_RANGE_DIELECTRIC,
-    RS_RANGE_METAL,
-    MicrofacetEMSettings,
-)
+from pipeline.brdf_map.settings import MicrofacetEMSettings
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.data.brdf import MeasuredBRDF, half_vector_angles
 

@@ -32,19 +32,14 @@ from pathlib import Path
 import mlflow
 import numpy as np
 
-from pipeline.brdf_map.microfacet_em import (
-    AshikhminShirleyFit,
-    MicrofacetEMSettings,
-    fit_ashikhmin_shirley,
-    fit_microfacet_em,
-    fit_without_prior,
-    rmse,
-)
+from pipeline.brdf_map.ashikhmin_shirley import AshikhminShirleyFit, fit_ashikhmin_shirley
+from pipeline.brdf_map.microfacet_em import fit_microfacet_em, fit_without_prior, rmse
 from pipeline.brdf_map.microfacet_model import (
     HemisphereGrid,
     MicrofacetFit,
     MixtureParams,
 )
+from pipeline.brdf_map.settings import MicrofacetEMSettings
 from pipeline.brdf_map.synthetic import (
     SyntheticAnisotropicBRDF,
     write_synthetic_utia_brdf,

@@ -84,7 +84,7 @@ BTF = Method(
         "`training_failed` marks >= 0.9). `bytes_*`: Table 1's sizes. Artifacts: `config/` "
         "(resolved config, overrides), `hydra/` (the job's log), `metrics.json`, the figures."
     ),
-    headline=("rmse", "rmse_ratio_to_mean_abrdf", "bytes_total"),
+    headline=("rmse", "psnr_db", "rmse_ratio_to_mean_abrdf", "bytes_total"),
     reports=("pipeline.btf.report", "pipeline.btf.render.report"),  # Tables 1-2 ..., Fig. 8
     figures=figures, prepare=prepare, run_name=run_name, unused=unused, schemas=_SCHEMAS,
     check=check,

@@ -12,8 +12,8 @@ ABRDFs at a time (:mod:`pipeline.btf.fast.encoder_step`); otherwise, and in
 ``Encoder.reference`` is the plain 1-D form of the same layers.
 
 Decoder: 12 -> 106 -> 106 -> 106 -> 3 with ReLU, fed the latent plus the light and view
-directions in stereographic coordinates (eq. 7-9). Its 24,383 float32 parameters are the
-97,532 bytes of the paper's Table 1.
+directions in stereographic coordinates (eq. 7-9, :mod:`pipeline.btf.stereographic`). Its
+24,383 float32 parameters are the 97,532 bytes of the paper's Table 1.
 """
 
 from __future__ import annotations
@@ -26,7 +26,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from pipeline.btf.fast.encoder_step import encode_for_training
-from pipeline.btf.stereographic import direction_features, stereographic  # noqa: F401
 from pipeline.core.errors import ConfigError
 
 LATENT_DIM = 8

@@ -7,7 +7,7 @@ every seed). Runs of different recipes are never one point. An **arm** is a meth
 types it stores (``PCA (float16)``, ``clustered (float32, list uint16, +scale float16)``,
 ``Neural BTF (float32)``); a **line** joins the points of an arm that differ only in the
 arm's size setting (PCA's components, clustered's k, Neural BTF's latent size), other recipe
-differences naming the line apart (:func:`pipeline.core.recipe.recipe_suffixes`).
+differences naming the line apart (:func:`pipeline.btf.tables.recipe_labels`).
 
 What the report gives, per dataset: RMSE against bytes (log x) with the Pareto front, the
 best point at each budget against the best point of another method (is the win beyond the
@@ -26,7 +26,8 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from pipeline.btf.models import MODELS, models_of
-from pipeline.core.recipe import RECIPE_TAG, recipe_suffixes
+from pipeline.btf.tables import recipe_labels
+from pipeline.core.recipe import RECIPE_TAG
 from pipeline.core.report import param, safe_stem, save_figure, write_file, write_table
 
 BUDGETS_KB = (64, 128, 256, 512)  # KB = 1024 bytes, as Table 1's; tables.budgets_kb sets them
@@ -67,7 +68,7 @@ def arms(runs: pd.DataFrame) -> pd.DataFrame:
     for name, ignore in AXES.items():
         rows = names == name
         if rows.any():
-            runs.loc[rows, "line"] = runs.loc[rows, "arm"] + recipe_suffixes(
+            runs.loc[rows, "line"] = runs.loc[rows, "arm"] + recipe_labels(
                 runs[rows], ["dataset", "arm"], ignore=ignore)
     return runs
 

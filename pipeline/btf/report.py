@@ -17,9 +17,10 @@ from omegaconf import OmegaConf
 from pipeline.btf import rate_distortion, tables
 from pipeline.btf.curves import curves_section
 from pipeline.btf.models import models_of
-from pipeline.core.report import runs_of, save_figure, write_table
+from pipeline.core.report import runs_of, save_figure, write_file, write_table
 
 METHODS = ("btf",)
+FAILED = 0.9  # RMSE / mean-ABRDF baseline at which training failed (tables.failed_runs)
 
 
 def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
@@ -50,16 +51,24 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
                              "truth (built-in data only): the data's own RMSE against the "
                              "generator's analytic truth (its 8-bit and JPEG rounding): what a "
                              "model that recovered the truth exactly would score. Learning "
-                             f"rates: {tables.learning_rates(runs) or 'not logged'}."))
+                             f"rates: {tables.learning_rates(runs) or 'not logged'}. A "
+                             "column is one recipe; a label names what tells it apart from "
+                             "the other columns of its model (all the settings in which "
+                             "they differ: table2_columns.csv)."))
+    write_file(out / "table2_columns.csv", tables.column_recipes(runs).to_csv(index=False))
     grain = tables.table_graininess(runs)
     if not grain.empty:
         found.append(write_table(
             grain, out, "graininess",
             "Graininess fix at equal bytes: clustered RMSE without / with a per-texel scale",
             "The scale costs one btf.sizes.extra_dtype value per texel (Table 1's "
-            "'+ per-texel scale' rows). 'nearest in bytes': the model without a scale whose "
-            "total bytes are closest to the scaled model's, so that the scale is compared "
-            "with spending its bytes on the model itself (say, more clusters)."))
+            "'+ per-texel scale' rows); 'bytes' are without it, also for a model that "
+            "stores it. 'nearest in bytes': the model of the same recipe but k, without a "
+            "scale, whose total bytes are closest to the scaled model's, so that the scale "
+            "is compared with spending its bytes on the model itself (more clusters). "
+            "Every RMSE here is over all the crop's directions, as the scaled one is "
+            "measured: where lights were held out of training, Table 2's are over the "
+            "trained directions only and differ in the last digits."))
     failed = tables.failed_runs(runs)
     if not failed.empty:
         found.append(write_table(
@@ -115,6 +124,37 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
     found.append(rate_distortion.section(runs, out, alpha=float(settings.alpha),
                                          budgets_kb=tuple(settings.budgets_kb)))
     return found
+
+
+def verdict(runs: pd.DataFrame, limit: int = 12) -> list[str]:
+    """Method A's result on ``runs`` (a sweep's) in a few lines: per dataset, each model's
+    RMSE (mean over seeds) against the mean-ABRDF baseline, and its stored bytes."""
+    runs = runs_of(runs, METHODS)
+    if runs.empty or "metrics.rmse" not in runs:
+        return []
+    runs = tables.label_runs(tables.drop_repeats(runs[runs["metrics.rmse"].notna()]))
+    lines = []
+    for dataset, group in runs.groupby("dataset", sort=False):
+        baseline = pd.to_numeric(group.get("metrics.rmse_mean_abrdf"), errors="coerce").mean()
+        lines.append(f"{dataset}: RMSE (mean-ABRDF baseline {baseline:.4f}) and stored bytes"
+                     if pd.notna(baseline) else f"{dataset}: RMSE and stored bytes")
+        models = list(group.sort_values(["order", "model"]).groupby("model", sort=False))
+        width = max(len(model) for model, _ in models[:limit])
+        for model, of_model in models[:limit]:
+            rmse = pd.to_numeric(of_model["metrics.rmse"], errors="coerce")
+            spread = f" ± {rmse.std(ddof=1):.4f} (n={len(rmse)})" if len(rmse) > 1 else ""
+            line = f"  {model:<{width}}  {rmse.mean():.4f}{spread}"
+            if pd.notna(baseline):
+                ratio = rmse.mean() / baseline
+                line += f"  = {ratio:.2f} x baseline"
+                line += "  (training failed: near the baseline)" if ratio >= FAILED else ""
+            total = pd.to_numeric(of_model.get("metrics.bytes_total"), errors="coerce")
+            if total is not None and total.notna().any():
+                line += f"  {int(total.dropna().iloc[0]):,} B"
+            lines.append(line)
+        if len(models) > limit:
+            lines.append(f"  … and {len(models) - limit} more models (see the tables)")
+    return lines
 
 
 def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path) -> list[Path]:

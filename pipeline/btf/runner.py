@@ -44,7 +44,7 @@ CONSTRAINTS = {
     "btf.pca.random_state": Integer(0, 2**32 - 1),
     "btf.kmeans.n_init": Integer(1),
     "btf.kmeans.max_iter": Integer(1),
-    "btf.network.encoder_channels": ListOf(Integer(1)),
+    "btf.network.encoder_channels": ListOf(Integer(1), at_least=1),
     "btf.network.latent": Integer(2, 16),
     "btf.network.hidden": Integer(1),
     "btf.network.layers": Integer(1),
@@ -284,6 +284,7 @@ def run(ctx: Context) -> dict[str, float]:
         train_queries=summary["queries"], final_loss=summary["final_loss"],
         n_texels=cropped.manifest["summary"]["M"], n_directions=cropped.manifest["summary"]["N"],
     )
+    add_psnr(metrics)
     check_against_baseline(metrics)
     log_evaluation(evaluated, metrics)
     log_stored_as(exported.manifest["summary"]["stored_as"])
@@ -310,6 +311,15 @@ def log_evaluation(entry: Entry, metrics: dict) -> None:
     if mlflow.active_run() is not None:
         mlflow.log_artifact(str(entry.file("rmse_per_direction.npy")), "evaluate")
         mlflow.log_text(json.dumps(metrics, indent=1), "metrics.json")
+
+
+def add_psnr(metrics: dict) -> None:
+    """``psnr_db``: 10 log10(1 / MSE) over every texel and every direction (held-out ones
+    too: ``rmse_all_dirs`` where lights were held out), in the normalised space where the
+    crop's maximum is 1 (peak 1). The per-image MSE of NeuMIP and Neural Biplane (each
+    direction's image over the texels) averages to this MSE: every image has M texels."""
+    rmse = metrics.get("rmse_all_dirs", metrics["rmse"])
+    metrics["psnr_db"] = float(-20 * np.log10(rmse)) if rmse > 0 else float("inf")
 
 
 # A model whose error is within this fraction of the mean-ABRDF baseline, or above it, has
@@ -386,6 +396,7 @@ def run_linear(ctx: Context) -> dict[str, float]:
     metrics = {**fitted.json("metrics"), "n_texels": cropped.manifest["summary"]["M"],
                "n_directions": cropped.manifest["summary"]["N"],
                **truth_metrics(ctx, cropped, prep)}
+    add_psnr(metrics)
     check_against_baseline(metrics)
     log_stored_as(exported.manifest["summary"]["stored_as"])
     log_evaluation(fitted, metrics)

@@ -12,7 +12,13 @@ import pandas as pd
 
 from pipeline.btf.k_verdict import blocked_verdict, describe
 from pipeline.btf.models import models_of
-from pipeline.core.recipe import RECIPE_TAG, RENDER_RECIPE_TAG, recipe_suffixes, with_recipe
+from pipeline.core.recipe import (
+    ABSENT,
+    RECIPE_TAG,
+    RENDER_RECIPE_TAG,
+    run_settings,
+    with_recipe,
+)
 from pipeline.core.report import param
 
 SIZE_ROWS = [
@@ -34,6 +40,93 @@ INTERPOLATION_COLUMNS = [
 
 def _num(series: pd.Series) -> pd.Series:
     return pd.to_numeric(series, errors="coerce")
+
+
+def _lights(value: str) -> str:
+    return "no lights held out" if value in ("0", "None") else f"{value} lights held out"
+
+
+# Settings a column label names in words, in the order they are preferred for telling two
+# recipes apart (the storage types first: what the rate-distortion arms vary). Any other
+# setting is named as key=value in brackets.
+WORDS = {
+    "btf.network.latent": lambda v: f"latent {v}",
+    "model.dtype": str,
+    "btf.sizes.weight_dtype": str,
+    "btf.sizes.list_dtype": lambda v: f"list {v}",
+    "btf.sizes.extra_dtype": lambda v: f"scale {v}",
+    "model.k": lambda v: f"k = {v}",
+    "model.n_components": lambda v: f"c = {v}",
+    "model.match_clustered_k": lambda v: ("c set by hand" if v == "None"
+                                          else f"bytes of k = {v}"),
+    "btf.crop.size": lambda v: f"{v}² crop",
+    "dataset.synthetic.size": lambda v: f"{v}² texture",
+    "btf.interpolation.holdout_lights": _lights,
+    "train.epochs": lambda v: f"{v} epochs",
+    "train.max_steps": lambda v: "no step cap" if v == "-1" else f"{v} steps",
+    "model.texel_scale": lambda v: "no scale" if v == "none" else f"scale {v}",
+    "train.precision": str,
+    "train.optimizer": str,
+}
+
+
+def distinguishing(settings: pd.DataFrame) -> list[str]:
+    """The fewest columns of ``settings`` (one row per run, values as strings) whose values
+    tell its distinct rows apart: greedily the column that splits the runs into the most
+    groups, ties going to the settings of :data:`WORDS` in their order. Two recipes that
+    differ in ten correlated settings (a smoke run against a demo run) are told apart by one.
+    """
+    varying = [c for c in settings.columns if settings[c].nunique() > 1]
+    if not varying:
+        return []
+    target = len(settings[varying].drop_duplicates())
+    rank = {key: i for i, key in enumerate(WORDS)}
+    chosen: list[str] = []
+    while not chosen or len(settings[chosen].drop_duplicates()) < target:
+        best = max((c for c in varying if c not in chosen),
+                   key=lambda c: (len(settings[[*chosen, c]].drop_duplicates()),
+                                  -rank.get(c, len(rank)), -len(c)))
+        chosen.append(best)
+    return sorted(chosen, key=lambda c: (rank.get(c, len(rank)), c))
+
+
+def in_words(values: pd.Series) -> str:
+    """``" (latent 2, float16) [train.lr=0.01]"``: settings (name -> value) in words where
+    :data:`WORDS` has them, the others as key=value."""
+    worded = [WORDS[k](v) if v != ABSENT else f"{k} not logged"
+              for k, v in values.items() if k in WORDS]
+    plain = [f"{k}={v}" for k, v in values.items() if k not in WORDS]
+    return ((f" ({', '.join(worded)})" if worded else "")
+            + (f" [{', '.join(plain)}]" if plain else ""))
+
+
+def recipe_labels(runs: pd.DataFrame, by: list[str], ignore=(), render: bool = False,
+                  tag: str | None = None) -> pd.Series:
+    """For each run, what tells its recipe apart from the other recipes with the same
+    values in the columns ``by`` (say, dataset and model label), in words
+    (:func:`in_words` of :func:`distinguishing`); ``""`` where the group has one recipe.
+
+    Runs with equal labels in a group have equal recipes, less the settings in ``ignore``
+    (the table's own axis, such as ``model.k``): grouping by ``by`` plus the label pools
+    seeds only. Where the logged settings are equal but the recipe tags (``tag``) are not,
+    the tag's first 6 characters are added: the one case a hash says more than words.
+    """
+    labels = pd.Series("", index=runs.index, dtype=object)
+    if runs.empty:
+        return labels
+    tag = tag or (RENDER_RECIPE_TAG if render else RECIPE_TAG)
+    settings = run_settings(runs, render).drop(columns=list(ignore), errors="ignore")
+    for _, group in settings.groupby([runs[b] for b in by], sort=False, dropna=False):
+        keys = distinguishing(group)
+        for index in group.index:
+            labels[index] = in_words(group.loc[index, keys]) if keys else ""
+        if tag in runs and not ignore:
+            tags = runs.loc[group.index, tag].astype(str)
+            for _, same in tags.groupby(labels[group.index]):
+                if same.nunique() > 1:
+                    for index in same.index:
+                        labels[index] += f" recipe {tags[index][:6]}"
+    return labels
 
 
 def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
@@ -98,14 +191,34 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     # A clustered family (Table 2's k columns of one recipe but k), for the k verdict.
     runs["family"] = np.where(clusters,
                               runs["model"].str.replace(r"^k = \d+", "clustered", regex=True), "")
-    runs["family"] = runs["family"] + recipe_suffixes(runs, ["dataset", "family"],
-                                                      ignore=["model.k"], render=render)
-    runs["model"] = runs["model"] + recipe_suffixes(runs, ["dataset", "model"], render=render)
+    runs["family"] = runs["family"] + recipe_labels(runs, ["dataset", "family"],
+                                                    ignore=["model.k"], render=render)
+    runs["model"] = runs["model"] + recipe_labels(runs, ["dataset", "model"], render=render)
     sizes = [_num(pd.Series([run.get(m.size[0]) if m else None])).iloc[0]
              for m, (_, run) in zip(models, runs.iterrows(), strict=True)]
     runs["order"] = [1e9 * (m.rank if m else 9) + (0 if pd.isna(s) else s)
                      for m, s in zip(models, sizes, strict=True)]
     return runs
+
+
+def column_recipes(runs: pd.DataFrame) -> pd.DataFrame:
+    """One row per column of labelled runs (dataset, model label): its recipe tag, its
+    runs, and every setting in which it differs from the other columns of its model
+    (``base_model``), where its label names only the fewest that tell them apart."""
+    if runs.empty:
+        return pd.DataFrame(columns=["dataset", "model", "recipe", "runs", "differs in"])
+    settings = run_settings(runs)
+    rows = []
+    for (dataset, _), group in runs.groupby(["dataset", "base_model"], sort=False):
+        of_group = settings.loc[group.index]
+        varying = [c for c in of_group.columns if of_group[c].nunique() > 1]
+        for model, of_model in group.groupby("model", sort=False):
+            first = of_model.index[0]
+            rows.append({"dataset": dataset, "model": model,
+                         "recipe": of_model[RECIPE_TAG].iloc[0], "runs": len(of_model),
+                         "differs in": ", ".join(f"{k}={of_group.at[first, k]}"
+                                                 for k in varying)})
+    return pd.DataFrame(rows)
 
 
 def _clusters(runs: pd.DataFrame) -> pd.Series:
@@ -197,39 +310,64 @@ def _size_row(dataset: str, model: str, parts: dict, original: float, stored: st
             "ratio (paper)": f"1:{round(original / 2**20) * 1024 / round(total / 1024):.0f}"}
 
 
+# What a scale changes: runs equal in every other recipe setting are one model with and
+# without it (and with another k, the scale's bytes spent on clusters).
+SCALE_SETTINGS = ["model.k", "model.texel_scale", "btf.sizes.extra_dtype"]
+
+
+def all_directions_rmse(runs: pd.DataFrame) -> pd.Series:
+    """Each run's RMSE over all the crop's directions: ``rmse_all_dirs`` where lights were
+    held out of training (``rmse`` then covers the trained ones only), else ``rmse``."""
+    every = runs.get("metrics.rmse_all_dirs", pd.Series(np.nan, index=runs.index))
+    return _num(every).fillna(_num(runs["metrics.rmse"]))
+
+
 def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
     """The graininess fix at equal bytes: each clustered model's RMSE without and with a
-    per-texel scale, the bytes of each, and the model of the same family (the same recipe
-    but k) without a scale whose total bytes are nearest to the scaled one's, with its
-    RMSE: does the scale beat spending its bytes on more clusters? Mean ± std over seeds."""
+    per-texel scale, the bytes of each, and the unscaled model of the same recipe but k
+    whose total bytes are nearest to the scaled one's, with its RMSE: does the scale beat
+    spending its bytes on more clusters? Mean ± std over seeds.
+
+    Every RMSE here is over all the crop's directions, as the job logs the scaled one: with
+    lights held out of training, Table 2's RMSE covers the trained directions only and
+    differs in the last digits. A model that stores its scale has it in ``bytes_total``;
+    its "bytes" are those without it.
+    """
     clustered = runs[_clusters(runs)
                      & runs.get("metrics.rmse_with_texel_scale", pd.Series(
                          np.nan, index=runs.index)).notna()]
     if clustered.empty or "metrics.bytes_total" not in runs:
         return pd.DataFrame()
-    unscaled = runs[_num(runs.get("metrics.bytes_extra", 0)).fillna(0) == 0]
-    sizes = unscaled.groupby(["dataset", "family", "model"])["metrics.bytes_total"].first()
+    extra = _num(runs.get("metrics.bytes_extra", pd.Series(0, index=runs.index))).fillna(0)
+    rest = run_settings(runs).drop(columns=SCALE_SETTINGS, errors="ignore")
+    recipe_but_scale = pd.Series(["\x1f".join(row) for row in rest.itertuples(index=False)],
+                                 index=runs.index)
+    unscaled = runs[_clusters(runs) & (extra == 0)].assign(
+        _rest=recipe_but_scale, _rmse=all_directions_rmse(runs))
     rows = []
     ordered = clustered.sort_values(["dataset", "order", "model"])
     for (dataset, model), group in ordered.groupby(["dataset", "model"], sort=False):
         first = group.iloc[0]
-        total = int(first["metrics.bytes_total"])
-        with_scale = total + (scale_bytes(first) if int(first["metrics.bytes_extra"]) == 0
-                              else 0)
+        stored_extra = int(extra[first.name])
+        without = int(first["metrics.bytes_total"]) - stored_extra
+        with_scale = without + (stored_extra or scale_bytes(first))
         row = {"dataset": dataset, "model": model,
-               "without scale": mean_std(_num(group["metrics.rmse_without_texel_scale"])),
-               "bytes": total,
-               "with per-texel scale": mean_std(_num(group["metrics.rmse_with_texel_scale"])),
+               "without scale, all dirs": mean_std(
+                   _num(group["metrics.rmse_without_texel_scale"])),
+               "bytes": without,
+               "with per-texel scale, all dirs": mean_std(
+                   _num(group["metrics.rmse_with_texel_scale"])),
                "bytes with scale": with_scale}
-        others = sizes.get((dataset, first["family"]), pd.Series(dtype=float))
-        others = others.drop(model, errors="ignore")
+        others = unscaled[(unscaled["dataset"] == dataset)
+                          & (unscaled["_rest"] == recipe_but_scale[first.name])
+                          & (unscaled["k"] != first["k"])]
         if not others.empty:
-            nearest = (others - with_scale).abs().idxmin()
+            sizes = others.groupby("model")["metrics.bytes_total"].first()
+            nearest = (sizes - with_scale).abs().idxmin()
             row["nearest in bytes, no scale"] = nearest
-            row["its bytes"] = int(others[nearest])
-            row["its RMSE"] = mean_std(_num(unscaled.loc[
-                (unscaled["dataset"] == dataset) & (unscaled["model"] == nearest),
-                "metrics.rmse"]))
+            row["its bytes"] = int(sizes[nearest])
+            row["its RMSE, all dirs"] = mean_std(others.loc[others["model"] == nearest,
+                                                            "_rmse"])
         rows.append(row)
     return pd.DataFrame(rows)
 

@@ -16,16 +16,15 @@ Integrity: the manifest lists every file with its size and sha256 (files above 6
 sha256 per chunk, which threads check at once: :mod:`pipeline.core.digests`). Every hit checks
 every byte, whatever the entry's size, and ``python -m pipeline.cache verify`` checks every
 entry. A damaged entry is never read: :meth:`StageCache.run` logs it, removes it and
-computes it again. Entries written before sizes and hashes were recorded are checked for
-presence only.
+computes it again. A manifest without a size and sha256 for every file, an ``id`` and
+``parents`` (below) is not read either: its entry is computed again.
 
 Lineage: the manifest also records the entries the stage read (``parents``: each one's
 stage and the ``id`` its manifest got when it was computed). An entry whose parent has
 been computed again since (after damage, say), or is gone, is not a hit: it is computed
 again from the new parent, and so are its own descendants in turn. An ancestor's files
 are hashed when its own stage is hit, which a runner does before reading it;
-``verify --fix`` removes a damaged entry with its descendants. An entry written before
-lineage was recorded is not used once one of its inputs is newer than it.
+``verify fix=true`` removes a damaged entry with its descendants.
 """
 
 from __future__ import annotations
@@ -48,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core.digests import describe_files, first_changed, listed_files
+from pipeline.core.digests import describe_files, first_changed, is_hashed, listed_files
 from pipeline.core.errors import DataError
 from pipeline.core.files import DiskFullError, disk_full_is_named, no_space, write_atomic
 from pipeline.core.process import host_name, process_alive
@@ -58,11 +57,11 @@ log = logging.getLogger(__name__)
 MANIFEST = "manifest.json"
 # What a full disk while a stage writes its entry advises.
 CACHE_HINT = "free some space (python -m pipeline.cache gc) or point paths.cache elsewhere"
-# A temporary folder whose owner cannot be asked (another host, or written before owners
-# were recorded) is stale once untouched this long and its key's lock is free.
+# A temporary folder whose owner cannot be asked (a process of another host) is stale once
+# untouched this long and its key's lock is free.
 STALE_AFTER_S = 24 * 3600
 TEMPORARY = ".tmp-"
-TRASH = (".trash-", ".stale-")  # folders moved aside to be deleted (.stale-: older code)
+TRASH = ".trash-"  # folders moved aside to be deleted
 
 
 def canonical(value: Any) -> Any:
@@ -155,14 +154,34 @@ class Entry:
                 size = path.stat().st_size
             except FileNotFoundError:
                 return f"{path} is missing"
-            if "bytes" in record and size != record["bytes"]:
+            if size != record["bytes"]:
                 return f"{path} has {size} bytes, its manifest says {record['bytes']}"
         return first_changed(self.path, listed, progress) if hashes else None
 
 
+def _manifest_problem(manifest: Any) -> str | None:
+    """What a manifest lacks of what :meth:`StageCache.run` writes (``id``, ``parents``: each
+    one's stage and id, ``files``: each one's size and sha256), or None."""
+    if not isinstance(manifest, dict):
+        return "is not a JSON object"
+    if not isinstance(manifest.get("id"), str):
+        return "records no id"
+    parents = manifest.get("parents")
+    if not isinstance(parents, dict) or not all(
+            isinstance(p, dict) and isinstance(p.get("stage"), str) and isinstance(p.get("id"), str)
+            for p in parents.values()):
+        return "records no parents (each one's stage and id)"
+    files = manifest.get("files")
+    if not isinstance(files, dict) or not all(
+            isinstance(r, dict) and isinstance(r.get("bytes"), int) and is_hashed(r)
+            for r in files.values()):
+        return "records no size and sha256 of each file"
+    return None
+
+
 def _unreadable(path: Path, err: BaseException) -> str:
     return (f"cache file {path} cannot be read ({type(err).__name__}: {err}); the entry is "
-            f"damaged: remove it (python -m pipeline.cache verify --fix) and run again")
+            f"damaged: remove it (python -m pipeline.cache verify fix=true) and run again")
 
 
 def folder_bytes(folder: Path) -> int:
@@ -215,8 +234,9 @@ class StageCache:
             content = json.loads(manifest.read_text())
         except (OSError, ValueError) as err:
             return None, f"{manifest} cannot be read ({type(err).__name__}: {err})"
-        if not isinstance(content, dict):
-            return None, f"{manifest} is not a JSON object"
+        problem = _manifest_problem(content)
+        if problem is not None:
+            return None, f"{manifest} {problem}"
         return Entry(stage, key, path, hit=True, manifest=content), None
 
     def check(self, stage: str, key: str, hashes: bool = True,
@@ -238,27 +258,20 @@ class StageCache:
 
         Each ancestor (the parents its manifest records, theirs in turn) must still be
         there, complete, with the id it had when its child was computed and its files at
-        their recorded sizes. An entry that records no parents (written before lineage
-        was) must be newer than the inputs it names."""
+        their recorded sizes."""
         seen: set[str] = set()
         todo = [entry]
         while todo:
             child = todo.pop()
-            for key, stage, expected in self._parents(child):
+            for key, recorded in sorted(child.manifest["parents"].items()):
                 if key in seen:
                     continue
                 seen.add(key)
-                parent, problem = self.read(stage, key) if stage else (None, None)
-                where = self.entry_path(stage, key) if stage else f"the entry {key}"
+                parent, problem = self.read(recorded["stage"], key)
+                where = self.entry_path(recorded["stage"], key)
                 if parent is None:
-                    if expected is None:
-                        continue  # never an entry of this cache (written before lineage)
                     return f"{child.path} was computed from {where}, which {problem or 'is gone'}"
-                if expected is None and parent.manifest.get("created", 0) > child.manifest.get(
-                        "created", 0):
-                    return (f"{child.path} is older than its input {where}, which has been "
-                            f"computed again since (it records no lineage)")
-                if expected is not None and lineage_id(parent.manifest) != expected:
+                if parent.manifest["id"] != recorded["id"]:
                     return (f"{child.path} was computed from {where}, which has been computed "
                             f"again since")
                 problem = parent.damage(hashes=False)
@@ -266,17 +279,6 @@ class StageCache:
                     return f"{child.path} was computed from {where}, which is damaged: {problem}"
                 todo.append(parent)
         return None
-
-    def _parents(self, entry: Entry) -> list[tuple[str, str | None, str | None]]:
-        """``(key, stage or None, expected id or None)`` of each parent of ``entry``;
-        for an entry written before lineage was recorded, its inputs with no id."""
-        recorded = entry.manifest.get("parents")
-        if isinstance(recorded, dict):
-            return [(key, str(parent.get("stage")), str(parent.get("id")))
-                    for key, parent in sorted(recorded.items())]
-        inputs = entry.manifest.get("inputs", {})
-        return [(key, self._stage_of(key, name), None)
-                for name, key in sorted(inputs.items()) if isinstance(key, str)]
 
     def _stage_of(self, key: str, hint: str | None = None) -> str | None:
         """The stage whose folder holds the entry ``key`` (keys differ between stages:
@@ -352,7 +354,7 @@ class StageCache:
                 stage = self._stage_of(key, name)
                 parent = self.read(stage, key)[0] if stage else None
             if parent is not None:
-                parents[key] = {"stage": parent.stage, "id": lineage_id(parent.manifest)}
+                parents[key] = {"stage": parent.stage, "id": parent.manifest["id"]}
         return parents
 
     def _compute(self, stage, version, settings, inputs, compute, key, final, start) -> Entry:
@@ -415,16 +417,15 @@ class StageCache:
 
     def temporaries(self) -> list[Path]:
         """The temporary and moved-aside folders of every stage (a glob, nothing more)."""
-        patterns = (f"{TEMPORARY}*", *(f"{prefix}*" for prefix in TRASH))
-        return sorted(p for pattern in patterns for p in self.root.glob(f"*/{pattern}"))
+        return sorted(p for prefix in (TEMPORARY, TRASH) for p in self.root.glob(f"*/{prefix}*"))
 
     def remove_stale_temporaries(self, dry_run: bool = False) -> list[tuple[Path, str]]:
         """Remove the temporary folders of computations that died, and folders left moved
         aside; returns ``(folder, why)`` for each (with ``dry_run``, removes nothing).
 
         A temporary folder of a process on this host is stale once that process is gone;
-        one of another host, or of unknown owner, once nothing in it changed for
-        :data:`STALE_AFTER_S` and no job holds its key's lock."""
+        one of another host once nothing in it changed for :data:`STALE_AFTER_S` and no job
+        holds its key's lock."""
         removed = []
         for folder in self.temporaries():
             why = _why_stale(folder)
@@ -468,11 +469,11 @@ def _why_stale(folder: Path) -> str | None:
     """Why ``folder`` (a temporary or moved-aside folder) may go, or None to keep it."""
     if folder.name.startswith(TRASH):
         return "moved aside to be deleted"
-    match = re.fullmatch(rf"{re.escape(TEMPORARY)}([^-]+)-[^-]+(?:-(\d+)@(.+))?", folder.name)
+    match = re.fullmatch(rf"{re.escape(TEMPORARY)}([^-]+)-[^-]+-(\d+)@(.+)", folder.name)
     if match is None:
-        return None
+        return None  # not named by temporary_name: not the cache's to remove
     key, pid, host = match.groups()
-    if pid is not None and host == host_name():
+    if host == host_name():
         return None if process_alive(int(pid)) else f"its process {pid} on this host is gone"
     age = time.time() - _newest_mtime(folder)
     if age < STALE_AFTER_S:
@@ -483,8 +484,7 @@ def _why_stale(folder: Path) -> str | None:
         except BlockingIOError:
             return None  # a job is computing this key
         fcntl.flock(lock, fcntl.LOCK_UN)
-    owner = f"of {pid}@{host}" if pid is not None else "of unknown owner"
-    return f"{owner}, untouched for {age / 3600:.0f} h, its key unlocked"
+    return f"of {pid}@{host}, untouched for {age / 3600:.0f} h, its key unlocked"
 
 
 def _newest_mtime(folder: Path) -> float:
@@ -497,7 +497,7 @@ def _newest_mtime(folder: Path) -> float:
 
 def discard(path: Path) -> bool:
     """Move ``path`` aside (atomically: no reader sees half of it) and delete it."""
-    trash = path.with_name(f"{TRASH[0]}{path.name}-{uuid.uuid4().hex[:8]}")
+    trash = path.with_name(f"{TRASH}{path.name}-{uuid.uuid4().hex[:8]}")
     try:
         os.rename(path, trash)
     except FileNotFoundError:
@@ -528,12 +528,6 @@ def publish(tmp: Path, final: Path) -> bool:
         shutil.rmtree(tmp, ignore_errors=True)
         return False
     return True
-
-
-def lineage_id(manifest: Mapping) -> str:
-    """What tells one computation of an entry from another: the ``id`` of its manifest
-    (for manifests written before ids were, the time it was created)."""
-    return str(manifest.get("id") or f"created {manifest.get('created')!r}")
 
 
 def save_arrays(folder: Path, **arrays: np.ndarray) -> None:

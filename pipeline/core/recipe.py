@@ -86,14 +86,18 @@ def render_recipe_id(params: Mapping[str, object]) -> str:
 
 
 def with_recipe(runs: pd.DataFrame, tag: str = RECIPE_TAG) -> pd.DataFrame:
-    """``runs`` less those without the recipe ``tag`` (logged by older code, whose pooling
-    cannot be checked), with one warning saying how many were left out."""
+    """``runs`` less those without the recipe ``tag``, with one warning saying how many
+    were left out. A job's run gets the tag when it starts
+    (:func:`pipeline.core.tracking.job_run`), so a run without it was logged into the store
+    by something else (by hand, another program): whether it may pool with others as a seed
+    cannot be checked."""
     if runs.empty:
         return runs
     has = runs[tag].notna() if tag in runs else pd.Series(False, index=runs.index)
     if not has.all():
-        log.warning("%d of %d runs carry no %s tag (logged by older code): left out of the "
-                    "tables", int((~has).sum()), len(runs), tag.removeprefix("tags."))
+        log.warning("%d of %d runs carry no %s tag (not logged by a job of this pipeline): "
+                    "left out of the tables", int((~has).sum()), len(runs),
+                    tag.removeprefix("tags."))
     return runs[has]
 
 

@@ -54,6 +54,7 @@ def check_command_line(argv: Sequence[str], conf_dir: Path, config_name: str = "
     naming the bad override (and the closest setting to a misspelt key)."""
     from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
+    from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
     overrides = [a for a in argv if not a.startswith("-")]
@@ -61,9 +62,15 @@ def check_command_line(argv: Sequence[str], conf_dir: Path, config_name: str = "
         lines = first_values(overrides)
     except HydraException as error:
         raise ConfigError(_first_line(error)) from None
+    from pipeline.core.settings import check_added_keys
+
     try:
         with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=lines, return_hydra_config=True)
+            # A key added with + that no code reads (Hydra adds it without a word).
+            job = OmegaConf.masked_copy(cfg, [key for key in cfg if key != "hydra"])
+            check_added_keys(job, lines, conf_dir,
+                             compose=lambda given: compose(config_name, given))
     except (HydraException, OmegaConfBaseException) as error:
         raise ConfigError(explain(error, lines, conf_dir, config_name)) from None
     multirun = {"-m", "--multirun"} & set(argv) or str(cfg.hydra.mode) == "RunMode.MULTIRUN"

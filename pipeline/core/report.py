@@ -25,16 +25,20 @@ TABLES_HINT = "free some space or point paths.runs elsewhere"
 
 
 def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> pd.DataFrame:
-    """Finished runs of the given MLflow experiments (all when empty) as one DataFrame.
+    """Finished runs of the given MLflow experiments (all when empty) as one DataFrame,
+    with the experiment's name in the column ``experiment``.
 
     Named experiments that the store lacks, or a filter that matches none of their runs,
     are a ConfigError naming what the store has: a typo must not give an empty report.
+    A folder without a store is a StoreError naming it (no empty store is created).
     """
     import mlflow
 
     use_store(runs_dir)
     # The tables' own runs hold outputs, not results.
-    found = [e.name for e in mlflow.search_experiments() if e.name != TABLES_EXPERIMENT]
+    names_of = {e.experiment_id: e.name for e in mlflow.search_experiments()
+                if e.name != TABLES_EXPERIMENT}
+    found = list(names_of.values())
     missing = [e for e in experiments or [] if e not in found]
     if missing:
         raise ConfigError(f"tables.experiments: {missing} not in the store {runs_dir}; "
@@ -51,7 +55,8 @@ def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> 
                           f"of {names} in {runs_dir}")
     if runs.empty:
         return runs
-    return runs[runs["status"] == "FINISHED"]
+    runs = runs[runs["status"] == "FINISHED"]
+    return runs.assign(experiment=runs["experiment_id"].map(names_of))
 
 
 def safe_stem(text: str) -> str:

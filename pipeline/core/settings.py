@@ -20,7 +20,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+if typing.TYPE_CHECKING:  # omegaconf is imported where used: training code imports this
+    from omegaconf import DictConfig  # module, and runs where no Hydra is installed (a GPU)
 
 from pipeline.core.errors import ConfigError
 
@@ -92,14 +93,17 @@ class ListOf:
 
     item: Integer | Real | OneOf
     length: int | None = None
+    at_least: int = 0
 
     def ok(self, value) -> bool:
         return (isinstance(value, list | tuple)
                 and (self.length is None or len(value) == self.length)
+                and len(value) >= self.at_least
                 and all(self.item.ok(v) for v in value))
 
     def __str__(self) -> str:
-        count = f"{self.length} " if self.length is not None else ""
+        count = f"{self.length} " if self.length is not None else (
+            f"at least {self.at_least} " if self.at_least else "")
         return f"a list of {count}items, each {self.item}"
 
 
@@ -109,6 +113,8 @@ Constraint = Integer | Real | OneOf | ListOf
 def check_settings(cfg: Mapping | DictConfig, constraints: Mapping[str, Constraint]) -> None:
     """Raise :class:`ConfigError` naming the first setting (dotted name) whose value breaks
     its constraint; settings absent from ``cfg`` are not checked."""
+    from omegaconf import DictConfig, OmegaConf
+
     if isinstance(cfg, DictConfig):
         cfg = OmegaConf.to_container(cfg, resolve=True)
     missing = object()
@@ -206,6 +212,7 @@ def check_added_keys(cfg: DictConfig, overrides: list[str], conf_dir: Path,
     without it (``compose(overrides)``) lacks the key. The error names the closest setting.
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
 
     parsed = OverridesParser.create().parse_overrides(overrides)
     base = None
@@ -233,6 +240,8 @@ _ABSENT = object()
 
 
 def _leaf_keys(cfg: DictConfig, prefix: str = "") -> list[str]:
+    from omegaconf import DictConfig
+
     keys = []
     for key, value in cfg.items():
         name = f"{prefix}{key}"

@@ -52,25 +52,42 @@ MLFLOW_TABLES = {"experiments", "alembic_version"}  # what makes a SQLite file a
 _PARTIAL = re.compile(rf"\.{re.escape(DB_NAME)}\.partial-(\d+)(?:-journal|-wal|-shm)?")
 
 
-def tracking_uri(runs: str | os.PathLike) -> str:
-    """The tracking URI: ``MLFLOW_TRACKING_URI`` if set, else SQLite under ``runs``."""
+def tracking_uri(runs: str | os.PathLike, must_exist: bool = True) -> str:
+    """The tracking URI: ``MLFLOW_TRACKING_URI`` if set, else SQLite under ``runs``.
+
+    ``runs`` is the jobs' ``paths.runs``; a relative one is taken from the current folder.
+
+    Raises
+    ------
+    StoreError
+        When ``must_exist`` and ``runs`` holds no store (``runs/mlflow.db``): MLflow would
+        create an empty one there and find no run in it (a relative ``paths.runs`` read
+        from another folder, a typo). Only a job creates a store (:func:`init_store`).
+    """
     env = os.environ.get("MLFLOW_TRACKING_URI")
     # mlflow.set_tracking_uri exports MLFLOW_TRACKING_URI for subprocesses; a value that we
     # set ourselves is not the user's choice of server and must not outlive paths.runs.
     if env and env != os.environ.get(_OWN_URI):
         return env
-    return _sqlite_uri(runs)
+    uri = _sqlite_uri(runs)
+    db = sqlite_path(uri)
+    if must_exist and not db.is_file():
+        relative = "" if Path(runs).is_absolute() else f" ({str(runs)!r} from {Path.cwd()})"
+        raise StoreError(f"no MLflow store at {db}{relative}: give the jobs' paths.runs, "
+                         f"as an absolute path or from the folder they ran in")
+    return uri
 
 
 def _sqlite_uri(runs: str | os.PathLike) -> str:
     return f"sqlite:///{Path(runs).resolve() / DB_NAME}"
 
 
-def use_store(runs: str | os.PathLike) -> str:
-    """Point this process's MLflow client at the store of ``runs``; returns the URI."""
+def use_store(runs: str | os.PathLike, must_exist: bool = True) -> str:
+    """Point this process's MLflow client at the store of ``runs``; returns the URI.
+    ``must_exist``: as for :func:`tracking_uri` (a StoreError when ``runs`` holds none)."""
     import mlflow
 
-    uri = tracking_uri(runs)
+    uri = tracking_uri(runs, must_exist)
     mlflow.set_tracking_uri(uri)
     if uri == _sqlite_uri(runs):
         os.environ[_OWN_URI] = uri
@@ -79,8 +96,12 @@ def use_store(runs: str | os.PathLike) -> str:
     return uri
 
 
-def init_store(runs: str | os.PathLike, experiment: str) -> str:
+def init_store(runs: str | os.PathLike, experiment: str, job: DictConfig | None = None,
+               note: str | None = None) -> str:
     """Create (or upgrade) the store and the experiment once; return the experiment id.
+
+    The experiment gets a description (its note in the UI): ``note``, or one written from
+    the composed config ``job`` of a job logging into it (:func:`describe_experiment`).
 
     A new SQLite store is built under another name and renamed into place, so a process
     killed while MLflow creates its tables never leaves a half-made ``mlflow.db``; such
@@ -98,7 +119,7 @@ def init_store(runs: str | os.PathLike, experiment: str) -> str:
 
     runs = Path(runs).resolve()
     runs.mkdir(parents=True, exist_ok=True)
-    uri = use_store(runs)
+    uri = use_store(runs, must_exist=False)  # the one place a store is created
     # The lock serializes schema creation between processes that share this folder.
     with open(runs / ".mlflow.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
@@ -123,15 +144,84 @@ def init_store(runs: str | os.PathLike, experiment: str) -> str:
             if found is not None:
                 if EXPERIMENT_KIND_TAG not in found.tags:
                     client.set_experiment_tag(found.experiment_id, *EXPERIMENT_KIND)
-                return found.experiment_id
-            location = None
-            if uri.startswith("sqlite:"):
-                location = (runs / "artifacts").as_uri()
-            return client.create_experiment(
-                experiment, artifact_location=location, tags=dict([EXPERIMENT_KIND])
-            )
+                experiment_id, tags = found.experiment_id, found.tags
+            else:
+                location = None
+                if uri.startswith("sqlite:"):
+                    location = (runs / "artifacts").as_uri()
+                experiment_id = client.create_experiment(
+                    experiment, artifact_location=location, tags=dict([EXPERIMENT_KIND])
+                )
+                tags = {}
+            describe_experiment(client, experiment_id, experiment, tags, job, note)
+            return experiment_id
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+
+
+DESCRIBED_TAG = "pipeline.described"  # JSON: the methods and presets its note names
+
+
+def describe_experiment(client, experiment_id: str, name: str, tags: Mapping[str, str],
+                        job: DictConfig | None = None, note: str | None = None) -> None:
+    """Give the experiment a description (``mlflow.note.content``, shown above its runs):
+    ``note`` as given, or written from a job's config (:func:`experiment_note`): what its
+    methods compute, which metrics to read first, where a sweep leaves its tables.
+
+    A later job of another method or preset extends the written note; a note someone
+    edited in the UI (it no longer equals the one written) is left as it is.
+    """
+    if note is not None:
+        if tags.get(NOTE_TAG) != note:
+            client.set_experiment_tag(experiment_id, NOTE_TAG, note)
+        return
+    if job is None or job.get("method") is None:
+        return
+    import json
+
+    from pipeline.core.methods import method_of
+
+    old = json.loads(tags.get(DESCRIBED_TAG, '{"methods": {}, "presets": []}'))
+    if NOTE_TAG in tags and tags[NOTE_TAG] != experiment_note(name, old):
+        return  # the user's own words
+    method = method_of(job)
+    bold = re.match(r"\*\*(.+?)\*\*", method.description)
+    preset = _experiment_preset(job)
+    new = {"methods": {**old["methods"], method.name: {
+               "title": bold.group(1).rstrip(".") if bold else method.name,
+               "headline": list(method.headline)}},
+           "presets": sorted(set(old["presets"]) | ({preset} if preset else set()))}
+    if new == old and NOTE_TAG in tags:
+        return
+    client.set_experiment_tag(experiment_id, NOTE_TAG, experiment_note(name, new))
+    client.set_experiment_tag(experiment_id, DESCRIBED_TAG, json.dumps(new, sort_keys=True))
+
+
+def experiment_note(name: str, described: Mapping) -> str:
+    """The description of experiment ``name`` whose jobs ran the methods and presets of
+    ``described`` (``{"methods": {name: {"title", "headline"}}, "presets": [...]}``)."""
+    methods = described["methods"]
+    presets = ", ".join(f"`experiment={p}`" for p in described["presets"])
+    lines = [f"**Experiment `{name}`**: runs of "
+             + "; ".join(f"{m['title']} (`method={key}`)" for key, m in methods.items())
+             + (f", from {presets}" if presets else "") + "."]
+    lines += [f"Read first: {', '.join(f'`{h}`' for h in m['headline'])}"
+              + (f" ({m['title']})" if len(methods) > 1 else "") + "."
+              for m in methods.values()]
+    lines.append("A sweep's parent run (`sweep <time>`) says what the sweep found and holds "
+                 "its tables (`tables/summary.html`); each job is a child run. "
+                 f"`python -m pipeline.tables tables.experiments=[{name}]` rebuilds the "
+                 "tables from the finished runs.")
+    return "\n\n".join(lines)
+
+
+def _experiment_preset(job: DictConfig) -> str | None:
+    """The ``experiment=`` preset of a job (or of a sweep's config, which holds its
+    ``hydra`` node), None outside Hydra."""
+    hydra_cfg = job.get("hydra") or _hydra_config()
+    choices = OmegaConf.select(hydra_cfg, "runtime.choices") if hydra_cfg is not None else None
+    preset = choices.get("experiment") if choices is not None else None
+    return None if preset in (None, "none") else str(preset)
 
 
 def sqlite_path(uri: str) -> Path | None:
@@ -354,7 +444,7 @@ def job_run(
     """
     import mlflow
 
-    experiment_id = init_store(cfg.paths.runs, cfg.tracking.experiment)
+    experiment_id = init_store(cfg.paths.runs, cfg.tracking.experiment, job=cfg)
     _on_stop_fail_runs(tracking_uri(cfg.paths.runs))
     tags = environment_tags()
     tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
@@ -457,7 +547,8 @@ class SweepParentRun(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from mlflow.tracking import MlflowClient
 
-        experiment_id = init_store(config.paths.runs, config.tracking.experiment)
+        experiment_id = init_store(config.paths.runs, config.tracking.experiment,
+                                   job=config)
         self.uri = tracking_uri(config.paths.runs)
         client = MlflowClient(self.uri)
         sweep_dir = Path(config.hydra.sweep.dir)

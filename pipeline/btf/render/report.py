@@ -84,7 +84,9 @@ def scored_runs(runs: pd.DataFrame) -> pd.DataFrame:
     runs = runs.copy()
     runs[SCORED_AGAINST] = against = scored_against(runs)
     names = [c[len("metrics.render_"):] for c in runs.columns
-             if c.startswith(("metrics.render_rmse_", "metrics.render_hf_ratio_"))]
+             if c.startswith(("metrics.render_rmse_", "metrics.render_hf_ratio_",
+                              "metrics.render_flip", "metrics.render_ssim",
+                              "metrics.render_psnr_db"))]
     nothing = pd.Series(np.nan, index=runs.index)
     for name in names:
         truth = runs.get(f"metrics.render_truth_{name}", nothing)
@@ -217,12 +219,13 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
                              key=lambda s: s.map(order) if s.name == "model" else s)
 
 
-def table_cloth(runs: pd.DataFrame) -> pd.DataFrame:
-    """Rows (dataset, spp) x model columns of :func:`scored_runs`: the RMSE over every pixel
-    wholly on lit cloth, mean ± std over seeds; a larger sample than the crops, so a steadier
-    ranking. With what it is scored against and the lit cloth's share beyond the grid."""
-    parts = [tables.table_rmse(runs, f"scored_rmse_cloth_spp{spp}").assign(spp=spp)
-             for spp in spp_levels(runs) if f"metrics.scored_rmse_cloth_spp{spp}" in runs]
+def table_cloth(runs: pd.DataFrame, metric: str = "rmse_cloth") -> pd.DataFrame:
+    """Rows (dataset, spp) x model columns of :func:`scored_runs`: ``metric`` (by default the
+    RMSE over every pixel wholly on lit cloth; a larger sample than the crops, so a steadier
+    ranking), mean ± std over seeds. With what it is scored against and the lit cloth's
+    share beyond the grid."""
+    parts = [tables.table_rmse(runs, f"scored_{metric}_spp{spp}").assign(spp=spp)
+             for spp in spp_levels(runs) if f"metrics.scored_{metric}_spp{spp}" in runs]
     if not parts:
         return pd.DataFrame()
     table = pd.concat(parts).reset_index().fillna("–")  # a model not rendered at that spp
@@ -266,6 +269,18 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
             "As Tables 3-4, over every pixel whose camera samples all land on cloth that a "
             "light sees (no silhouette, shadow or floor pixels), at each samples-per-pixel "
             f"level. {scoring_note(bases)}"))
+    for metric, title in (("flip", "LDR-FLIP (mean; 0 is identical, lower is better)"),
+                          ("ssim", "SSIM (1 is identical)")):
+        frame = table_cloth(scored, metric)
+        if not frame.empty:
+            found.append(write_table(
+                frame, out, f"render_{metric}",
+                f"{title} of the whole frame against {against}",
+                "The frame as displayed (exposure, gamma 2.2, clipped to [0, 1]: the PNG's "
+                "values), compared with the render it is scored against by "
+                "pipeline.core.image_metrics (FLIP: NVIDIA's flip-evaluator at 67 pixels per "
+                "degree; SSIM: Gaussian window, sigma 1.5). LPIPS needs network weights from "
+                f"a hub that cannot be fetched here and is not reported. {scoring_note(bases)}"))
     grain = table_graininess(scored)
     if not grain.empty:
         found.append(write_table(

@@ -16,7 +16,8 @@ wholly on lit cloth are compared at every spp (Tables 3 and 4 at the largest): t
 of linear radiance, and the ratio of high-frequency energy (the image minus its Gaussian
 blur, sigma 1 pixel) of the model's crop to the target's, above 1 where the model adds
 grain. The metrics (:func:`scores`; ``<name>`` is ``rmse_dark``, ``rmse_bright``,
-``rmse_cloth``, ``hf_ratio_dark`` or ``hf_ratio_bright``, each also per spp with
+``rmse_cloth``, ``hf_ratio_dark`` or ``hf_ratio_bright``, or over the whole frame as
+displayed, ``flip`` (LDR-FLIP), ``ssim`` or ``psnr_db``, each also per spp with
 ``_spp<N>``):
 
 - ``render_<name>``: the model against the measured reference render;
@@ -213,11 +214,21 @@ def high_frequency_energy(image: np.ndarray) -> float:
 
 
 def compare(model: np.ndarray, target: np.ndarray, lit_cloth: np.ndarray, crops: dict,
-            size: int) -> dict:
+            size: int, exposure: float = 1.0) -> dict:
     """RMSE and high-frequency energy ratio of ``model`` against ``target`` (both
     (H, W, 3)) in each crop, and the RMSE over every pixel wholly on lit cloth
-    (``lit_cloth`` (H, W) is 1)."""
+    (``lit_cloth`` (H, W) is 1); over the whole frame as displayed (``exposure``, gamma
+    2.2, clipped to [0, 1], the PNG's values), the field's image metrics: LDR-FLIP (mean),
+    SSIM and PSNR (:mod:`pipeline.core.image_metrics`)."""
+    from pipeline.core.image_metrics import flip, psnr, ssim
+    from pipeline.data.images import gamma_encode
+
     found = {}
+    shown = [np.clip(gamma_encode(np.asarray(image, np.float32) * np.float32(exposure)), 0, 1)
+             .astype(np.float64) for image in (target, model)]
+    found["flip"] = flip(*shown)
+    found["ssim"] = ssim(*shown)
+    found["psnr_db"] = psnr(*shown)
     for region in REGIONS:
         r, c = crops[region]
         a, b = model[r : r + size, c : c + size], target[r : r + size, c : c + size]
@@ -234,16 +245,16 @@ def compare(model: np.ndarray, target: np.ndarray, lit_cloth: np.ndarray, crops:
 
 
 def scores(model: np.ndarray, reference: np.ndarray, lit_cloth: np.ndarray, crops: dict,
-           size: int, truth: np.ndarray | None = None) -> dict:
+           size: int, truth: np.ndarray | None = None, exposure: float = 1.0) -> dict:
     """:func:`compare` of a model's render (H, W, 3) with the reference's (``render_*``) and,
     given the truth's, with it (``render_truth_*``), and of the reference with the truth
     (``render_reference_truth_*``); same crops and lit cloth for all."""
     found = {f"render_{name}": v for name, v in
-             compare(model, reference, lit_cloth, crops, size).items()}
+             compare(model, reference, lit_cloth, crops, size, exposure).items()}
     if truth is not None:
         for prefix, image in (("render_truth_", model), ("render_reference_truth_", reference)):
             found.update({f"{prefix}{name}": v for name, v in
-                          compare(image, truth, lit_cloth, crops, size).items()})
+                          compare(image, truth, lit_cloth, crops, size, exposure).items()})
     return found
 
 
@@ -397,6 +408,7 @@ def model_stage(ctx: Context, cropped: Entry, inputs: dict[str, Entry], material
                 crops,
                 settings["crop_size"],
                 None if truth is None else truth.array(f"image_spp{spp}", mmap=False),
+                settings["exposure"],
             )
             metrics.update({f"{name}_spp{spp}": value for name, value in found.items()})
             if spp == top:  # the headline: Tables 3 and 4
@@ -413,7 +425,7 @@ def model_stage(ctx: Context, cropped: Entry, inputs: dict[str, Entry], material
     inputs = {**inputs, "render_reference": reference}
     if truth is not None:
         inputs["render_truth"] = truth
-    return ctx.run("render", {**settings, "beyond_grid": beyond}, inputs, compute, version="4")
+    return ctx.run("render", {**settings, "beyond_grid": beyond}, inputs, compute, version="5")
 
 
 def _entries(ctx: Context, *names: str) -> list[Entry]:

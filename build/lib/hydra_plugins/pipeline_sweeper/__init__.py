@@ -1,1 +1,0 @@
-"""The project's Hydra plugins: the arms sweeper (arms_sweeper.py)."""
