@@ -245,6 +245,7 @@ def train_latent_texture(
     seed: int,
     on_curve: Callable[[dict], None] | None = None,
     curve_every: int = 0,
+    device: str = "cpu",
 ) -> LatentTextureResult:
     """Optimise a :class:`LatentTexture` and its decoder jointly with Adam, MSE loss.
 
@@ -260,6 +261,8 @@ def train_latent_texture(
     features : ndarray of shape (N, 4), the direction features.
     train_directions : ndarray of ints, the directions trained on (held-out ones excluded).
     crop_size : (rows, cols) with rows * cols = M.
+    device : where the model trains (``cuda`` when lent one); batches are drawn on the
+        host either way, so a seed gives the same batches.
     curve_every : steps per point of the loss curve (0: steps / 100); ``on_curve`` is
         called with each point.
     """
@@ -295,11 +298,12 @@ def train_latent_texture(
     _check_shape(rows, cols, latent, levels)
 
     block = curve_every or max(1, steps // 100)
-    module = LatentTexture(rows, cols, latent, levels, hidden, layers, seed=seed)
+    device = torch.device(device)
+    module = LatentTexture(rows, cols, latent, levels, hidden, layers, seed=seed).to(device)
     optimizer = torch.optim.Adam(module.parameters(), lr=lr)
     schedule = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: learning_rate(s, steps, 1))
     rng = np.random.default_rng(seed)
-    features = torch.from_numpy(features)
+    features = torch.from_numpy(features).to(device)
     curve: list[dict] = []
     running, count, seconds = 0.0, 0, 0.0
     with (
@@ -314,10 +318,11 @@ def train_latent_texture(
             ]
             target = np.asarray(targets[texels[:, None], directions], dtype=np.float32)
             prediction = module(
-                torch.from_numpy(np.repeat(texels, queries_per_texel)),
-                features[torch.from_numpy(directions.ravel())],
+                torch.from_numpy(np.repeat(texels, queries_per_texel)).to(device),
+                features[torch.from_numpy(directions.ravel()).to(device)],
             )
-            loss = torch.mean(torch.square(prediction - torch.from_numpy(target).reshape(-1, 3)))
+            target = torch.from_numpy(target).reshape(-1, 3).to(device)
+            loss = torch.mean(torch.square(prediction - target))
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -334,7 +339,7 @@ def train_latent_texture(
                 running, count = 0.0, 0
                 clock = time.perf_counter()
             bar.update(1)
-    return LatentTextureResult(module.eval(), curve, steps, seconds)
+    return LatentTextureResult(module.cpu().eval(), curve, steps, seconds)
 
 
 @contextmanager

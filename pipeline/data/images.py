@@ -26,7 +26,6 @@ from os import PathLike
 from pathlib import Path
 
 import numpy as np
-import OpenEXR
 from PIL import Image
 
 from pipeline.core.errors import DataError
@@ -250,6 +249,8 @@ def image_size(path: str | PathLike) -> tuple[int, int]:
     path = _as_path(path)
     if path.suffix.lower() == ".exr":
         try:
+            import OpenEXR  # imported where used: the numerics import this module
+
             with OpenEXR.File(_source(path), header_only=True) as exr_file:
                 low, high = exr_file.header()["dataWindow"]
         except Exception as error:  # OpenEXR raises RuntimeError or ValueError
@@ -290,6 +291,8 @@ def read_exr(path: str | PathLike) -> dict[str, np.ndarray]:
     path = _as_path(path)
     if not path.is_file():
         raise DataError(f"EXR file missing: {path}")
+    import OpenEXR
+
     try:
         # separate_channels=True keeps R, G, B as separate entries; without it the
         # binding merges them into one (H, W, 3) "RGB" channel.
@@ -360,6 +363,8 @@ def write_exr(
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != len(names):
         raise ValueError(f"image of shape {image.shape} does not match channel names {list(names)}")
+    import OpenEXR
+
     # The binding picks the pixel type from the array dtype: float16 gives HALF channels.
     channels = {
         name: OpenEXR.Channel(np.ascontiguousarray(image[:, :, index], dtype=np.float16))
