@@ -50,7 +50,10 @@ def run_job(cfg: DictConfig) -> float | None:
         try:
             with threadpool_limits(cfg.get("threads")):  # numpy's BLAS and OpenMP pools
                 metrics = method.run(ctx)
-            mlflow.log_metrics(metrics)  # first: the UI lists metrics as they were logged
+            # The UI lists metrics in the order they were logged: the headline first.
+            first = {name: metrics[name] for name in method.headline if name in metrics}
+            mlflow.log_metrics(first)
+            mlflow.log_metrics({k: v for k, v in metrics.items() if k not in first})
         finally:
             # Grouped under "time/" and "memory/" (the UI folds names by their prefix).
             mlflow.set_tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
@@ -95,7 +98,8 @@ def print_result(method: Method, name: str, metrics: dict[str, float], run_id: s
 
 class SweepRun(SweepParentRun):
     """The sweep's MLflow parent run (``conf/config.yaml``, ``hydra.callbacks``) and, with
-    ``run_tables``, ``python -m pipeline.tables`` after the last job."""
+    ``run_tables``, the tables of its experiment after the last job, then a few lines of
+    what it found (:func:`print_sweep_result`)."""
 
     def __init__(self, run_tables: bool = False) -> None:
         super().__init__()

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 import time
 
 import numpy as np
@@ -64,9 +65,10 @@ def main() -> None:
     for name, material in materials.items():
         tracer, stats = render_with_stats(scene, material, args.spp, seed=0)
         started = time.perf_counter()
-        description = scene_description(scene, ".", mitsuba_bsdf.material_bsdf(material),
-                                        args.spp)
-        loaded = mi.load_dict(mitsuba_dict(description))
+        with tempfile.TemporaryDirectory() as folder:  # the scene's mesh files
+            description = scene_description(scene, folder,
+                                            mitsuba_bsdf.material_bsdf(material), args.spp)
+            loaded = mi.load_dict(mitsuba_dict(description))
         mitsuba = render(loaded, args.spp, seed=0)
         seconds = time.perf_counter() - started
         print(json.dumps({

@@ -162,3 +162,54 @@ def test_bad_job_settings_are_refused_naming_the_setting(override, named):
 
     with pytest.raises(ConfigError, match=re.escape(named)):
         run_job(compose_config("experiment=smoke", override))
+
+
+def test_a_sweep_that_builds_tables_ends_with_a_short_verdict(tmp_path, mlflow_template,
+                                                              monkeypatch, capsys):
+    """The demo's last words: each model's RMSE against the mean-ABRDF baseline and its
+    bytes, and where the tables are; not the tables themselves (no 'nan', no 'No finished
+    ... run found' of the other methods). The parent run's description leads with it."""
+    import mlflow
+    from helpers import recipe_tags
+    from omegaconf import OmegaConf
+
+    import pipeline.tables
+    from pipeline.app import print_sweep_result
+    from pipeline.core.tracking import NOTE_TAG, init_store
+
+    mlflow_template(tmp_path)
+    experiment_id = init_store(tmp_path, "btf")
+    client = MlflowClient(tracking_uri(tmp_path))
+    parent = client.create_run(experiment_id, tags={NOTE_TAG: "**Hydra sweep**"}).info.run_id
+    for model, k, rmse, total in (("neural_btf", None, 0.031, 171_260),
+                                  ("clustered", 128, 0.0524, 110_844),
+                                  ("pca", None, 0.140, 110_000)):
+        params = {"method.name": "btf", "model.name": model, "model.k": k, "seed": 0,
+                  "dataset.name": "synthetic", "dataset.synthetic.material": "knit",
+                  "btf.crop.size": 48}
+        with mlflow.start_run(experiment_id=experiment_id, tags={
+                "mlflow.parentRunId": parent, **recipe_tags(params)}):
+            mlflow.log_params(params)
+            mlflow.log_metrics({"rmse": rmse, "rmse_mean_abrdf": 0.1523, "bytes_total": total,
+                                "n_directions": 6561, "n_components": 3})
+    settings = pipeline.tables.default_settings()
+    settings.fig7.enabled = False  # hand-made runs: no cached model to draw
+    monkeypatch.setattr(pipeline.tables, "default_settings", lambda: settings)
+    config = OmegaConf.create({"paths": {"runs": str(tmp_path)},
+                               "tracking": {"experiment": "btf"}})
+
+    print_sweep_result(config, tracking_uri(tmp_path), parent)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0] == f"Sweep finished: 3 jobs, MLflow experiment 'btf', parent run {parent}"
+    assert lines[1] == ("synthetic:knit 48²×6561: RMSE (mean-ABRDF baseline 0.1523) and "
+                        "stored bytes")
+    assert lines[2:5] == ["  Neural BTF  0.0310  = 0.20 x baseline  171,260 B",
+                          "  k = 128     0.0524  = 0.34 x baseline  110,844 B",
+                          "  PCA c = 3   0.1400  = 0.92 x baseline  110,000 B  training "
+                          "failed (not below 0.9 x baseline)"]
+    assert lines[5] == (f"Tables: {tmp_path / 'tables' / 'summary.html'} (this experiment's: "
+                        f"{tmp_path / 'tables' / 'btf' / 'summary.html'})")
+    assert len(lines) == 6 and (tmp_path / "tables" / "btf" / "table2_rmse.md").is_file()
+    note = client.get_run(parent).data.tags[NOTE_TAG]
+    assert note.startswith("**Result**\n\n```\nsynthetic:knit 48²×6561")
+    assert note.endswith("**Hydra sweep**")

@@ -127,6 +127,96 @@ def test_a_tracking_server_chosen_by_the_user_stays_chosen(tmp_path, monkeypatch
     assert use_store(tmp_path / "b") == server
 
     monkeypatch.delenv("MLFLOW_TRACKING_URI")
-    first = use_store(tmp_path / "a")
+    first = use_store(tmp_path / "a", must_exist=False)
     assert first == f"sqlite:///{(tmp_path / 'a').resolve() / 'mlflow.db'}"
-    assert tracking_uri(tmp_path / "b") == f"sqlite:///{(tmp_path / 'b').resolve() / 'mlflow.db'}"
+    assert tracking_uri(tmp_path / "b", must_exist=False) == (
+        f"sqlite:///{(tmp_path / 'b').resolve() / 'mlflow.db'}")
+
+
+def test_a_folder_without_a_store_is_named_not_filled_with_an_empty_store(tmp_path,
+                                                                          monkeypatch):
+    """Reading a store that is not there (a relative paths.runs from another folder, a
+    typo) is a StoreError naming the path; only a job's init_store creates one."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(StoreError, match=rf"no MLflow store at {tmp_path}/runs/mlflow.db "
+                                         rf"\('runs' from {tmp_path}\)"):
+        tracking_uri("runs")
+    assert not (tmp_path / "runs").exists()
+    init_store("runs", "btf")  # a job's own run creates it
+    assert tracking_uri("runs") == f"sqlite:///{tmp_path}/runs/mlflow.db"
+
+
+def test_the_tables_command_refuses_a_runs_folder_without_a_store_in_one_line(tmp_path):
+    missing = tmp_path / "nonexistent"
+    done = subprocess.run([sys.executable, "-m", "pipeline.tables", f"paths.runs={missing}"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.strip().splitlines() == [
+        f"error: no MLflow store at {missing}/mlflow.db: give the jobs' paths.runs, as an "
+        "absolute path or from the folder they ran in"]
+    assert not missing.exists()  # no store, no tables, no Hydra folder
+
+
+def test_each_experiment_gets_a_description_that_a_user_s_edit_replaces(tmp_path,
+                                                                        mlflow_template):
+    """The experiment's note (mlflow.note.content) says what its runs are and which
+    metrics to read first; a job of another method extends it; an edited note stays."""
+    from helpers import compose_config
+
+    from pipeline.core.tracking import NOTE_TAG
+
+    mlflow_template(tmp_path)
+    cfg = compose_config("experiment=smoke", f"paths.runs={tmp_path}")
+    experiment_id = init_store(tmp_path, "mixed", job=cfg)
+    client = MlflowClient(tracking_uri(tmp_path))
+    note = client.get_experiment(experiment_id).tags[NOTE_TAG]
+    assert note.startswith("**Experiment `mixed`**: runs of Method A: Neural BTF")
+    assert "Read first: `rmse`, `psnr_db`" in note and "tables.experiments=[mixed]" in note
+    init_store(tmp_path, "mixed", job=compose_config("experiment=brdf_smoke",
+                                                     f"paths.runs={tmp_path}"))
+    note = client.get_experiment(experiment_id).tags[NOTE_TAG]
+    assert "Method A" in note and "(`method=brdf_map`)" in note and "`rmse_missing`" in note
+    client.set_experiment_tag(experiment_id, NOTE_TAG, "my own words")
+    init_store(tmp_path, "mixed", job=cfg)
+    assert client.get_experiment(experiment_id).tags[NOTE_TAG] == "my own words"
+
+
+def _readme_example() -> str:
+    """The Python block of the README's "Using a trained model"."""
+    readme = (ROOT / "README.md").read_text().split("## Using a trained model", 1)[1]
+    lines = readme.split("From a script in any folder:", 1)[1].splitlines()[2:]
+    block = []
+    for line in lines:
+        if line.strip() and not line.startswith("    "):
+            break
+        block.append(line[4:])
+    return "\n".join(block).strip() + "\n"
+
+
+def test_the_readme_example_from_another_folder_names_the_missing_store_or_finds_the_run(
+        smoke_cfg, tmp_path):
+    """As written ("runs", relative) from a folder without a store: a StoreError naming
+    the path it looked at, and no ./runs/mlflow.db made (MLflow used to make one, then
+    fail with KeyError: 0). With the jobs' paths.runs: the clustered model answers."""
+    from pipeline.app import run_job
+
+    cfg = smoke_cfg("tracking.experiment=btf", "train.max_steps=10")  # the smoke's clustered
+    run_job(cfg)
+    code = _readme_example()
+    assert 'pipeline.tracking_uri("runs")' in code and "model.predict" in code
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "as_written.py").write_text(code)
+    (elsewhere / "with_paths_runs.py").write_text(
+        code.replace('tracking_uri("runs")', f"tracking_uri({str(cfg.paths.runs)!r})"))
+    probe = ("import runpy, sys\n"
+             "try:\n    runpy.run_path('as_written.py')\n"
+             "except Exception as error:\n    print(type(error).__name__, error)\n"
+             "runpy.run_path('with_paths_runs.py')\n")
+    done = subprocess.run([sys.executable, "-c", probe], cwd=elsewhere, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    first, *answer = done.stdout.strip().splitlines()
+    assert first.startswith(f"StoreError no MLflow store at {elsewhere}/runs/mlflow.db")
+    assert not (elsewhere / "runs").exists() and not (elsewhere / "mlflow.db").exists()
+    assert answer[0].split() == ["R", "G", "B"] and len(answer) == 2

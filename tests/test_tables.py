@@ -1,5 +1,6 @@
 """`python -m pipeline.tables` on a few hand-made MLflow runs with known numbers."""
 
+import re
 import warnings
 
 import mlflow
@@ -315,3 +316,108 @@ def test_rmse_versus_k_says_so_when_it_has_nothing_to_draw(tmp_path):
         section = plot_rmse_vs_k(runs, tmp_path)
     assert "No clustered or Neural BTF run" in section
     assert not (tmp_path / "rmse_vs_k.png").exists()
+
+
+def _log_btf(experiment_id, model: str, seed: int, metrics: dict, **settings) -> None:
+    """One finished method-A run on the smoke's data (12 x 12 crop) with these settings."""
+    params = {"method.name": "btf", "model.name": model, "seed": seed,
+              "dataset.name": "synthetic", "dataset.synthetic.material": "plain_weave",
+              "btf.crop.size": 12, "train.epochs": 6, **settings}
+    key = f"{model}-{seed}-{sorted(settings.items())}"
+    _log_run(experiment_id, params, {"n_directions": 729, **metrics}, {"cache.evaluate": key})
+
+
+def test_a_table_holds_one_experiment_and_names_what_differs_in_words(tmp_path, settings):
+    """Smoke, demo and rate-distortion runs in one store: a section and a folder per
+    experiment; a column per recipe, labelled by the fewest settings that tell it apart,
+    in words (a smoke run against a run differing in five correlated settings: one)."""
+    smoke = init_store(tmp_path, "smoke")
+    for seed in (0, 1):
+        _log_btf(smoke, "clustered", seed, {"rmse": 0.05 + seed / 1000}, **{"model.k": 8})
+    rate = init_store(tmp_path, "rate_distortion_smoke")
+    for latent in (2, 8):
+        for dtype in ("float32", "float16"):
+            _log_btf(rate, "neural_btf", 0, {"rmse": 0.1 / latent},
+                     **{"btf.network.latent": latent, "btf.sizes.weight_dtype": dtype})
+    # Another Neural BTF recipe in five settings at once (a longer, held-out demo run).
+    _log_btf(rate, "neural_btf", 0, {"rmse": 0.02},
+             **{"btf.network.latent": 8, "btf.sizes.weight_dtype": "float32",
+                "btf.interpolation.holdout_lights": 6, "train.lr": 0.01,
+                "train.optimizer": "sgd", "train.batch_size": 64, "train.max_steps": 500})
+    out = build_tables(tmp_path, settings)
+
+    assert out == tmp_path / "tables"
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["rate_distortion_smoke",
+                                                                    "smoke"]
+    assert list(pd.read_csv(out / "smoke" / "table2_rmse.csv").columns) == ["dataset", "k = 8"]
+    columns = list(pd.read_csv(out / "rate_distortion_smoke" / "table2_rmse.csv").columns)
+    assert columns == ["dataset", "Neural BTF (latent 2, float16)",
+                       "Neural BTF (latent 2, float32)", "Neural BTF (latent 8, float16)",
+                       "Neural BTF (latent 8, float32)",
+                       "Neural BTF (latent 8, float32, 6 lights held out)"]
+    recipes = pd.read_csv(out / "rate_distortion_smoke" / "table2_columns.csv")
+    five = recipes.loc[recipes["model"].str.contains("held out"), "differs in"].iloc[0]
+    assert "train.lr=0.01" in five and "btf.interpolation.holdout_lights=6" in five
+    summary = (out / "summary.md").read_text()
+    assert "# Experiment `smoke`: 2 finished jobs" in summary
+    assert "# Experiment `rate_distortion_smoke`: 5 finished jobs" in summary
+    assert "](smoke/rmse_vs_k.png)" in summary  # figures linked into their folder
+    assert "No finished" not in summary
+    assert not re.search(r"recipe [0-9a-f]{6}|\+\d+ more", summary)  # no hashes, no walls
+
+
+def test_the_graininess_table_compares_rmse_over_the_same_directions(tmp_path, settings):
+    """With lights held out, Table 2's RMSE covers the trained directions (0.05244) and
+    the logged scaled/unscaled RMSEs all of them (0.05251): the graininess table shows the
+    latter for every model, the nearest unscaled one included, and says so."""
+    experiment_id = init_store(tmp_path, "btf")
+    for k, trained, every in ((128, 0.05244, 0.05251), (256, 0.04000, 0.04100)):
+        _log_btf(experiment_id, "clustered", 0, {
+            "rmse": trained, "rmse_train_dirs": trained, "rmse_all_dirs": every,
+            "rmse_without_texel_scale": every, "rmse_with_texel_scale": every - 0.005,
+            "bytes_total": 100_000 + k, "bytes_extra": 0, "n_texels": 144},
+            **{"model.k": k, "btf.interpolation.holdout_lights": 6})
+    out = build_tables(tmp_path, settings)
+    rmse = pd.read_csv(out / "table2_rmse.csv")
+    assert rmse.loc[0, "k = 128"] == "0.0524 (n=1)"  # over the trained directions
+    grain = pd.read_csv(out / "graininess.csv").set_index("model")
+    assert grain.loc["k = 128", "without scale, all dirs"] == "0.0525 (n=1)"
+    assert grain.loc["k = 128", "nearest in bytes, no scale"] == "k = 256"
+    assert grain.loc["k = 128", "its RMSE, all dirs"] == "0.0410 (n=1)"  # not its 0.0400
+    assert "Table 2's are over the trained directions" in (out / "graininess.md").read_text()
+
+
+def test_a_model_that_stores_its_scale_lists_its_bytes_without_and_with_it(tmp_path,
+                                                                           settings):
+    """A +scale run's bytes_total holds the scale (144 texels x float16 = 288 B): the
+    'bytes' column is without it, 'bytes with scale' with it, never the same number; the
+    nearest unscaled model is of the same recipe but k and scale."""
+    experiment_id = init_store(tmp_path, "btf")
+    common = {"btf.sizes.weight_dtype": "float32", "btf.sizes.list_dtype": "uint16"}
+    for k, scale, extra in ((4, "lstsq", 288), (4, "none", 0), (16, "none", 0)):
+        rmse = 0.15 - k / 1000 - (0.01 if extra else 0)
+        _log_btf(experiment_id, "clustered", 0, {
+            "rmse": rmse, "rmse_without_texel_scale": 0.15 - k / 1000,
+            "rmse_with_texel_scale": 0.14 - k / 1000, "bytes_extra": extra,
+            "bytes_total": 97_948 + 96 * (k > 4) * 4 + extra, "n_texels": 144},
+            **common, **{"model.k": k, "model.texel_scale": scale,
+                         "btf.sizes.extra_dtype": "float16" if extra else "float32"})
+    grain = pd.read_csv(build_tables(tmp_path, settings) / "graininess.csv").set_index("model")
+    assert grain.loc["k = 4 +scale", "bytes"] == 97_948
+    assert grain.loc["k = 4 +scale", "bytes with scale"] == 97_948 + 288
+    assert grain.loc["k = 4 +scale", "nearest in bytes, no scale"] == "k = 16"
+    assert grain.loc["k = 4", "bytes with scale"] == 97_948 + 4 * 144  # float32 when unstored
+
+
+def test_a_hash_names_a_column_only_where_no_logged_setting_tells_it_apart():
+    from pipeline.btf.tables import recipe_labels
+
+    runs = pd.DataFrame({"dataset": "d", "model": "k = 8",
+                         "params.train.lr": ["0.1", "0.1", "0.2"],
+                         "params.btf.crop.size": ["12", "12", "48"],
+                         "tags.recipe": ["aaaaaa1", "bbbbbb2", "cccccc3"]})
+    assert list(recipe_labels(runs, ["dataset", "model"])) == [
+        " (12² crop) recipe aaaaaa", " (12² crop) recipe bbbbbb", " (48² crop)"]
+    alike = runs.assign(**{"params.btf.crop.size": "12"})  # no setting differs at all
+    assert list(recipe_labels(alike.iloc[:2], ["dataset", "model"])) == [
+        " recipe aaaaaa", " recipe bbbbbb"]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 from omegaconf import OmegaConf
@@ -139,22 +140,28 @@ def verdict(runs: pd.DataFrame, limit: int = 12) -> list[str]:
         lines.append(f"{dataset}: RMSE (mean-ABRDF baseline {baseline:.4f}) and stored bytes"
                      if pd.notna(baseline) else f"{dataset}: RMSE and stored bytes")
         models = list(group.sort_values(["order", "model"]).groupby("model", sort=False))
-        width = max(len(model) for model, _ in models[:limit])
-        for model, of_model in models[:limit]:
-            rmse = pd.to_numeric(of_model["metrics.rmse"], errors="coerce")
-            spread = f" ± {rmse.std(ddof=1):.4f} (n={len(rmse)})" if len(rmse) > 1 else ""
-            line = f"  {model:<{width}}  {rmse.mean():.4f}{spread}"
-            if pd.notna(baseline):
-                ratio = rmse.mean() / baseline
-                line += f"  = {ratio:.2f} x baseline"
-                line += "  (training failed: near the baseline)" if ratio >= FAILED else ""
-            total = pd.to_numeric(of_model.get("metrics.bytes_total"), errors="coerce")
-            if total is not None and total.notna().any():
-                line += f"  {int(total.dropna().iloc[0]):,} B"
-            lines.append(line)
+        rows = [_verdict_row(model, of_model, baseline) for model, of_model in models[:limit]]
+        widths = [max(len(row[i]) for row in rows) for i in range(4)]
+        for row in rows:
+            cells = [row[0].ljust(widths[0]), row[1].ljust(widths[1]),
+                     row[2].ljust(widths[2]), row[3].rjust(widths[3]), row[4]]
+            lines.append("  " + "  ".join(cells).rstrip())
         if len(models) > limit:
             lines.append(f"  … and {len(models) - limit} more models (see the tables)")
     return lines
+
+
+def _verdict_row(model: str, runs: pd.DataFrame, baseline: float) -> list[str]:
+    """Label, RMSE (± std, n), its ratio to ``baseline``, bytes and a failure flag."""
+    rmse = pd.to_numeric(runs["metrics.rmse"], errors="coerce")
+    spread = f" ± {rmse.std(ddof=1):.4f} (n={len(rmse)})" if len(rmse) > 1 else ""
+    ratio = rmse.mean() / baseline if pd.notna(baseline) else np.nan
+    total = pd.to_numeric(runs.get("metrics.bytes_total", pd.Series(dtype=float)),
+                          errors="coerce").dropna()
+    return [model, f"{rmse.mean():.4f}{spread}",
+            f"= {ratio:.2f} x baseline" if pd.notna(ratio) else "",
+            f"{int(total.iloc[0]):,} B" if not total.empty else "",
+            "training failed (not below 0.9 x baseline)" if ratio >= FAILED else ""]
 
 
 def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path) -> list[Path]:

@@ -73,8 +73,9 @@ WORDS = {
 def distinguishing(settings: pd.DataFrame) -> list[str]:
     """The fewest columns of ``settings`` (one row per run, values as strings) whose values
     tell its distinct rows apart: greedily the column that splits the runs into the most
-    groups, ties going to the settings of :data:`WORDS` in their order. Two recipes that
-    differ in ten correlated settings (a smoke run against a demo run) are told apart by one.
+    groups, ties going to settings every run logged, then to those of :data:`WORDS` in
+    their order. Two recipes that differ in ten correlated settings (a smoke run against a
+    demo run) are told apart by one.
     """
     varying = [c for c in settings.columns if settings[c].nunique() > 1]
     if not varying:
@@ -85,41 +86,50 @@ def distinguishing(settings: pd.DataFrame) -> list[str]:
     while not chosen or len(settings[chosen].drop_duplicates()) < target:
         best = max((c for c in varying if c not in chosen),
                    key=lambda c: (len(settings[[*chosen, c]].drop_duplicates()),
+                                  not (settings[c] == ABSENT).any(),
                                   -rank.get(c, len(rank)), -len(c)))
         chosen.append(best)
     return sorted(chosen, key=lambda c: (rank.get(c, len(rank)), c))
 
 
-def in_words(values: pd.Series) -> str:
+def in_words(values: pd.Series, absent: bool = False) -> str:
     """``" (latent 2, float16) [train.lr=0.01]"``: settings (name -> value) in words where
-    :data:`WORDS` has them, the others as key=value."""
-    worded = [WORDS[k](v) if v != ABSENT else f"{k} not logged"
-              for k, v in values.items() if k in WORDS]
-    plain = [f"{k}={v}" for k, v in values.items() if k not in WORDS]
+    :data:`WORDS` has them, the others as key=value; a setting the run did not log
+    (:data:`ABSENT`) is left out, or with ``absent`` said to be."""
+    logged = values[values != ABSENT]
+    worded = [WORDS[k](v) for k, v in logged.items() if k in WORDS]
+    plain = [f"{k}={v}" for k, v in logged.items() if k not in WORDS]
+    plain += [f"{k} not logged" for k in values.index[values == ABSENT]] if absent else []
     return ((f" ({', '.join(worded)})" if worded else "")
             + (f" [{', '.join(plain)}]" if plain else ""))
 
 
-def recipe_labels(runs: pd.DataFrame, by: list[str], ignore=(), render: bool = False,
-                  tag: str | None = None) -> pd.Series:
+def recipe_labels(runs: pd.DataFrame, by: list[str], ignore=(), render: bool = False
+                  ) -> pd.Series:
     """For each run, what tells its recipe apart from the other recipes with the same
     values in the columns ``by`` (say, dataset and model label), in words
     (:func:`in_words` of :func:`distinguishing`); ``""`` where the group has one recipe.
 
     Runs with equal labels in a group have equal recipes, less the settings in ``ignore``
     (the table's own axis, such as ``model.k``): grouping by ``by`` plus the label pools
-    seeds only. Where the logged settings are equal but the recipe tags (``tag``) are not,
-    the tag's first 6 characters are added: the one case a hash says more than words.
+    seeds only. Where the logged settings are equal but the recipe tags are not (``recipe``,
+    or ``render_recipe`` with ``render``), the tag's first 6 characters are added: the one
+    case a hash says more than words.
     """
     labels = pd.Series("", index=runs.index, dtype=object)
     if runs.empty:
         return labels
-    tag = tag or (RENDER_RECIPE_TAG if render else RECIPE_TAG)
+    tag = RENDER_RECIPE_TAG if render else RECIPE_TAG
     settings = run_settings(runs, render).drop(columns=list(ignore), errors="ignore")
     for _, group in settings.groupby([runs[b] for b in by], sort=False, dropna=False):
         keys = distinguishing(group)
-        for index in group.index:
-            labels[index] = in_words(group.loc[index, keys]) if keys else ""
+        if keys:
+            for index in group.index:
+                labels[index] = in_words(group.loc[index, keys])
+        if keys and labels[group.index].nunique() < len(group[keys].drop_duplicates()):
+            # Only a setting some run did not log tells them apart: name it after all.
+            for index in group.index:
+                labels[index] = in_words(group.loc[index, keys], absent=True)
         if tag in runs and not ignore:
             tags = runs.loc[group.index, tag].astype(str)
             for _, same in tags.groupby(labels[group.index]):

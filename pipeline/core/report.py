@@ -85,7 +85,7 @@ def save_figure(fig, path: Path, dpi: int = 110) -> Path:
 
 def write_table(table: pd.DataFrame, out: Path, stem: str, title: str, note: str = "") -> str:
     """Write ``stem``.md/.csv/.tex into ``out`` (each atomically); return the Markdown
-    section.
+    section. A missing value is an empty CSV cell and "–" in Markdown and LaTeX.
 
     Raises
     ------
@@ -94,9 +94,10 @@ def write_table(table: pd.DataFrame, out: Path, stem: str, title: str, note: str
     """
     index = table.index.name is not None
     write_file(out / f"{stem}.csv", table.to_csv(index=index))
-    write_file(out / f"{stem}.tex",
-               table.to_latex(index=index, caption=title, label=f"tab:{stem}"))
-    markdown = f"## {title}\n\n{table.to_markdown(index=index)}\n\n{note}\n"
+    write_file(out / f"{stem}.tex", table.to_latex(index=index, caption=title,
+                                                   label=f"tab:{stem}", na_rep="--"))
+    shown = table.astype(object).where(table.notna(), None)  # tabulate: None is missing
+    markdown = f"## {title}\n\n{shown.to_markdown(index=index, missingval='–')}\n\n{note}\n"
     write_file(out / f"{stem}.md", markdown)
     return markdown
 
