@@ -18,8 +18,9 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)  ## the main job: default experiment on the built-in synthetic BTF
 	$(PY) -m pipeline
 
-test: $(STAMP)  ## the default (fast) test suite
-	$(PY) -m ruff check pipeline tests hydra_plugins
+test: $(STAMP)  ## the default (fast) test suite: lint, format, pytest
+	$(PY) -m ruff check pipeline tests hydra_plugins scripts
+	$(PY) -m ruff format --check pipeline tests hydra_plugins scripts
 	$(PY) -m pytest -q
 
 tables: $(STAMP)

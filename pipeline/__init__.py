@@ -65,8 +65,15 @@ _PUBLIC = {
     "read_merl_brdf": "pipeline.data.brdf",
 }
 __all__ = [  # the keys of _PUBLIC, spelled out for linters and star-imports
-    "CompressedBTF", "build_tables", "load_btf", "load_compressed", "load_light_stack",
-    "load_ubo2014", "read_merl_brdf", "read_utia_brdf", "tracking_uri",
+    "CompressedBTF",
+    "build_tables",
+    "load_btf",
+    "load_compressed",
+    "load_light_stack",
+    "load_ubo2014",
+    "read_merl_brdf",
+    "read_utia_brdf",
+    "tracking_uri",
 ]
 
 if TYPE_CHECKING:  # what editors and type checkers see; at run time __getattr__ loads them

@@ -24,8 +24,12 @@ def main(cfg: DictConfig) -> float | None:
 
     # A typo is answered here, before the job imports torch and MLflow.
     try:
-        check_added_keys(cfg, list(HydraConfig.get().overrides.task), CONF_DIR,
-                         compose=lambda overrides: hydra.compose("config", overrides))
+        check_added_keys(
+            cfg,
+            list(HydraConfig.get().overrides.task),
+            CONF_DIR,
+            compose=lambda overrides: hydra.compose("config", overrides),
+        )
         from pipeline.app import run_job
 
         return run_job(cfg)

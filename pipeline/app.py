@@ -33,8 +33,9 @@ def run_job(cfg: DictConfig) -> float | None:
     if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool) or cfg.seed < 0:
         raise ConfigError(f"seed={cfg.seed!r} must be an integer >= 0")
     threads = cfg.get("threads")
-    if threads is not None and (not isinstance(threads, int) or isinstance(threads, bool)
-                                or threads < 1):
+    if threads is not None and (
+        not isinstance(threads, int) or isinstance(threads, bool) or threads < 1
+    ):
         raise ConfigError(f"threads={threads!r} must be an integer >= 1 or null (all cores)")
     if method.check is not None:
         method.check(cfg)
@@ -43,9 +44,15 @@ def run_job(cfg: DictConfig) -> float | None:
     # SIGTERM/SIGINT end the run FAILED and the process, wherever they land; its temporary
     # files under these folders go with it (pipeline.core.stopping).
     leftovers = [cfg.paths.get(folder) for folder in ("runs", "cache", "data")]
-    with stopping.job_scope(leftovers_in=[f for f in leftovers if f]), \
-            job_run(cfg, run_name=method.name_run(cfg), description=method.description,
-                    unused=method.left_out(cfg)) as run:
+    with (
+        stopping.job_scope(leftovers_in=[f for f in leftovers if f]),
+        job_run(
+            cfg,
+            run_name=method.name_run(cfg),
+            description=method.description,
+            unused=method.left_out(cfg),
+        ) as run,
+    ):
         ctx = Context.from_config(cfg)
         try:
             with threadpool_limits(cfg.get("threads")):  # numpy's BLAS and OpenMP pools
@@ -58,13 +65,18 @@ def run_job(cfg: DictConfig) -> float | None:
             # Grouped under "time/" and "memory/" (the UI folds names by their prefix).
             mlflow.set_tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
             mlflow.log_metrics({f"time/{s}_seconds": t for s, t in ctx.seconds.items()})
-            mlflow.log_metrics({f"memory/{s}_peak_rss_mb": v
-                                for s, v in ctx.peak_rss_mb.items()})
+            mlflow.log_metrics({f"memory/{s}_peak_rss_mb": v for s, v in ctx.peak_rss_mb.items()})
             mlflow.log_metric("memory/peak_rss_mb", process_peak_mb())
         if method.figures is not None:
             log_job_figures(method, cfg, ctx.keys)
-        print_result(method, method.name_run(cfg), metrics, run.info.run_id,
-                     mlflow.get_artifact_uri(), cfg.paths.runs)
+        print_result(
+            method,
+            method.name_run(cfg),
+            metrics,
+            run.info.run_id,
+            mlflow.get_artifact_uri(),
+            cfg.paths.runs,
+        )
     headline = [metrics[name] for name in method.headline if name in metrics]
     return headline[0] if headline else None
 
@@ -78,14 +90,14 @@ def log_job_figures(method: Method, cfg: DictConfig, cache_keys: dict[str, str])
             mlflow.log_artifacts(folder, "figures")
 
 
-def print_result(method: Method, name: str, metrics: dict[str, float], run_id: str,
-                 artifacts: str, runs_dir) -> None:
+def print_result(
+    method: Method, name: str, metrics: dict[str, float], run_id: str, artifacts: str, runs_dir
+) -> None:
     """The job's last words: its headline metrics, its run and where its files are."""
     from urllib.parse import unquote, urlparse
 
     lines = [f"{name}: run {run_id} finished"]
-    lines += [f"  {name:<26} {metrics[name]:.6g}" for name in method.headline
-              if name in metrics]
+    lines += [f"  {name:<26} {metrics[name]:.6g}" for name in method.headline if name in metrics]
     uri = urlparse(artifacts)
     folder = Path(unquote(uri.path)) if uri.scheme in ("", "file") else None
     lines.append(f"  files    {folder or artifacts}")
@@ -134,16 +146,21 @@ def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | Non
     if parent_id is not None:
         head += f", parent run {parent_id}"
     tables = Path(config.paths.runs) / "tables"
-    lines = [head, *found, f"Tables: {(tables / 'summary.html').resolve()} (this "
-             f"experiment's: {(out / 'summary.html').resolve()})"]
+    lines = [
+        head,
+        *found,
+        f"Tables: {(tables / 'summary.html').resolve()} (this "
+        f"experiment's: {(out / 'summary.html').resolve()})",
+    ]
     print("\n".join(lines), flush=True)
     if parent_id is not None and uri is not None and found:
         from mlflow.tracking import MlflowClient
 
         client = MlflowClient(uri)
         note = client.get_run(parent_id).data.tags.get(NOTE_TAG, "")
-        client.set_tag(parent_id, NOTE_TAG, "**Result**\n\n```\n" + "\n".join(found)
-                       + "\n```\n\n" + note)
+        client.set_tag(
+            parent_id, NOTE_TAG, "**Result**\n\n```\n" + "\n".join(found) + "\n```\n\n" + note
+        )
 
 
 def log_headlines(uri: str, parent_id: str) -> None:
@@ -160,21 +177,29 @@ def log_headlines(uri: str, parent_id: str) -> None:
     client = MlflowClient(uri)
     parent = client.get_run(parent_id)
     swept = {key for key, value in parent.data.params.items() if "," in value}  # a list
-    children = [child for child in client.search_runs(
-        [parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent_id}'")
-        if child.info.status == "FINISHED" and child.data.params.get("method.spec")]
+    children = [
+        child
+        for child in client.search_runs(
+            [parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent_id}'"
+        )
+        if child.info.status == "FINISHED" and child.data.params.get("method.spec")
+    ]
     names = Counter(child.info.run_name for child in children)
     values = []
     for child in children:
         job = child.info.run_name or child.info.run_id
         if names[child.info.run_name] > 1:
-            job += " " + " ".join(o for o in child.data.tags.get("overrides", "").split()
-                                  if o.split("=")[0] in swept and not o.startswith("seed="))
+            job += " " + " ".join(
+                o
+                for o in child.data.tags.get("overrides", "").split()
+                if o.split("=")[0] in swept and not o.startswith("seed=")
+            )
         # MLflow takes letters, digits and "_-. :/" in a metric's name.
         job = re.sub(r"[^\w\-. :/]", "_", job.strip())
         for name in resolve(child.data.params["method.spec"]).headline:
             if name in child.data.metrics:
-                values.append(Metric(f"{job}/{name}", child.data.metrics[name],
-                                     child.info.end_time or 0, 0))
+                values.append(
+                    Metric(f"{job}/{name}", child.data.metrics[name], child.info.end_time or 0, 0)
+                )
     if values:
         client.log_batch(parent_id, metrics=values)

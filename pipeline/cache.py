@@ -96,27 +96,37 @@ def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
         from mlflow.tracking import MlflowClient
 
         client = MlflowClient(uri)
-        experiments = [e.experiment_id for e in all_pages(
-            client.search_experiments, view_type=ViewType.ACTIVE_ONLY)]
+        experiments = [
+            e.experiment_id
+            for e in all_pages(client.search_experiments, view_type=ViewType.ACTIVE_ONLY)
+        ]
         usage = Usage(uri)
         if fail_dead and experiments:
-            usage.dead = fail_dead_runs(client, experiments,
-                                        ended_by="its process was gone at a cache gc")
+            usage.dead = fail_dead_runs(
+                client, experiments, ended_by="its process was gone at a cache gc"
+            )
         starts = []
-        runs_found = all_pages(client.search_runs, experiment_ids=experiments,
-                                run_view_type=ViewType.ACTIVE_ONLY) if experiments else []
+        runs_found = (
+            all_pages(
+                client.search_runs, experiment_ids=experiments, run_view_type=ViewType.ACTIVE_ONLY
+            )
+            if experiments
+            else []
+        )
         for run in runs_found:
             if run.info.status == "FINISHED":
                 usage.n_finished += 1
-                usage.finished |= {value for name, value in run.data.tags.items()
-                                   if name.startswith("cache.")}
+                usage.finished |= {
+                    value for name, value in run.data.tags.items() if name.startswith("cache.")
+                }
             elif run.info.status in IN_PROGRESS and process_gone(run):
                 usage.dead.append(run.info.run_id)
             elif run.info.status in IN_PROGRESS:
                 starts.append(run.info.start_time / 1000)
     except Exception as err:  # any failure of the store or its client: delete nothing
         raise StoreError(
-            f"cannot read the MLflow store {uri} ({type(err).__name__}: {err})") from err
+            f"cannot read the MLflow store {uri} ({type(err).__name__}: {err})"
+        ) from err
     usage.running_since = min(starts, default=None)
     return usage
 
@@ -131,9 +141,17 @@ def scan(cache: StageCache) -> list[Row]:
             entry, _ = cache.read(stage, key)  # the manifest only: no file is checked
             manifest = entry.manifest if entry is not None else {}
             path = cache.entry_path(stage, key)
-            rows.append(Row(stage, key, path, folder_bytes(path),
-                            manifest.get("created") if entry is not None else None,
-                            last_used(path), list(manifest.get("inputs", {}).values())))
+            rows.append(
+                Row(
+                    stage,
+                    key,
+                    path,
+                    folder_bytes(path),
+                    manifest.get("created") if entry is not None else None,
+                    last_used(path),
+                    list(manifest.get("inputs", {}).values()),
+                )
+            )
     return rows
 
 
@@ -184,8 +202,10 @@ def ls(cache: StageCache, runs: Path, entries: bool) -> int:
     temporaries = cache.temporaries()
     if temporaries:
         size = human(sum(folder_bytes(t) for t in temporaries))
-        print(f"{'temporary folders':<24} {len(temporaries):>7} {size:>10}   (computing, or "
-              f"left by killed jobs: gc removes those)")
+        print(
+            f"{'temporary folders':<24} {len(temporaries):>7} {size:>10}   (computing, or "
+            f"left by killed jobs: gc removes those)"
+        )
     return 0
 
 
@@ -203,8 +223,15 @@ def verify(cache: StageCache, fix: bool) -> int:
     total = sum(folder_bytes(cache.entry_path(*f)) for f in folders)
     problems: dict[str, str] = {}
     children: dict[str, list[str]] = {}
-    with tqdm(total=total, unit="B", unit_scale=True, unit_divisor=1024, desc="verify",
-              file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
+    with tqdm(
+        total=total,
+        unit="B",
+        unit_scale=True,
+        unit_divisor=1024,
+        desc="verify",
+        file=sys.stderr,
+        disable=not sys.stderr.isatty(),
+    ) as bar:
         for stage, key in folders:
             entry, problem = cache.check(stage, key, hashes=True, progress=bar.update)
             if problem is not None:
@@ -219,8 +246,9 @@ def verify(cache: StageCache, fix: bool) -> int:
         parent = todo.pop()
         for child in children.get(parent, []):
             if child not in problems:
-                problems[child] = (f"computed from the damaged entry "
-                                   f"{cache.entry_path(stage_of[parent], parent)}")
+                problems[child] = (
+                    f"computed from the damaged entry {cache.entry_path(stage_of[parent], parent)}"
+                )
                 todo.append(child)
     damaged = [(stage, key) for stage, key in folders if key in problems]
     for stage, key in damaged:
@@ -228,8 +256,10 @@ def verify(cache: StageCache, fix: bool) -> int:
         if fix:
             removed = cache.remove(stage, key, unless_used_since=started)
             print("  removed" if removed else "  kept: a job is computing it again")
-    print(f"verified {len(folders)} entries ({human(total)}) in {time.time() - started:.1f} s: "
-          f"{len(damaged)} damaged" + (" (removed)" if fix and damaged else ""))
+    print(
+        f"verified {len(folders)} entries ({human(total)}) in {time.time() - started:.1f} s: "
+        f"{len(damaged)} damaged" + (" (removed)" if fix and damaged else "")
+    )
     return 1 if damaged else 0
 
 
@@ -245,14 +275,19 @@ def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
         print(f"gc: {err}; nothing removed", file=sys.stderr)
         return 2
     if usage.dead:
-        print(f"{'would mark' if dry_run else 'marked'} {len(usage.dead)} RUNNING runs FAILED: "
-              f"their processes on this host are gone ({', '.join(usage.dead)})")
+        print(
+            f"{'would mark' if dry_run else 'marked'} {len(usage.dead)} RUNNING runs FAILED: "
+            f"their processes on this host are gone ({', '.join(usage.dead)})"
+        )
     rows = scan(cache)
     why = kept(rows, usage)
     if rows and not why:
-        print(f"gc: no finished run in {usage.uri} ({usage.n_finished} finished) uses any of "
-              f"the {len(rows)} entries under {cache.root}; nothing removed (is paths.runs right? "
-              f"to empty the cache, delete the folder)", file=sys.stderr)
+        print(
+            f"gc: no finished run in {usage.uri} ({usage.n_finished} finished) uses any of "
+            f"the {len(rows)} entries under {cache.root}; nothing removed (is paths.runs right? "
+            f"to empty the cache, delete the folder)",
+            file=sys.stderr,
+        )
         return 2
     verb = "would remove" if dry_run else "removed"
     freed, n_removed = 0, 0
@@ -269,20 +304,30 @@ def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
     for folder, reason in stale:
         print(f"{verb} {folder} ({human(sizes.get(folder, 0))}; {reason})")
         freed += sizes.get(folder, 0)
-    running = "" if usage.running_since is None else (
-        f", and what was used since {_when(usage.running_since)} (a run is still RUNNING)")
-    print(f"kept {len(why)} entries ({human(sum(r.bytes for r in rows if r.key in why))}): those "
-          f"of {usage.n_finished} finished runs and their inputs{running}")
-    print(f"{verb} {n_removed} entries and {len(stale)} temporary folders: "
-          f"{human(freed)} {'would be ' if dry_run else ''}freed")
+    running = (
+        ""
+        if usage.running_since is None
+        else (f", and what was used since {_when(usage.running_since)} (a run is still RUNNING)")
+    )
+    print(
+        f"kept {len(why)} entries ({human(sum(r.bytes for r in rows if r.key in why))}): those "
+        f"of {usage.n_finished} finished runs and their inputs{running}"
+    )
+    print(
+        f"{verb} {n_removed} entries and {len(stale)} temporary folders: "
+        f"{human(freed)} {'would be ' if dry_run else ''}freed"
+    )
     return 0
 
 
 # ------------------------------------------------------------------ the command line
 
 PROG = "python -m pipeline.cache"
-COMMANDS = {"ls": "entries and size per stage", "verify": "check every file's hash",
-            "gc": "remove entries no finished run uses"}
+COMMANDS = {
+    "ls": "entries and size per stage",
+    "verify": "check every file's hash",
+    "gc": "remove entries no finished run uses",
+}
 
 
 @dataclass(frozen=True)
@@ -306,19 +351,29 @@ BOOLEAN = OneOf(True, False)
 # Each key of the command line: its field, what it may be, and what it sets.
 KEYS = {
     "paths.runs": ("runs", cli.Text(), "the runs folder (MLflow store: <runs>/mlflow.db)"),
-    "paths.cache": ("cache", cli.Text(optional=True), "the cache folder (null: <paths.runs>/cache)"),
-    "entries": ("entries", BOOLEAN, "ls: one line per entry (key, size, created, whether a run "
-                                    "uses it)"),
+    "paths.cache": (
+        "cache",
+        cli.Text(optional=True),
+        "the cache folder (null: <paths.runs>/cache)",
+    ),
+    "entries": (
+        "entries",
+        BOOLEAN,
+        "ls: one line per entry (key, size, created, whether a run uses it)",
+    ),
     "fix": ("fix", BOOLEAN, "verify: remove the damaged entries"),
     "dry_run": ("dry_run", BOOLEAN, "gc: list what would be removed, remove nothing"),
 }
 ONLY_FOR = {"entries": "ls", "fix": "verify", "dry_run": "gc"}  # key -> its one command
 
 COMMAND = cli.Command(
-    PROG, KEYS, CacheSettings,
+    PROG,
+    KEYS,
+    CacheSettings,
     "\n".join(f"  {name:<6} {text}" for name, text in COMMANDS.items())
     + "\n\nSettings and their defaults:",
-    synopsis=f"{{{','.join(COMMANDS)}}} [key=value ...]")
+    synopsis=f"{{{','.join(COMMANDS)}}} [key=value ...]",
+)
 
 
 def parse(argv: list[str]) -> CacheSettings:

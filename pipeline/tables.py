@@ -76,8 +76,9 @@ def build_tables(
                 if kept.is_dir() and kept.name not in {folder_name(e) for e in chosen}:
                     shutil.copytree(kept, new / kept.name)
         for experiment, of_experiment in by_experiment.items():
-            write_experiment(runs_dir, experiment, of_experiment, new / folder_name(experiment),
-                             settings)
+            write_experiment(
+                runs_dir, experiment, of_experiment, new / folder_name(experiment), settings
+            )
         write_index(new, tracking_uri(runs_dir))
         replace_folder(out, new)
     finally:
@@ -96,8 +97,7 @@ def folder_name(experiment: str) -> str:
 def _by_experiment(runs: pd.DataFrame, chosen: list[str]) -> dict[str, pd.DataFrame]:
     """The runs of each experiment that has finished runs (and each named one), in order."""
     names = list(chosen) or (sorted(runs["experiment"].unique()) if not runs.empty else [])
-    return {name: runs[runs["experiment"] == name] if not runs.empty else runs
-            for name in names}
+    return {name: runs[runs["experiment"] == name] if not runs.empty else runs for name in names}
 
 
 def report_methods() -> list[tuple[object, list[Method]]]:
@@ -109,8 +109,9 @@ def report_methods() -> list[tuple[object, list[Method]]]:
     return [(resolve(name), methods) for name, methods in pairs.items()]
 
 
-def write_experiment(runs_dir, experiment: str, runs: pd.DataFrame, folder: Path,
-                     settings: DictConfig) -> str:
+def write_experiment(
+    runs_dir, experiment: str, runs: pd.DataFrame, folder: Path, settings: DictConfig
+) -> str:
     """Write one experiment's tables and figures into ``folder`` (made here) with its
     ``summary.md`` and ``summary.html``; return the summary. Only the reports of methods
     with runs in it are asked for sections."""
@@ -137,8 +138,11 @@ def write_index(tables: Path, uri: str) -> None:
     if not folders:
         parts.append("No finished run in the store: `python -m pipeline` runs the demo.\n")
     else:
-        parts.append("One section per MLflow experiment, its files in its folder: "
-                     + ", ".join(f"[{p.name}/]({p.name}/summary.html)" for p in folders) + "\n")
+        parts.append(
+            "One section per MLflow experiment, its files in its folder: "
+            + ", ".join(f"[{p.name}/]({p.name}/summary.html)" for p in folders)
+            + "\n"
+        )
     for folder in folders:
         text = (folder / SUMMARY).read_text()
         # Figures are linked by name from their folder's summary: here, by folder/name.
@@ -166,11 +170,18 @@ def log_tables(runs_dir, out: Path, settings: DictConfig, run_id: str | None, n_
 
     client = MlflowClient(tracking_uri(runs_dir))
     if run_id is None:
-        note = ("`python -m pipeline.tables`: every method's tables and figures, regenerated "
-                "from the finished runs of the experiments and filter in its params.")
-        experiment_id = init_store(runs_dir, TABLES_EXPERIMENT, note=(
-            "**Tables**: one run per `python -m pipeline.tables`; its artifacts are the "
-            "tables it wrote (open `tables/summary.html`), its params what it read."))
+        note = (
+            "`python -m pipeline.tables`: every method's tables and figures, regenerated "
+            "from the finished runs of the experiments and filter in its params."
+        )
+        experiment_id = init_store(
+            runs_dir,
+            TABLES_EXPERIMENT,
+            note=(
+                "**Tables**: one run per `python -m pipeline.tables`; its artifacts are the "
+                "tables it wrote (open `tables/summary.html`), its params what it read."
+            ),
+        )
         tags = environment_tags()
         tags[NOTE_TAG] = note
         run = client.create_run(experiment_id, run_name=f"tables {out.name}", tags=tags)
@@ -198,12 +209,15 @@ def verdict(runs: pd.DataFrame, limit: int = LIMIT) -> list[str]:
     for method in registered():
         shown = []
         for _, run in runs_of(runs, [method.name]).iterrows():
-            values = [f"{h} {run[f'metrics.{h}']:.4g}" for h in method.headline
-                      if pd.notna(run.get(f"metrics.{h}"))]
-            shown.append(f"  {run.get('tags.mlflow.runName', run['run_id'])}: "
-                         + ", ".join(values))
-        lines += shown[:limit] + ([f"  … and {len(shown) - limit} more runs"]
-                                  if len(shown) > limit else [])
+            values = [
+                f"{h} {run[f'metrics.{h}']:.4g}"
+                for h in method.headline
+                if pd.notna(run.get(f"metrics.{h}"))
+            ]
+            shown.append(f"  {run.get('tags.mlflow.runName', run['run_id'])}: " + ", ".join(values))
+        lines += shown[:limit] + (
+            [f"  … and {len(shown) - limit} more runs"] if len(shown) > limit else []
+        )
     return lines
 
 
@@ -239,8 +253,10 @@ def main(cfg: DictConfig) -> None:
         refuse(error)
     tables = out if out.name == "tables" else out.parent
     folders = sorted(p.name for p in tables.iterdir() if (p / SUMMARY).is_file())
-    print(f"tables of {len(folders)} experiments ({', '.join(folders) or 'none'}) in "
-          f"{tables.resolve()}/<experiment>/; all of them: {tables.resolve() / 'summary.html'}")
+    print(
+        f"tables of {len(folders)} experiments ({', '.join(folders) or 'none'}) in "
+        f"{tables.resolve()}/<experiment>/; all of them: {tables.resolve() / 'summary.html'}"
+    )
 
 
 if __name__ == "__main__":

@@ -53,34 +53,52 @@ def main() -> None:
     def rmse(a, b):
         return float(np.sqrt(np.mean(np.square(a - b, dtype=np.float64))))
 
-    materials = {name: material_from_file(path)
-                 for name, path in (m.split("=", 1) for m in args.models)}
+    materials = {
+        name: material_from_file(path) for name, path in (m.split("=", 1) for m in args.models)
+    }
     crop = next(iter(materials.values())).crop_size
-    truth_material = AnalyticMaterial(SyntheticBTF(size=args.texture, material=args.material),
-                                      (0, 0), crop)
+    truth_material = AnalyticMaterial(
+        SyntheticBTF(size=args.texture, material=args.material), (0, 0), crop
+    )
     truth, stats = render_with_stats(scene, truth_material, args.spp, seed=0)
-    print(json.dumps({"truth_seconds": round(stats.seconds, 1), "variant": mi.variant(),
-                      "size": args.size, "spp": args.spp}), flush=True)
+    print(
+        json.dumps(
+            {
+                "truth_seconds": round(stats.seconds, 1),
+                "variant": mi.variant(),
+                "size": args.size,
+                "spp": args.spp,
+            }
+        ),
+        flush=True,
+    )
     panels = [("truth (tracer)", truth)]
     for name, material in materials.items():
         tracer, stats = render_with_stats(scene, material, args.spp, seed=0)
         started = time.perf_counter()
         with tempfile.TemporaryDirectory() as folder:  # the scene's mesh files
-            description = scene_description(scene, folder,
-                                            mitsuba_bsdf.material_bsdf(material), args.spp)
+            description = scene_description(
+                scene, folder, mitsuba_bsdf.material_bsdf(material), args.spp
+            )
             loaded = mi.load_dict(mitsuba_dict(description))
         mitsuba = render(loaded, args.spp, seed=0)
         seconds = time.perf_counter() - started
-        print(json.dumps({
-            "model": name, "mitsuba_seconds": round(seconds, 1),
-            "tracer_seconds": round(stats.seconds, 1),
-            "rmse_mitsuba_vs_tracer": rmse(mitsuba, tracer),
-            "flip_mitsuba_vs_tracer": flip(shown(tracer), shown(mitsuba)),
-            "rmse_mitsuba_vs_truth": rmse(mitsuba, truth),
-            "flip_mitsuba_vs_truth": flip(shown(truth), shown(mitsuba)),
-            "rmse_tracer_vs_truth": rmse(tracer, truth),
-            "flip_tracer_vs_truth": flip(shown(truth), shown(tracer)),
-        }), flush=True)
+        print(
+            json.dumps(
+                {
+                    "model": name,
+                    "mitsuba_seconds": round(seconds, 1),
+                    "tracer_seconds": round(stats.seconds, 1),
+                    "rmse_mitsuba_vs_tracer": rmse(mitsuba, tracer),
+                    "flip_mitsuba_vs_tracer": flip(shown(tracer), shown(mitsuba)),
+                    "rmse_mitsuba_vs_truth": rmse(mitsuba, truth),
+                    "flip_mitsuba_vs_truth": flip(shown(truth), shown(mitsuba)),
+                    "rmse_tracer_vs_truth": rmse(tracer, truth),
+                    "flip_tracer_vs_truth": flip(shown(truth), shown(tracer)),
+                }
+            ),
+            flush=True,
+        )
         panels.append((f"{name} (Mitsuba)", mitsuba))
     if args.figure:
         from matplotlib.figure import Figure

@@ -29,9 +29,17 @@ from pathlib import Path
 from mlflow import MlflowClient
 
 CHROMIUM_FLAGS = [
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--hide-scrollbars", "--window-size=1600,1000", "--virtual-time-budget=20000",
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--hide-scrollbars",
+    "--window-size=1600,1000",
+    "--virtual-time-budget=20000",
 ]
 # MLflow 3.17's UI opens every experiment in its GenAI view (Overview, Traces 0) unless its
 # workflow switch says "Model training": a setting of the browser (local storage), which
@@ -70,8 +78,9 @@ def pages(client: MlflowClient, experiment: str) -> list[tuple[str, str]]:
         raise SystemExit(f"no experiment {experiment!r} in the store")
     e = exp.experiment_id
     shots = [("experiment_runs", f"#/experiments/{e}")]
-    children = client.search_runs([e], "tags.mlflow.parentRunId != ''",
-                                  order_by=["attributes.start_time DESC"])
+    children = client.search_runs(
+        [e], "tags.mlflow.parentRunId != ''", order_by=["attributes.start_time DESC"]
+    )
     if not children:
         raise SystemExit(f"experiment {experiment!r} has no sweep (no child runs)")
     parent = children[0].data.tags["mlflow.parentRunId"]
@@ -80,19 +89,29 @@ def pages(client: MlflowClient, experiment: str) -> list[tuple[str, str]]:
     tables = artifact_files(client, parent, "tables")
     for page in ("summary.html", "summary.md"):
         if f"tables/{page}" in tables:
-            shots.append((f"parent_tables_{page.replace('.', '_')}",
-                          f"#/experiments/{e}/runs/{parent}/artifacts/tables/{page}"))
+            shots.append(
+                (
+                    f"parent_tables_{page.replace('.', '_')}",
+                    f"#/experiments/{e}/runs/{parent}/artifacts/tables/{page}",
+                )
+            )
     first = min(sweep, key=lambda r: r.info.start_time)
     shots.append(("child_overview", f"#/experiments/{e}/runs/{first.info.run_id}"))
     for run in sorted(sweep, key=lambda r: r.info.start_time):
         name = run.info.run_name.replace(" ", "_").replace("=", "")
         files = artifact_files(client, run.info.run_id)
         figures = [f for f in files if f.startswith("figures/") and f.endswith(".png")]
-        for label, path in (("figure", figures[0] if figures else None),
-                            ("config", "config/resolved.yaml")):
+        for label, path in (
+            ("figure", figures[0] if figures else None),
+            ("config", "config/resolved.yaml"),
+        ):
             if path in files:
-                shots.append((f"{name}_{label}",
-                              f"#/experiments/{e}/runs/{run.info.run_id}/artifacts/{path}"))
+                shots.append(
+                    (
+                        f"{name}_{label}",
+                        f"#/experiments/{e}/runs/{run.info.run_id}/artifacts/{path}",
+                    )
+                )
     return shots
 
 
@@ -113,9 +132,21 @@ def main(argv: list[str] | None = None) -> int:
     uri = f"sqlite:///{db}"
     port = free_port()
     server = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri,
-         "--host", "127.0.0.1", "--port", str(port)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        [
+            sys.executable,
+            "-m",
+            "mlflow",
+            "ui",
+            "--backend-store-uri",
+            uri,
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     base = f"http://127.0.0.1:{port}/"
     try:
         wait_until_up(base + "health")
@@ -124,9 +155,19 @@ def main(argv: list[str] | None = None) -> int:
             with tempfile.TemporaryDirectory() as profile:
                 # An overview's metrics sit below its tags and description: a taller page.
                 tall = ["--window-size=1600,2600"] if name.endswith("overview") else []
-                subprocess.run([chromium, *CHROMIUM_FLAGS, *tall, f"--user-data-dir={profile}",
-                                f"--screenshot={png}", base + fragment + VIEW],
-                               check=True, capture_output=True, timeout=180)
+                subprocess.run(
+                    [
+                        chromium,
+                        *CHROMIUM_FLAGS,
+                        *tall,
+                        f"--user-data-dir={profile}",
+                        f"--screenshot={png}",
+                        base + fragment + VIEW,
+                    ],
+                    check=True,
+                    capture_output=True,
+                    timeout=180,
+                )
             print(f"{png}  {base}{fragment}{VIEW}")
     finally:
         server.terminate()

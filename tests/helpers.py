@@ -28,8 +28,9 @@ def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictCo
 
     register_schemas()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name="config", overrides=list(overrides),
-                       return_hydra_config=return_hydra_config)
+        return compose(
+            config_name="config", overrides=list(overrides), return_hydra_config=return_hydra_config
+        )
 
 
 def recipe_tags(params: dict) -> dict[str, str]:
@@ -48,17 +49,20 @@ def exits_before_torch(calls: list[tuple[str, list[str]]]) -> tuple[list, bool, 
     import subprocess
     import sys
 
-    code = ("import importlib, json, sys\n"
-            f"calls = {calls!r}\n"
-            "codes = []\n"
-            "for module, argv in calls:\n"
-            "    try:\n"
-            "        importlib.import_module(module).main(argv)\n"
-            "    except SystemExit as stop:\n"
-            "        codes.append(stop.code)\n"
-            "print(json.dumps({'codes': codes, 'torch': 'torch' in sys.modules}))\n")
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
-                          text=True, timeout=120)
+    code = (
+        "import importlib, json, sys\n"
+        f"calls = {calls!r}\n"
+        "codes = []\n"
+        "for module, argv in calls:\n"
+        "    try:\n"
+        "        importlib.import_module(module).main(argv)\n"
+        "    except SystemExit as stop:\n"
+        "        codes.append(stop.code)\n"
+        "print(json.dumps({'codes': codes, 'torch': 'torch' in sys.modules}))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout.strip().splitlines()[-1])
     return result["codes"], result["torch"], done.stderr
@@ -79,7 +83,8 @@ PIPELINE_MODULES = {module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
 
 def fresh_python(code: str, timeout: float = 300) -> dict:
     """Run ``code`` in a new interpreter (this one's environment); it prints one JSON line."""
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
-                          text=True, timeout=timeout)
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=timeout
+    )
     assert done.returncode == 0, done.stderr[-4000:]
     return json.loads(done.stdout.strip().splitlines()[-1])

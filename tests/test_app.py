@@ -50,14 +50,20 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
     for stage in ("load", "crop", "preprocess", "pca", "kmeans", "representatives", "train"):
         assert f"cache.{stage}" in run.data.tags
     assert "git.commit" in run.data.tags and "version.torch" in run.data.tags
-    assert [a.path for a in MlflowClient(tracking_uri(cfg.paths.runs)).list_artifacts(run.info.run_id, "compressed")] == ["compressed/btf.safetensors"]
+    assert [
+        a.path
+        for a in MlflowClient(tracking_uri(cfg.paths.runs)).list_artifacts(
+            run.info.run_id, "compressed"
+        )
+    ] == ["compressed/btf.safetensors"]
     for metric in ("rmse", "bytes_total", "compression_ratio", "rmse_mean_abrdf"):
         assert metric in run.data.metrics
     # The smoke run holds 4 lights out: the headline RMSE is over the trained directions.
     metrics = run.data.metrics
     assert metrics["rmse"] == metrics["rmse_train_dirs"] != metrics["rmse_all_dirs"]
     assert metrics["rmse_ratio_to_mean_abrdf"] == pytest.approx(
-        metrics["rmse"] / metrics["rmse_mean_abrdf"])
+        metrics["rmse"] / metrics["rmse_mean_abrdf"]
+    )
     # The recipe tag is the same for another seed, not for another learning rate.
     assert len(run.data.tags["recipe"]) == 12
     # Unset settings are logged too: a null is a value that splits recipes.
@@ -65,8 +71,9 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
     # The loss is keyed by training step, as logged live (first run) and as replayed from
     # the cached model (second run), ending at the run's last step.
     client = MlflowClient(tracking_uri(cfg.paths.runs))
-    histories = [[(m.step, m.value) for m in client.get_metric_history(r.info.run_id, "loss")]
-                 for r in runs]
+    histories = [
+        [(m.step, m.value) for m in client.get_metric_history(r.info.run_id, "loss")] for r in runs
+    ]
     assert histories[0] == histories[1]
     assert histories[0][-1][0] == metrics["train_steps"] > len(histories[0]) - 1
 
@@ -115,7 +122,9 @@ def test_crop_larger_than_texture_fails_cleanly(smoke_cfg):
 
 def test_k_larger_than_texel_count_fails_cleanly(smoke_cfg):
     cfg = smoke_cfg("model.k=145")
-    _assert_failed_cleanly(cfg, ConfigError, "model.k=145 is larger than the number of texels M=144")
+    _assert_failed_cleanly(
+        cfg, ConfigError, "model.k=145 is larger than the number of texels M=144"
+    )
     assert "kmeans" not in {p.parent.name for p in _cache_entries(cfg)}
 
 
@@ -155,8 +164,9 @@ def test_tables_draw_fig7_from_the_cached_models(smoke_cfg):
     assert len(list(out.glob("fig7_*.exr"))) == 4
 
 
-@pytest.mark.parametrize("override, named", [("seed=-1", "seed=-1"),
-                                             ("method.name=nope", "method.name='nope'")])
+@pytest.mark.parametrize(
+    "override, named", [("seed=-1", "seed=-1"), ("method.name=nope", "method.name='nope'")]
+)
 def test_bad_job_settings_are_refused_naming_the_setting(override, named):
     from helpers import compose_config
 
@@ -164,8 +174,9 @@ def test_bad_job_settings_are_refused_naming_the_setting(override, named):
         run_job(compose_config("experiment=smoke", override))
 
 
-def test_a_sweep_that_builds_tables_ends_with_a_short_verdict(tmp_path, mlflow_template,
-                                                              monkeypatch, capsys):
+def test_a_sweep_that_builds_tables_ends_with_a_short_verdict(
+    tmp_path, mlflow_template, monkeypatch, capsys
+):
     """The demo's last words: each model's RMSE against the mean-ABRDF baseline and its
     bytes, and where the tables are; not the tables themselves (no 'nan', no 'No finished
     ... run found' of the other methods). The parent run's description leads with it."""
@@ -181,34 +192,54 @@ def test_a_sweep_that_builds_tables_ends_with_a_short_verdict(tmp_path, mlflow_t
     experiment_id = init_store(tmp_path, "btf")
     client = MlflowClient(tracking_uri(tmp_path))
     parent = client.create_run(experiment_id, tags={NOTE_TAG: "**Hydra sweep**"}).info.run_id
-    for model, k, rmse, total in (("neural_btf", None, 0.031, 171_260),
-                                  ("clustered", 128, 0.0524, 110_844),
-                                  ("pca", None, 0.140, 110_000)):
-        params = {"method.name": "btf", "model.name": model, "model.k": k, "seed": 0,
-                  "dataset.name": "synthetic", "dataset.synthetic.material": "knit",
-                  "btf.crop.size": 48}
-        with mlflow.start_run(experiment_id=experiment_id, tags={
-                "mlflow.parentRunId": parent, **recipe_tags(params)}):
+    for model, k, rmse, total in (
+        ("neural_btf", None, 0.031, 171_260),
+        ("clustered", 128, 0.0524, 110_844),
+        ("pca", None, 0.140, 110_000),
+    ):
+        params = {
+            "method.name": "btf",
+            "model.name": model,
+            "model.k": k,
+            "seed": 0,
+            "dataset.name": "synthetic",
+            "dataset.synthetic.material": "knit",
+            "btf.crop.size": 48,
+        }
+        with mlflow.start_run(
+            experiment_id=experiment_id, tags={"mlflow.parentRunId": parent, **recipe_tags(params)}
+        ):
             mlflow.log_params(params)
-            mlflow.log_metrics({"rmse": rmse, "rmse_mean_abrdf": 0.1523, "bytes_total": total,
-                                "n_directions": 6561, "n_components": 3})
+            mlflow.log_metrics(
+                {
+                    "rmse": rmse,
+                    "rmse_mean_abrdf": 0.1523,
+                    "bytes_total": total,
+                    "n_directions": 6561,
+                    "n_components": 3,
+                }
+            )
     settings = pipeline.tables.default_settings()
     settings.fig7.enabled = False  # hand-made runs: no cached model to draw
     monkeypatch.setattr(pipeline.tables, "default_settings", lambda: settings)
-    config = OmegaConf.create({"paths": {"runs": str(tmp_path)},
-                               "tracking": {"experiment": "btf"}})
+    config = OmegaConf.create({"paths": {"runs": str(tmp_path)}, "tracking": {"experiment": "btf"}})
 
     print_sweep_result(config, tracking_uri(tmp_path), parent)
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0] == f"Sweep finished: 3 jobs, MLflow experiment 'btf', parent run {parent}"
-    assert lines[1] == ("synthetic:knit 48²×6561: RMSE (mean-ABRDF baseline 0.1523) and "
-                        "stored bytes")
-    assert lines[2:5] == ["  Neural BTF  0.0310  = 0.20 x baseline  171,260 B",
-                          "  k = 128     0.0524  = 0.34 x baseline  110,844 B",
-                          "  PCA c = 3   0.1400  = 0.92 x baseline  110,000 B  training "
-                          "failed (not below 0.9 x baseline)"]
-    assert lines[5] == (f"Tables: {tmp_path / 'tables' / 'summary.html'} (this experiment's: "
-                        f"{tmp_path / 'tables' / 'btf' / 'summary.html'})")
+    assert lines[1] == (
+        "synthetic:knit 48²×6561: RMSE (mean-ABRDF baseline 0.1523) and stored bytes"
+    )
+    assert lines[2:5] == [
+        "  Neural BTF  0.0310  = 0.20 x baseline  171,260 B",
+        "  k = 128     0.0524  = 0.34 x baseline  110,844 B",
+        "  PCA c = 3   0.1400  = 0.92 x baseline  110,000 B  training "
+        "failed (not below 0.9 x baseline)",
+    ]
+    assert lines[5] == (
+        f"Tables: {tmp_path / 'tables' / 'summary.html'} (this experiment's: "
+        f"{tmp_path / 'tables' / 'btf' / 'summary.html'})"
+    )
     assert len(lines) == 6 and (tmp_path / "tables" / "btf" / "table2_rmse.md").is_file()
     note = client.get_run(parent).data.tags[NOTE_TAG]
     assert note.startswith("**Result**\n\n```\nsynthetic:knit 48²×6561")

@@ -69,22 +69,27 @@ def test_enospc_is_a_data_error_naming_the_file_and_the_space_left(tmp_path, mon
     path = tmp_path / "table2_rmse.csv"
     with pytest.raises(DataError) as caught:
         files.write_atomic(path, "x" * 59)
-    assert str(caught.value) == (f"no space left for {path}: it needs 59 bytes, 24.0 KiB free "
-                                 f"in {tmp_path}; free some space or write elsewhere")
+    assert str(caught.value) == (
+        f"no space left for {path}: it needs 59 bytes, 24.0 KiB free "
+        f"in {tmp_path}; free some space or write elsewhere"
+    )
     assert isinstance(caught.value.__cause__, OSError)
     assert _left(tmp_path) == []
 
 
-@pytest.mark.parametrize("error, free, full", [
-    (OSError(errno.EDQUOT, os.strerror(errno.EDQUOT)), 1 << 30, True),
-    (RuntimeError('Failed to write "x.exr". No space left on device.'), 1 << 30, True),
-    # numpy and torch lose the errno: a failed write on a full disk is one all the same
-    (OSError("400000 requested and 131056 written"), 0, True),
-    (RuntimeError("unexpected pos 576 vs 534"), 4096, True),
-    (OSError("400000 requested and 131056 written"), 1 << 30, False),
-    (ValueError("not a number"), 0, False),
-    (PermissionError(errno.EACCES, "Permission denied"), 0, False),  # an errno, not ENOSPC
-])
+@pytest.mark.parametrize(
+    "error, free, full",
+    [
+        (OSError(errno.EDQUOT, os.strerror(errno.EDQUOT)), 1 << 30, True),
+        (RuntimeError('Failed to write "x.exr". No space left on device.'), 1 << 30, True),
+        # numpy and torch lose the errno: a failed write on a full disk is one all the same
+        (OSError("400000 requested and 131056 written"), 0, True),
+        (RuntimeError("unexpected pos 576 vs 534"), 4096, True),
+        (OSError("400000 requested and 131056 written"), 1 << 30, False),
+        (ValueError("not a number"), 0, False),
+        (PermissionError(errno.EACCES, "Permission denied"), 0, False),  # an errno, not ENOSPC
+    ],
+)
 def test_what_counts_as_a_full_disk(error, free, full):
     assert files.is_disk_full(error, free) is full
 
@@ -151,8 +156,10 @@ def _damaged(path, how: str) -> None:
     path.write_bytes(bytes(data))
 
 
-@pytest.mark.parametrize("name, how", [("a.png", "truncated"), ("a.jpg", "truncated"),
-                                       ("a.png", "flipped"), ("a.jpg", "huge")])
+@pytest.mark.parametrize(
+    "name, how",
+    [("a.png", "truncated"), ("a.jpg", "truncated"), ("a.png", "flipped"), ("a.jpg", "huge")],
+)
 def test_an_image_the_decoder_rejects_is_a_data_error_naming_it(tmp_path, name, how):
     path = _image(tmp_path, name)
     _damaged(path, how)

@@ -44,13 +44,16 @@ def _steps(backend: str, queries: int, threads: int, chunk, steps: int = 4):
     encoder, decoder = Encoder(27, (4, 8)), Decoder()
     model = torch.nn.ModuleList([encoder, decoder])
     optimizer = torch.optim.SGD(model.parameters(), lr=0.05)
-    sampling = Sampling(5, 27 if queries < 0 else queries, queries < 0, np.arange(27), 27,
-                        False)
-    batches = HostBatches(abrdf, abrdf, np.arange(10), norm, sampling,
-                          np.random.default_rng(0), CPU)
+    sampling = Sampling(5, 27 if queries < 0 else queries, queries < 0, np.arange(27), 27, False)
+    batches = HostBatches(
+        abrdf, abrdf, np.arange(10), norm, sampling, np.random.default_rng(0), CPU
+    )
     features = torch.from_numpy(features)
-    step = (FusedStep(encoder, decoder, features, workers=threads, chunk=chunk)
-            if backend == "fused" else AutogradStep(encoder, decoder, features, workers=threads))
+    step = (
+        FusedStep(encoder, decoder, features, workers=threads, chunk=chunk)
+        if backend == "fused"
+        else AutogradStep(encoder, decoder, features, workers=threads)
+    )
     losses, first_grads = [], None
     threads_before = torch.get_num_threads()
     try:
@@ -86,10 +89,26 @@ def test_training_with_either_backend_gives_the_same_model(queries, threads, chu
     norm = fit_normalization(abrdf)
 
     def run(backend):
-        settings = TrainSettings(epochs=3, lr=0.05, queries_per_abrdf=queries, device="cpu",
-                                 threads=threads, chunk=chunk, backend=backend)
-        return train(abrdf, abrdf, np.arange(10), norm, features, np.arange(27), settings,
-                     seed=0, encoder_channels=(4, 8))
+        settings = TrainSettings(
+            epochs=3,
+            lr=0.05,
+            queries_per_abrdf=queries,
+            device="cpu",
+            threads=threads,
+            chunk=chunk,
+            backend=backend,
+        )
+        return train(
+            abrdf,
+            abrdf,
+            np.arange(10),
+            norm,
+            features,
+            np.arange(27),
+            settings,
+            seed=0,
+            encoder_channels=(4, 8),
+        )
 
     fused, plain = run("fused"), run("autograd")
     assert fused.steps == plain.steps == 6
@@ -107,10 +126,26 @@ def test_autograd_bfloat16_on_the_cpu_runs_the_decoder_under_autocast():
     norm = fit_normalization(abrdf)
 
     def run(precision):
-        settings = TrainSettings(epochs=3, lr=0.05, queries_per_abrdf=-1, device="cpu",
-                                 threads=1, backend="autograd", precision=precision)
-        return train(abrdf, abrdf, np.arange(10), norm, features, np.arange(27), settings,
-                     seed=0, encoder_channels=(4, 8))
+        settings = TrainSettings(
+            epochs=3,
+            lr=0.05,
+            queries_per_abrdf=-1,
+            device="cpu",
+            threads=1,
+            backend="autograd",
+            precision=precision,
+        )
+        return train(
+            abrdf,
+            abrdf,
+            np.arange(10),
+            norm,
+            features,
+            np.arange(27),
+            settings,
+            seed=0,
+            encoder_channels=(4, 8),
+        )
 
     single, half = run("float32"), run("bfloat16")
     assert half.epoch_losses != single.epoch_losses
@@ -118,8 +153,7 @@ def test_autograd_bfloat16_on_the_cpu_runs_the_decoder_under_autocast():
     assert all(p.dtype == torch.float32 for p in half.decoder.parameters())
 
 
-def test_auto_is_fused_on_the_cpu_where_the_kernels_build_and_autograd_on_cuda(
-        monkeypatch, caplog):
+def test_auto_is_fused_on_the_cpu_where_the_kernels_build_and_autograd_on_cuda(monkeypatch, caplog):
     monkeypatch.setattr(backends.kernels, "available", lambda: True)
     assert resolve_backend("auto", CPU) == "fused"
     assert resolve_backend("auto", torch.device("cuda")) == "autograd"
@@ -140,10 +174,10 @@ def test_an_unknown_backend_is_refused_naming_the_setting():
 
 # All directions; every other one; the first 20 (in order, but not all of them).
 @pytest.mark.parametrize("train_dirs", [np.arange(27), np.arange(0, 27, 2), np.arange(20)])
-@pytest.mark.parametrize("clustered, target_from_source", [
-    (False, False), (True, False), (True, True)])
-def test_batches_kept_on_the_device_equal_the_hosts(train_dirs, clustered,
-                                                    target_from_source):
+@pytest.mark.parametrize(
+    "clustered, target_from_source", [(False, False), (True, False), (True, True)]
+)
+def test_batches_kept_on_the_device_equal_the_hosts(train_dirs, clustered, target_from_source):
     """DeviceBatches (the CUDA path, run here on the CPU) against HostBatches: the same
     texels, encoder inputs and targets for all directions; random queries drawn from the
     training directions, with their own targets."""
@@ -155,10 +189,10 @@ def test_batches_kept_on_the_device_equal_the_hosts(train_dirs, clustered,
         sources, source_of_texel = abrdf, np.arange(12)
     n = len(train_dirs)
     every = Sampling(4, n, True, train_dirs, 27, target_from_source)
-    host = HostBatches(abrdf, sources, source_of_texel, norm, every,
-                       np.random.default_rng(3), CPU)
-    device = DeviceBatches(abrdf, sources, source_of_texel, norm, every,
-                           np.random.default_rng(3), CPU, seed=3)
+    host = HostBatches(abrdf, sources, source_of_texel, norm, every, np.random.default_rng(3), CPU)
+    device = DeviceBatches(
+        abrdf, sources, source_of_texel, norm, every, np.random.default_rng(3), CPU, seed=3
+    )
     for _ in range(2):
         host.new_pass()
         device.new_pass()
@@ -170,8 +204,9 @@ def test_batches_kept_on_the_device_equal_the_hosts(train_dirs, clustered,
             torch.testing.assert_close(b.targets, a.targets, rtol=0, atol=0)
 
     random = Sampling(4, 5, False, train_dirs, 27, target_from_source)
-    device = DeviceBatches(abrdf, sources, source_of_texel, norm, random,
-                           np.random.default_rng(3), CPU, seed=3)
+    device = DeviceBatches(
+        abrdf, sources, source_of_texel, norm, random, np.random.default_rng(3), CPU, seed=3
+    )
     device.new_pass()
     order = np.random.default_rng(3).permutation(12)
     values = norm.target(sources if target_from_source else abrdf)
@@ -180,5 +215,4 @@ def test_batches_kept_on_the_device_equal_the_hosts(train_dirs, clustered,
     rows = source_of_texel[texels] if target_from_source else texels
     directions = batch.directions.numpy()
     assert directions.shape == (4, 5) and np.isin(directions, train_dirs).all()
-    np.testing.assert_array_equal(batch.targets.numpy(),
-                                  values[rows[:, None], directions])
+    np.testing.assert_array_equal(batch.targets.numpy(), values[rows[:, None], directions])

@@ -151,5 +151,3 @@ def test_merl_lookup_maps_table_directions_back_to_their_entries():
     index = (i_p + 180 * (i_d + 90 * i_h))[above]
     expected = np.where(index % 2 == 0, index, np.nan)
     np.testing.assert_array_equal(found, expected)
-
-

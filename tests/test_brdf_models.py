@@ -14,8 +14,9 @@ def test_lobe_equals_the_angle_form_of_the_paper():
     rng = np.random.default_rng(0)
     theta, phi = rng.uniform(0.01, 1.5, 200), rng.uniform(0.0, 2 * np.pi, 200)
     n_u, n_v = 120.0, 7.0
-    lobe = ashikhmin_shirley_lobe(np.cos(theta), np.sin(theta) * np.cos(phi),
-                                  np.sin(theta) * np.sin(phi), n_u, n_v)
+    lobe = ashikhmin_shirley_lobe(
+        np.cos(theta), np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), n_u, n_v
+    )
     expected = np.cos(theta) ** (n_u * np.cos(phi) ** 2 + n_v * np.sin(phi) ** 2)
     np.testing.assert_allclose(lobe, expected, rtol=1e-10, atol=1e-300)
 
@@ -39,8 +40,9 @@ def test_isotropic_lobe_is_a_normalized_half_vector_density(exponent):
     (the 4 is the half-vector Jacobian the 8 pi carries)."""
     edges = np.linspace(0.0, 0.5 * np.pi, 20_001)
     theta = 0.5 * (edges[1:] + edges[:-1])
-    lobe = ashikhmin_shirley_lobe(np.cos(theta), np.sin(theta), np.zeros_like(theta),
-                                  exponent, exponent)
+    lobe = ashikhmin_shirley_lobe(
+        np.cos(theta), np.sin(theta), np.zeros_like(theta), exponent, exponent
+    )
     integral = 2 * np.pi * np.sum(lobe * np.sin(theta)) * (edges[1] - edges[0])
     total = 4 * ashikhmin_shirley_normalization(exponent, exponent) * integral
     assert total == pytest.approx(1.0, rel=1e-4)

@@ -217,9 +217,7 @@ def test_merl_reader_places_entries_at_their_azimuths(tmp_path):
     np.testing.assert_allclose(np.arccos(cos_kh), half_diff[:, 1], atol=1e-6)
     expected = merl_azimuths(N_MERL)[::991]
     off_pole = theta_h > 1e-3  # the half vector's azimuth is undefined at the normal
-    np.testing.assert_allclose(
-        np.angle(np.exp(1j * (phi_h - expected)))[off_pole], 0.0, atol=1e-6
-    )
+    np.testing.assert_allclose(np.angle(np.exp(1j * (phi_h - expected)))[off_pole], 0.0, atol=1e-6)
     # spread_azimuths=False keeps the table's own frame: every half vector at phi_h = 0.
     plain = read_merl_brdf(tmp_path / "m.binary", spread_azimuths=False)
     _, phi_plain, _ = half_vector_angles(plain.light[::991], plain.view[::991])

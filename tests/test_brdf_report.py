@@ -33,7 +33,7 @@ def _run(kind, cutoff, w_u, missing, noprior, as_, seed=0, method="brdf_map", sp
             row[f"metrics.rmse_missing_{part}_noprior"] = factor * noprior
             row[f"metrics.rmse_missing_{part}_as"] = factor * as_
         row["metrics.n_missing_near_mirror"], row["metrics.n_missing_off_mirror"] = 100, 900
-    params = {k[len("params."):]: v for k, v in row.items() if k.startswith("params.")}
+    params = {k[len("params.") :]: v for k, v in row.items() if k.startswith("params.")}
     row["tags.recipe"] = recipe_tags(params)["recipe"]  # as a job logs it
     return row
 
@@ -55,11 +55,21 @@ def runs():
 
 def test_prior_study_table_by_hand(runs):
     table = prior_study_table(runs[runs["params.method.name"] == "brdf_map"])
-    assert list(table.index) == [("synthetic_brdf (beckmann)", "60"),
-                                 ("synthetic_brdf (separable)", "30")]
+    assert list(table.index) == [
+        ("synthetic_brdf (beckmann)", "60"),
+        ("synthetic_brdf (separable)", "30"),
+    ]
     assert list(table.columns) == [
-        "samples", "w_u = 0", "w_u = 0.05", "w_u = 0.5", "w_u = 2", "no prior", "Ashikhmin-Shirley",
-        "best w_u > 0", "change vs no prior (%)"]
+        "samples",
+        "w_u = 0",
+        "w_u = 0.05",
+        "w_u = 0.5",
+        "w_u = 2",
+        "no prior",
+        "Ashikhmin-Shirley",
+        "best w_u > 0",
+        "change vs no prior (%)",
+    ]
     separable = table.loc[("synthetic_brdf (separable)", "30")]
     assert separable["w_u = 0.5"] == pytest.approx(0.15)
     assert separable["best w_u > 0"] == 0.5
@@ -72,8 +82,9 @@ def test_prior_study_table_by_hand(runs):
 
 
 def test_prior_study_split_uses_the_split_metrics(runs):
-    near = prior_study_table(runs[runs["params.method.name"] == "brdf_map"],
-                             "rmse_missing_near_mirror")
+    near = prior_study_table(
+        runs[runs["params.method.name"] == "brdf_map"], "rmse_missing_near_mirror"
+    )
     assert near.loc[("synthetic_brdf (separable)", "30"), "w_u = 0.5"] == pytest.approx(1.5)
     assert near.loc[("synthetic_brdf (separable)", "30"), "no prior"] == pytest.approx(2.0)
     assert near["samples"].tolist() == [100, 100]
@@ -99,13 +110,16 @@ def test_table_rmse_never_pools_runs_of_different_recipes(runs):
     b = runs[runs["params.method.name"] == "brdf_map"].copy()
     b["params.method.em_iterations"] = "50"
     other = b[b["params.dataset.missing_above_deg"] == "60"].assign(
-        **{"params.method.em_iterations": "5", "metrics.rmse_missing": 0.5, "params.seed": "2"})
+        **{"params.method.em_iterations": "5", "metrics.rmse_missing": 0.5, "params.seed": "2"}
+    )
     table = table_rmse(pd.concat([b, other], ignore_index=True))
     setup = "synthetic_brdf (beckmann), missing above 60°"
     assert table.loc[(f"{setup} [method.em_iterations=50]", "2"), "MAP, missing"] == (
-        "0.1200 ± 0.0141 (n=2)")
+        "0.1200 ± 0.0141 (n=2)"
+    )
     assert table.loc[(f"{setup} [method.em_iterations=5]", "2"), "MAP, missing"] == (
-        "0.5000 ± 0.0000 (n=2)")
+        "0.5000 ± 0.0000 (n=2)"
+    )
     # Where every run shares its recipe, the row keeps its plain name.
     assert ("synthetic_brdf (separable), missing above 30°", "0.5") in table.index
 
@@ -115,8 +129,11 @@ def test_sections_write_the_tables_and_the_figure(runs, tmp_path):
     assert "Method B prior study: RMSE on all missing samples" in text
     assert "near the mirror direction" in text and "off the mirror direction" in text
     assert "![Method B prior study" in text
-    for stem in ("brdf_map_rmse", "brdf_prior_study_rmse_missing",
-                 "brdf_prior_study_rmse_missing_near_mirror"):
+    for stem in (
+        "brdf_map_rmse",
+        "brdf_prior_study_rmse_missing",
+        "brdf_prior_study_rmse_missing_near_mirror",
+    ):
         assert (tmp_path / f"{stem}.md").is_file() and (tmp_path / f"{stem}.csv").is_file()
     assert (tmp_path / "brdf_prior_study.png").stat().st_size > 10_000
     csv = pd.read_csv(tmp_path / "brdf_prior_study_rmse_missing.csv")

@@ -32,14 +32,14 @@ def test_cluster_medians_by_hand_are_element_wise_medians_not_means_or_medoids()
     # has 1. Channel by channel the median of cluster 0 mixes members: it is no medoid.
     abrdf = np.array(
         [
-            [[0.0, 10.0, 5.0]],   # cluster 0
-            [[7.0, 1.0, 1.0]],    # cluster 1
-            [[1.0, 0.0, 9.0]],    # cluster 0
-            [[3.0, 3.0, 3.0]],    # cluster 2 (alone)
-            [[2.0, 5.0, 0.0]],    # cluster 0
-            [[0.0, 2.0, 8.0]],    # cluster 1
-            [[1.0, 4.0, 2.0]],    # cluster 1
-            [[40.0, 3.0, 4.0]],   # cluster 1
+            [[0.0, 10.0, 5.0]],  # cluster 0
+            [[7.0, 1.0, 1.0]],  # cluster 1
+            [[1.0, 0.0, 9.0]],  # cluster 0
+            [[3.0, 3.0, 3.0]],  # cluster 2 (alone)
+            [[2.0, 5.0, 0.0]],  # cluster 0
+            [[0.0, 2.0, 8.0]],  # cluster 1
+            [[1.0, 4.0, 2.0]],  # cluster 1
+            [[40.0, 3.0, 4.0]],  # cluster 1
         ],
         dtype=np.float32,
     )
@@ -47,9 +47,9 @@ def test_cluster_medians_by_hand_are_element_wise_medians_not_means_or_medoids()
     medians = cluster_medians(abrdf, labels, 3)
     expected = np.array(
         [
-            [[1.0, 5.0, 5.0]],    # middle of (0, 1, 2), (10, 0, 5), (5, 9, 0)
-            [[4.0, 2.5, 3.0]],    # mean of the two middle values of (0,1,7,40), (1,2,3,4), (1,2,4,8)
-            [[3.0, 3.0, 3.0]],    # the single member
+            [[1.0, 5.0, 5.0]],  # middle of (0, 1, 2), (10, 0, 5), (5, 9, 0)
+            [[4.0, 2.5, 3.0]],  # mean of the two middle values of (0,1,7,40), (1,2,3,4), (1,2,4,8)
+            [[3.0, 3.0, 3.0]],  # the single member
         ],
         dtype=np.float32,
     )
@@ -110,9 +110,7 @@ def test_normalization_by_hand_uses_log_x_plus_1_and_sigma_over_texels():
     assert norm.mean.shape == norm.std.shape == (2, 3)  # per dimension (N, 3), not per texel
     assert norm.alpha == pytest.approx(e**4 - 1, rel=1e-6)
     # Standardized inputs: texel 0 at -1 where the dimension varies, 0 where it is constant.
-    np.testing.assert_allclose(
-        norm.encoder_input(abrdf[0]), [[-1, -1, -1], [0, -1, -1]], atol=1e-5
-    )
+    np.testing.assert_allclose(norm.encoder_input(abrdf[0]), [[-1, -1, -1], [0, -1, -1]], atol=1e-5)
     np.testing.assert_allclose(norm.target(abrdf), abrdf / np.float32(e**4 - 1), rtol=1e-6)
 
 
@@ -137,8 +135,10 @@ def test_chunked_statistics_match_a_one_shot_computation(chunk):
 
 def test_chunked_statistics_across_the_default_chunk_size():
     """Catches a mistake that only shows once M passes the default chunk (the stages' setting)."""
-    default = max(inspect.signature(fit_normalization).parameters["chunk"].default,
-                  inspect.signature(preprocess.encoder_inputs).parameters["chunk"].default)
+    default = max(
+        inspect.signature(fit_normalization).parameters["chunk"].default,
+        inspect.signature(preprocess.encoder_inputs).parameters["chunk"].default,
+    )
     rng = np.random.default_rng(7)
     for m in (default - 1, default, default + 1, 2 * default + 3):
         abrdf = rng.exponential(2.0, size=(m, 2, 3)).astype(np.float32)
@@ -249,11 +249,13 @@ def test_kmeans_pp_takes_its_randomness_and_iterations_from_its_arguments():
 
 @pytest.mark.parametrize(
     "k, match",
-    [(0, r"model\.k=0 must be a positive integer"),
-     (-3, r"model\.k=-3 must be a positive integer"),
-     (2.5, r"model\.k=2\.5 must be a positive integer"),
-     ("8", r"model\.k='8' must be a positive integer"),
-     (6, r"model\.k=6 is larger than the number of texels M=5")],
+    [
+        (0, r"model\.k=0 must be a positive integer"),
+        (-3, r"model\.k=-3 must be a positive integer"),
+        (2.5, r"model\.k=2\.5 must be a positive integer"),
+        ("8", r"model\.k='8' must be a positive integer"),
+        (6, r"model\.k=6 is larger than the number of texels M=5"),
+    ],
 )
 def test_check_k_names_the_bad_value(k, match):
     """Catches a bad k accepted or reported without the value and the setting's name."""
@@ -319,17 +321,27 @@ def _train_arguments(monkeypatch, runs, method: str, run_training: bool = False)
     from pipeline.core.stage import Context
 
     # Two views (N = 2 x 81 directions) keep generating the built-in BTF quick.
-    cfg = compose_config("experiment=smoke", f"model={method}", f"paths.runs={runs}",
-                         "dataset.views=[[0,0],[15,0]]", "train.max_steps=3",
-                         "btf.network.encoder_channels=[8,16,32]",
-                         "train.curve_every=0")
+    cfg = compose_config(
+        "experiment=smoke",
+        f"model={method}",
+        f"paths.runs={runs}",
+        "dataset.views=[[0,0],[15,0]]",
+        "train.max_steps=3",
+        "btf.network.encoder_channels=[8,16,32]",
+        "train.curve_every=0",
+    )
     ctx = Context.from_config(cfg)
     captured: dict = {}
     real_train = train_module.train
 
     def spy(abrdf, sources, source_of_texel, norm, *args, **kwargs):
-        captured.update(abrdf=np.array(abrdf), sources=np.array(sources),
-                        source_of_texel=np.array(source_of_texel), norm=norm, kwargs=kwargs)
+        captured.update(
+            abrdf=np.array(abrdf),
+            sources=np.array(sources),
+            source_of_texel=np.array(source_of_texel),
+            norm=norm,
+            kwargs=kwargs,
+        )
         if not run_training:
             raise _Captured
         return real_train(abrdf, sources, source_of_texel, norm, *args, **kwargs)
@@ -346,8 +358,11 @@ def _train_arguments(monkeypatch, runs, method: str, run_training: bool = False)
     else:
         with pytest.raises(_Captured):
             runner.train_stage(ctx, cropped, prep, clusters, reps)
-    captured.update(cfg=cfg, crop=np.array(cropped.array("abrdf")),
-                    labels=None if clusters is None else clusters.array("labels", mmap=False))
+    captured.update(
+        cfg=cfg,
+        crop=np.array(cropped.array("abrdf")),
+        labels=None if clusters is None else clusters.array("labels", mmap=False),
+    )
     return captured
 
 

@@ -25,8 +25,9 @@ def test_stereographic_maps_zenith_to_origin_and_horizon_to_unit_circle():
 def test_stereographic_matches_the_papers_formula():
     theta = np.radians([15.0, 30.0, 45.0, 60.0, 75.0])
     paper_radius = np.sin(np.pi - theta) / (1 - np.cos(np.pi - theta))  # eq. 7
-    np.testing.assert_allclose(np.linalg.norm(stereographic(theta, 0 * theta), axis=1),
-                               paper_radius)
+    np.testing.assert_allclose(
+        np.linalg.norm(stereographic(theta, 0 * theta), axis=1), paper_radius
+    )
 
 
 def test_decoder_has_the_papers_parameter_count():
@@ -52,8 +53,10 @@ def test_encoder_block_equals_the_papers_order_with_torchs_max_pool(length):
     x = torch.randn(4, 3, length)
     weights = torch.randn(4, 16, length // 3)
     grads = []
-    for block in (torch.nn.Sequential(conv, torch.nn.ReLU(), torch.nn.MaxPool1d(3, 3)),
-                  torch.nn.Sequential(conv, MaxPool3(), torch.nn.ReLU())):
+    for block in (
+        torch.nn.Sequential(conv, torch.nn.ReLU(), torch.nn.MaxPool1d(3, 3)),
+        torch.nn.Sequential(conv, MaxPool3(), torch.nn.ReLU()),
+    ):
         conv.zero_grad()
         inputs = x.clone().requires_grad_()
         out = block(inputs)
@@ -64,9 +67,10 @@ def test_encoder_block_equals_the_papers_order_with_torchs_max_pool(length):
         torch.testing.assert_close(ours, reference, rtol=0, atol=0)
 
 
-@pytest.mark.parametrize(("length", "dtype", "tol"),
-                         [(6561, torch.float64, 1e-9), (730, torch.float64, 1e-9),
-                          (6561, torch.float32, 1e-4)])
+@pytest.mark.parametrize(
+    ("length", "dtype", "tol"),
+    [(6561, torch.float64, 1e-9), (730, torch.float64, 1e-9), (6561, torch.float32, 1e-4)],
+)
 def test_channels_last_forward_equals_the_plain_layers(length, dtype, tol):
     """Encoder.forward (channels-last 2-D) against Encoder.reference (the Sequential on 1-D
     tensors) on two copies of one encoder: latents, every parameter's gradient, the
@@ -91,11 +95,13 @@ def test_channels_last_forward_equals_the_plain_layers(length, dtype, tol):
             (out * weights).sum().backward()
             outs.append(out.detach())
         close(outs[0], outs[1])
-        for (name, a), (_, b) in zip(ours.named_parameters(), plain.named_parameters(),
-                                     strict=True):
+        for (name, a), (_, b) in zip(
+            ours.named_parameters(), plain.named_parameters(), strict=True
+        ):
             close(a.grad, b.grad, name)
-    for (name, a), (_, b) in zip(ours.state_dict().items(), plain.state_dict().items(),
-                                 strict=True):
+    for (name, a), (_, b) in zip(
+        ours.state_dict().items(), plain.state_dict().items(), strict=True
+    ):
         close(a.double(), b.double(), name)
     assert int(ours.state_dict()["features.3.num_batches_tracked"]) == 3
     ours.eval()
@@ -107,15 +113,24 @@ def test_channels_last_forward_equals_the_plain_layers(length, dtype, tol):
 
 @pytest.mark.parametrize(
     ("k", "latents", "total", "ratio"),
-    [(None, 320_000, 417_532, 1885.6), (500, 16_000, 153_532, 5128.1),
-     (1000, 32_000, 169_532, 4644.1), (2000, 64_000, 201_532, 3906.7)],
+    [
+        (None, 320_000, 417_532, 1885.6),
+        (500, 16_000, 153_532, 5128.1),
+        (1000, 32_000, 169_532, 4644.1),
+        (2000, 64_000, 201_532, 3906.7),
+    ],
 )
 def test_sizes_at_paper_scale_are_exact(k, latents, total, ratio):
     """Table 1 at M = 10000, N = 6561, int32 list: built models, no training."""
     decoder = Decoder()
     Encoder(N_PAPER)  # the encoder builds at this size; it is not stored
-    sizes = storage_sizes(decoder, n_latents=k or M_PAPER, n_texels=M_PAPER,
-                          n_directions=N_PAPER, clustered=k is not None)
+    sizes = storage_sizes(
+        decoder,
+        n_latents=k or M_PAPER,
+        n_texels=M_PAPER,
+        n_directions=N_PAPER,
+        clustered=k is not None,
+    )
     assert sizes["bytes_decoder"] == 97_532
     assert sizes["bytes_latents"] == latents
     assert sizes["bytes_list"] == (40_000 if k else 0)
@@ -144,8 +159,9 @@ def _tiny_btf(m=30, n=27, seed=0):
     abrdf = rng.random((m, n, 3), dtype=np.float32)
     theta = rng.uniform(0, 1.2, (n, 2))
     phi = rng.uniform(0, 6.28, (n, 2))
-    features = np.concatenate([stereographic(theta[:, 0], phi[:, 0]),
-                               stereographic(theta[:, 1], phi[:, 1])], 1).astype(np.float32)
+    features = np.concatenate(
+        [stereographic(theta[:, 0], phi[:, 0]), stereographic(theta[:, 1], phi[:, 1])], 1
+    ).astype(np.float32)
     return abrdf, features
 
 
@@ -154,8 +170,17 @@ def _train(seed, abrdf, features, sources=None, source_of_texel=None):
     norm = fit_normalization(abrdf)
     sources = abrdf if sources is None else sources
     source_of_texel = np.arange(len(abrdf)) if source_of_texel is None else source_of_texel
-    return train(abrdf, sources, source_of_texel, norm, features, np.arange(abrdf.shape[1]),
-                 settings, seed=seed, encoder_channels=(2, 2, 2)), norm
+    return train(
+        abrdf,
+        sources,
+        source_of_texel,
+        norm,
+        features,
+        np.arange(abrdf.shape[1]),
+        settings,
+        seed=seed,
+        encoder_channels=(2, 2, 2),
+    ), norm
 
 
 def test_training_is_deterministic_for_a_seed():
@@ -163,8 +188,9 @@ def test_training_is_deterministic_for_a_seed():
     a, _ = _train(3, abrdf, features)
     b, _ = _train(3, abrdf, features)
     c, _ = _train(4, abrdf, features)
-    for pa, pb in zip(a.decoder.state_dict().values(), b.decoder.state_dict().values(),
-                      strict=True):
+    for pa, pb in zip(
+        a.decoder.state_dict().values(), b.decoder.state_dict().values(), strict=True
+    ):
         torch.testing.assert_close(pa, pb, rtol=0, atol=0)
     assert a.epoch_losses == b.epoch_losses and a.epoch_losses != c.epoch_losses
 
@@ -198,11 +224,15 @@ def test_neural_btf_reconstruction_matches_a_direct_computation():
     abrdf, features = _tiny_btf(m=12)
     result, norm = _train(0, abrdf, features)
     latents = encode(result.encoder, abrdf, norm)
-    recon = reconstruction_error(result.decoder, latents, np.arange(12), abrdf, norm.alpha,
-                                 features)
+    recon = reconstruction_error(
+        result.decoder, latents, np.arange(12), abrdf, norm.alpha, features
+    )
     with torch.no_grad():
-        pred = result.decoder.eval().decode_grid(torch.from_numpy(latents),
-                                                 torch.from_numpy(features)).numpy()
+        pred = (
+            result.decoder.eval()
+            .decode_grid(torch.from_numpy(latents), torch.from_numpy(features))
+            .numpy()
+        )
     target = abrdf / norm.alpha
     assert recon.rmse == pytest.approx(np.sqrt(np.mean((pred - target) ** 2)), rel=1e-5)
     per_dir = np.sqrt(np.mean((pred - target) ** 2, axis=(0, 2)))
@@ -226,7 +256,8 @@ def test_linear_baseline_recovers_low_rank_data_and_counts_its_bytes():
     singular = np.linalg.svd(flat - flat.mean(axis=0), compute_uv=False)
     assert singular[1] > 1e-2 * singular[0]  # the data really are rank 2
     assert linear_error(one, targets)[0] == pytest.approx(
-        np.sqrt(np.sum(singular[1:] ** 2) / targets.size), rel=1e-4)
+        np.sqrt(np.sum(singular[1:] ** 2) / targets.size), rel=1e-4
+    )
     stored = model.mean.nbytes + model.basis.nbytes + model.coefficients.nbytes
     assert stored == pca_bytes(2, 40, 27, "float32")
     # At the paper's size the bytes of clustered k = 1000 (169,532 B) hold two float16
@@ -240,8 +271,9 @@ def test_texel_scale_is_in_every_figure_of_the_run():
     abrdf, features = _tiny_btf(m=40)
     labels = np.arange(40) % 3
     latents = np.random.default_rng(0).standard_normal((3, 8)).astype(np.float32)
-    recon = reconstruction_error(Decoder(), latents, labels, abrdf, 1.0, features,
-                                 texel_scale="lstsq")
+    recon = reconstruction_error(
+        Decoder(), latents, labels, abrdf, 1.0, features, texel_scale="lstsq"
+    )
     assert recon.rmse == recon.rmse_scaled < recon.rmse_unscaled
     assert recon.texel_scale.shape == (40,)
     # The per-direction errors are those of the scaled reconstruction too.
@@ -255,11 +287,30 @@ def test_a_shorter_run_is_the_start_of_a_longer_one_with_its_curve():
     norm = fit_normalization(abrdf)
 
     def run(steps):
-        settings = TrainSettings(epochs=10, lr=0.01, optimizer="adam", queries_per_abrdf=-1,
-                                 max_steps=steps, lr_half_life=0.5, curve_every=3,
-                                 curve_texels=10, threads=2, chunk=16, device="cpu")
-        return train(abrdf, abrdf, np.arange(40), norm, features, np.arange(27), settings,
-                     seed=0, encoder_channels=(4, 8))
+        settings = TrainSettings(
+            epochs=10,
+            lr=0.01,
+            optimizer="adam",
+            queries_per_abrdf=-1,
+            max_steps=steps,
+            lr_half_life=0.5,
+            curve_every=3,
+            curve_texels=10,
+            threads=2,
+            chunk=16,
+            device="cpu",
+        )
+        return train(
+            abrdf,
+            abrdf,
+            np.arange(40),
+            norm,
+            features,
+            np.arange(27),
+            settings,
+            seed=0,
+            encoder_channels=(4, 8),
+        )
 
     short, long = run(6), run(12)
     assert [p["step"] for p in long.curve] == [0, 3, 6, 9, 12]
@@ -277,8 +328,15 @@ def test_a_shorter_run_is_the_start_of_a_longer_one_with_its_curve():
 
 def test_learning_rate_halves_every_half_life(monkeypatch):
     abrdf, features = _tiny_btf(m=40)
-    settings = TrainSettings(epochs=2, lr=0.01, optimizer="sgd", queries_per_abrdf=4,
-                             lr_half_life=1.0, device="cpu", threads=1)
+    settings = TrainSettings(
+        epochs=2,
+        lr=0.01,
+        optimizer="sgd",
+        queries_per_abrdf=4,
+        lr_half_life=1.0,
+        device="cpu",
+        threads=1,
+    )
     seen = []
     original = torch.optim.SGD.step
 
@@ -287,8 +345,17 @@ def test_learning_rate_halves_every_half_life(monkeypatch):
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(torch.optim.SGD, "step", spy)
-    train(abrdf, abrdf, np.arange(40), fit_normalization(abrdf), features, np.arange(27),
-          settings, seed=0, encoder_channels=(4, 8))
+    train(
+        abrdf,
+        abrdf,
+        np.arange(40),
+        fit_normalization(abrdf),
+        features,
+        np.arange(27),
+        settings,
+        seed=0,
+        encoder_channels=(4, 8),
+    )
     steps_per_epoch = 40 // 5
     assert seen[0] == pytest.approx(0.01)
     assert seen[steps_per_epoch] == pytest.approx(0.005)
@@ -303,11 +370,30 @@ def test_bfloat16_training_follows_float32_training():
     norm = fit_normalization(abrdf)
 
     def run(precision):
-        settings = TrainSettings(epochs=10, lr=0.01, optimizer="adam", queries_per_abrdf=-1,
-                                 max_steps=24, curve_every=6, curve_texels=10, threads=2,
-                                 chunk=16, device="cpu", precision=precision)
-        return train(abrdf, abrdf, np.arange(40), norm, features, np.arange(27), settings,
-                     seed=0, encoder_channels=(4, 8))
+        settings = TrainSettings(
+            epochs=10,
+            lr=0.01,
+            optimizer="adam",
+            queries_per_abrdf=-1,
+            max_steps=24,
+            curve_every=6,
+            curve_texels=10,
+            threads=2,
+            chunk=16,
+            device="cpu",
+            precision=precision,
+        )
+        return train(
+            abrdf,
+            abrdf,
+            np.arange(40),
+            norm,
+            features,
+            np.arange(27),
+            settings,
+            seed=0,
+            encoder_channels=(4, 8),
+        )
 
     single, half = run("float32"), run("bfloat16")
     assert half.curve[0]["rmse"] == single.curve[0]["rmse"]  # same start, before any step
@@ -317,17 +403,35 @@ def test_bfloat16_training_follows_float32_training():
     assert all(p.dtype == torch.float32 for p in half.decoder.parameters())
 
 
-@pytest.mark.parametrize("m, epoch_texels, expected_steps", [
-    (30, None, 2 * 6),  # one pass over 30 texels: 6 batches of 5, two epochs
-    (30, 60, 2 * 12),  # epochs of 60 texels: two passes over 30 per epoch
-    (60, 60, 2 * 12),  # the same number of steps on a crop twice as large
-])
+@pytest.mark.parametrize(
+    "m, epoch_texels, expected_steps",
+    [
+        (30, None, 2 * 6),  # one pass over 30 texels: 6 batches of 5, two epochs
+        (30, 60, 2 * 12),  # epochs of 60 texels: two passes over 30 per epoch
+        (60, 60, 2 * 12),  # the same number of steps on a crop twice as large
+    ],
+)
 def test_epoch_texels_fixes_the_steps_whatever_the_crop(m, epoch_texels, expected_steps):
     abrdf, features = _tiny_btf(m=m)
-    settings = TrainSettings(epochs=2, epoch_texels=epoch_texels, lr=0.01, batch_size=5,
-                             queries_per_abrdf=4, device="cpu")
-    result = train(abrdf, abrdf, np.arange(m), fit_normalization(abrdf), features,
-                   np.arange(abrdf.shape[1]), settings, seed=0, encoder_channels=(2, 2, 2))
+    settings = TrainSettings(
+        epochs=2,
+        epoch_texels=epoch_texels,
+        lr=0.01,
+        batch_size=5,
+        queries_per_abrdf=4,
+        device="cpu",
+    )
+    result = train(
+        abrdf,
+        abrdf,
+        np.arange(m),
+        fit_normalization(abrdf),
+        features,
+        np.arange(abrdf.shape[1]),
+        settings,
+        seed=0,
+        encoder_channels=(2, 2, 2),
+    )
     assert result.steps == expected_steps
     assert len(result.epoch_losses) == expected_steps // (m // 5)  # one loss per pass
 
@@ -337,12 +441,17 @@ def test_epoch_texels_below_the_batch_is_refused():
         TrainSettings(epoch_texels=3, batch_size=5)
 
 
-@pytest.mark.parametrize("bad, named", [
-    ({"lr": float("nan")}, "train.lr=nan"), ({"lr": 0.0}, "train.lr=0.0"),
-    ({"queries_per_abrdf": 0}, "train.queries_per_abrdf=0"),
-    ({"max_steps": 0}, "train.max_steps=0"), ({"momentum": 1.5}, "train.momentum=1.5"),
-    ({"lr_half_life": float("nan")}, "train.lr_half_life=nan"),
-])
+@pytest.mark.parametrize(
+    "bad, named",
+    [
+        ({"lr": float("nan")}, "train.lr=nan"),
+        ({"lr": 0.0}, "train.lr=0.0"),
+        ({"queries_per_abrdf": 0}, "train.queries_per_abrdf=0"),
+        ({"max_steps": 0}, "train.max_steps=0"),
+        ({"momentum": 1.5}, "train.momentum=1.5"),
+        ({"lr_half_life": float("nan")}, "train.lr_half_life=nan"),
+    ],
+)
 def test_bad_training_settings_are_refused_naming_the_setting(bad, named):
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
         TrainSettings(**bad)

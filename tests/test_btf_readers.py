@@ -120,7 +120,9 @@ def test_linearize_chooses_the_decoding_of_8bit_images(datasets, format):
     codes = load_btf(root, format, linearize="none").images
     # "none" keeps the encoded values: the 8-bit codes / 255, whatever the layout.
     np.testing.assert_array_equal(codes * np.float32(255.0), np.rint(codes * np.float32(255.0)))
-    np.testing.assert_array_equal(load_btf(root, format, linearize="gamma2.2").images, gamma_decode(codes))
+    np.testing.assert_array_equal(
+        load_btf(root, format, linearize="gamma2.2").images, gamma_decode(codes)
+    )
     np.testing.assert_array_equal(load_btf(root, format, linearize="srgb").images, srgb_eotf(codes))
     own = {"ubo2003": gamma_decode, "utia": srgb_eotf}[format]
     np.testing.assert_array_equal(load_btf(root, format).images, own(codes))
@@ -311,8 +313,10 @@ def test_a_zip_reads_bit_for_bit_as_its_folder(datasets, tmp_path, format, ext, 
     assert count_btf_images(archive, format, views=[(30, 30)]) == (81, SIZE, SIZE)
 
 
-@pytest.mark.skipif(shutil.which("unzip") is None or shutil.which("zip") is None,
-                    reason="needs Info-ZIP zip and unzip")
+@pytest.mark.skipif(
+    shutil.which("unzip") is None or shutil.which("zip") is None,
+    reason="needs Info-ZIP zip and unzip",
+)
 @pytest.mark.parametrize("maker", ["python", "info-zip"])
 def test_a_zips_fingerprint_is_that_of_the_folder_unzip_makes(datasets, tmp_path, maker):
     """Python's zipfile records DOS times (local, 2 s steps); Info-ZIP's zip adds the
@@ -348,8 +352,13 @@ def test_the_load_stage_shares_one_entry_between_a_zip_and_its_unzipped_folder(d
     subprocess.run(["unzip", "-q", str(archive), "-d", str(tmp_path / "out")], check=True)
 
     def load(root):
-        cfg = compose_config("experiment=smoke", f"paths.runs={tmp_path / 'runs'}",
-                             "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null")
+        cfg = compose_config(
+            "experiment=smoke",
+            f"paths.runs={tmp_path / 'runs'}",
+            "dataset=ubo2003",
+            f"dataset.root={root}",
+            "dataset.views=null",
+        )
         return stages.load(Context.from_config(cfg))
 
     from_folder = load(tmp_path / "out" / "WOOL")
@@ -371,11 +380,16 @@ def test_a_zip_missing_an_image_names_it(datasets, tmp_path):
 
 
 def test_a_damaged_member_names_the_archive_and_member(datasets, tmp_path):
-    archive = _zip_folder(datasets[("ubo2003", "png")], tmp_path / "m.zip",
-                          compression=zipfile.ZIP_STORED)
+    archive = _zip_folder(
+        datasets[("ubo2003", "png")], tmp_path / "m.zip", compression=zipfile.ZIP_STORED
+    )
     with zipfile.ZipFile(archive) as opened:
-        member = opened.getinfo("tv030_pv030/" + sorted(
-            name.rsplit("/", 1)[1] for name in opened.namelist() if name.startswith("tv030"))[9])
+        member = opened.getinfo(
+            "tv030_pv030/"
+            + sorted(
+                name.rsplit("/", 1)[1] for name in opened.namelist() if name.startswith("tv030")
+            )[9]
+        )
     raw = bytearray(archive.read_bytes())
     data_start = member.header_offset + 30 + len(member.filename.encode()) + len(member.extra)
     raw[data_start + 40] ^= 0xFF  # the CRC no longer matches

@@ -102,7 +102,8 @@ def test_a_large_entry_changed_in_place_is_recomputed_with_its_descendants(tmp_p
     record = first[0].manifest["files"]["images.npy"]
     assert len(record["sha256_chunks"]) == 2 and record["bytes"] > digests.CHUNK_BYTES
     assert first[1].manifest["parents"] == {
-        first[0].key: {"stage": "load", "id": first[0].manifest["id"]}}
+        first[0].key: {"stage": "load", "id": first[0].manifest["id"]}
+    }
     images = first[0].path / "images.npy"
     _flip_bytes(images, offset=LARGE - 100)  # in the second chunk
     with caplog.at_level(logging.WARNING, logger="pipeline.core.cache"):
@@ -110,8 +111,10 @@ def test_a_large_entry_changed_in_place_is_recomputed_with_its_descendants(tmp_p
     assert [c.calls for c in computes] == [1, 1, 1] and not any(e.hit for e in again)
     assert [e.key for e in again] == [e.key for e in first]
     assert f"{images} has changed: its sha256 of bytes {64 << 20}.." in caplog.text
-    assert f"{first[1].path} was computed from {first[0].path}, which has been computed " \
-           f"again since" in caplog.text
+    assert (
+        f"{first[1].path} was computed from {first[0].path}, which has been computed "
+        f"again since" in caplog.text
+    )
     np.testing.assert_array_equal(again[0].array("images"), big)
     # Recomputed once: the next run hits all three.
     hits, computes = _stages(cache, big)
@@ -180,7 +183,8 @@ def test_chunks_of_a_file_are_hashed_by_several_threads(tmp_path, monkeypatch):
     _flip_bytes(entry.path / "z.npy", offset=2600, n=1)
     hashed = []
     assert entry.damage(progress=hashed.append).endswith(
-        "z.npy has changed: its sha256 of bytes 2000..2627 differs from the one in its manifest")
+        "z.npy has changed: its sha256 of bytes 2000..2627 differs from the one in its manifest"
+    )
     assert hashed[-3:] == [1000, 1000, 628]
 
 
@@ -227,12 +231,15 @@ def test_lookup_of_a_damaged_entry_is_none_with_a_warning(tmp_path, caplog):
     assert entry.path.is_dir()  # lookup leaves it; the next run replaces it
 
 
-@pytest.mark.parametrize("strip, said", [
-    (lambda m: m.update(files=sorted(m["files"])), "records no size and sha256 of each file"),
-    (lambda m: m["files"]["x.npy"].pop("sha256"), "records no size and sha256 of each file"),
-    (lambda m: m.pop("parents"), "records no parents"),
-    (lambda m: m.pop("id"), "records no id"),
-])
+@pytest.mark.parametrize(
+    "strip, said",
+    [
+        (lambda m: m.update(files=sorted(m["files"])), "records no size and sha256 of each file"),
+        (lambda m: m["files"]["x.npy"].pop("sha256"), "records no size and sha256 of each file"),
+        (lambda m: m.pop("parents"), "records no parents"),
+        (lambda m: m.pop("id"), "records no id"),
+    ],
+)
 def test_a_manifest_without_hashes_or_lineage_is_not_read(tmp_path, capsys, strip, said):
     """Every manifest this code writes has them: one without is damage, never a hit."""
     cache = StageCache(tmp_path)
@@ -260,7 +267,8 @@ def test_renaming_a_dataset_file_changes_the_fingerprint(tmp_path):
     os.rename(folder / "tl015_pl000.png", folder / "tl015_pl060.png")  # same size and mtime
     after = folder_fingerprint(tmp_path)
     assert {k: after[k] for k in ("files", "bytes", "mtime_ns")} == {
-        k: before[k] for k in ("files", "bytes", "mtime_ns")}
+        k: before[k] for k in ("files", "bytes", "mtime_ns")
+    }
     assert after["names"] != before["names"]
 
 
@@ -382,12 +390,22 @@ def test_ls_prints_each_stage(tmp_path, capsys):
     assert command.main(["ls", f"paths.runs={tmp_path / 'runs'}"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert [line.split()[:2] for line in lines[1:]] == [
-        ["a", "1"], ["b", "1"], ["c", "1"], ["d", "1"], ["total", "4"]]
+        ["a", "1"],
+        ["b", "1"],
+        ["c", "1"],
+        ["d", "1"],
+        ["total", "4"],
+    ]
 
 
 def test_command_runs_as_a_module(tmp_path):
     _entry(StageCache(tmp_path / "cache"), "load")
-    done = subprocess.run([sys.executable, "-m", "pipeline.cache", "ls", f"paths.runs={tmp_path}"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "pipeline.cache", "ls", f"paths.runs={tmp_path}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     assert re.search(r"^load\s+1\s", done.stdout, re.MULTILINE)

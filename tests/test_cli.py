@@ -13,15 +13,23 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _run(*args, cwd=ROOT):
-    return subprocess.run([sys.executable, "-m", *args], cwd=cwd, capture_output=True,
-                          text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", *args], cwd=cwd, capture_output=True, text=True, timeout=600
+    )
 
 
 def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_template):
     runs = tmp_path / "runs"
     mlflow_template(runs)
-    done = _run("pipeline", "-m", "experiment=smoke", "model.k=4,8", "seed=0,1",
-                "hydra/launcher=joblib", f"paths.runs={runs}")
+    done = _run(
+        "pipeline",
+        "-m",
+        "experiment=smoke",
+        "model.k=4,8",
+        "seed=0,1",
+        "hydra/launcher=joblib",
+        f"paths.runs={runs}",
+    )
     assert done.returncode == 0, done.stderr[-3000:]
 
     client = MlflowClient(tracking_uri(runs))
@@ -34,7 +42,11 @@ def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_templ
     assert {r.data.tags["mlflow.parentRunId"] for r in children} == {parents[0].info.run_id}
     assert {r.info.status for r in children} == {"FINISHED"}
     assert {(r.data.params["model.k"], r.data.params["seed"]) for r in children} == {
-        ("4", "0"), ("4", "1"), ("8", "0"), ("8", "1")}
+        ("4", "0"),
+        ("4", "1"),
+        ("8", "0"),
+        ("8", "1"),
+    }
     # One PCA for the whole sweep: computed once, a hit in every other job's log.
     logs = [p.read_text() for p in (runs / "hydra" / "multirun").glob("*/*/*.log")]
     pca_lines = [line for text in logs for line in text.splitlines() if "stage pca" in line]
@@ -59,8 +71,13 @@ def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_templ
     assert "rmse_mean_abrdf" in child.data.tags["mlflow.note.content"]
     assert f"model.k={child.data.params['model.k']}" in child.data.tags["overrides"].split()
     paths = _artifact_paths(client, child.info.run_id)
-    assert {"config/resolved.yaml", "config/overrides.yaml", "hydra/config.yaml",
-            "hydra/overrides.yaml", "hydra/__main__.log"} <= paths, paths
+    assert {
+        "config/resolved.yaml",
+        "config/overrides.yaml",
+        "hydra/config.yaml",
+        "hydra/overrides.yaml",
+        "hydra/__main__.log",
+    } <= paths, paths
     assert any(p.startswith("figures/fig7_") and p.endswith(".png") for p in paths), paths
     resolved = client.download_artifacts(child.info.run_id, "config/resolved.yaml", str(tmp_path))
     assert f"k: {child.data.params['model.k']}" in Path(resolved).read_text()
@@ -75,8 +92,13 @@ def _artifact_paths(client, run_id, path=None):
 
 def test_bad_input_exits_non_zero_with_the_path(tmp_path):
     missing = tmp_path / "nowhere"
-    done = _run("pipeline", "experiment=smoke", f"paths.runs={tmp_path / 'runs'}",
-                "dataset=ubo2003", f"dataset.root={missing}")
+    done = _run(
+        "pipeline",
+        "experiment=smoke",
+        f"paths.runs={tmp_path / 'runs'}",
+        "dataset=ubo2003",
+        f"dataset.root={missing}",
+    )
     assert done.returncode != 0
     assert str(missing) in done.stderr
 
@@ -100,27 +122,46 @@ def test_the_cache_command_takes_key_value_settings_like_the_jobs(tmp_path, caps
     assert main(["ls", f"paths.runs={tmp_path / 'runs'}"]) == 0
     assert f"cache {tmp_path / 'runs' / 'cache'}" in capsys.readouterr().out
     # paths.cache wins over <paths.runs>/cache.
-    assert main(["ls", f"paths.cache={tmp_path / 'elsewhere'}", "entries=false",
-                 f"paths.runs={tmp_path / 'runs'}"]) == 0
+    assert (
+        main(
+            [
+                "ls",
+                f"paths.cache={tmp_path / 'elsewhere'}",
+                "entries=false",
+                f"paths.runs={tmp_path / 'runs'}",
+            ]
+        )
+        == 0
+    )
     assert f"cache {tmp_path / 'elsewhere'}" in capsys.readouterr().out
     assert main(["verify", f"paths.cache={tmp_path / 'elsewhere'}", "fix=true"]) == 0
     assert "0 damaged" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("argv, said", [
-    (["ls", "paths.run=x"], "'paths.run=x' is not a setting of the ls command (did you mean "
-                            "paths.runs?)"),
-    (["gc", "dry-run=true"], "'dry-run=true' is not a setting of the gc command (did you mean "
-                             "dry_run?)"),
-    (["lss"], "unknown command 'lss' (did you mean ls?)"),
-    (["ls", "fix=true"], "fix is a setting of verify, not of ls"),
-    (["ls", "entries=maybe"], "entries='maybe' must be one of True, False"),
-    (["ls", "paths.runs="], "paths.runs=None must be a non-empty string"),
-    (["ls", "paths.runs=a", "paths.runs=b"], "paths.runs is given twice"),
-    (["paths.runs=a", "ls"], "no command: give one of ls, verify, gc first"),
-    (["gc", "--dry-run"], "'--dry-run' is not a setting of the gc command (did you mean dry_run?)"),
-    (["ls", "gc"], "'gc' is not a setting of the ls command"),
-])
+@pytest.mark.parametrize(
+    "argv, said",
+    [
+        (
+            ["ls", "paths.run=x"],
+            "'paths.run=x' is not a setting of the ls command (did you mean paths.runs?)",
+        ),
+        (
+            ["gc", "dry-run=true"],
+            "'dry-run=true' is not a setting of the gc command (did you mean dry_run?)",
+        ),
+        (["lss"], "unknown command 'lss' (did you mean ls?)"),
+        (["ls", "fix=true"], "fix is a setting of verify, not of ls"),
+        (["ls", "entries=maybe"], "entries='maybe' must be one of True, False"),
+        (["ls", "paths.runs="], "paths.runs=None must be a non-empty string"),
+        (["ls", "paths.runs=a", "paths.runs=b"], "paths.runs is given twice"),
+        (["paths.runs=a", "ls"], "no command: give one of ls, verify, gc first"),
+        (
+            ["gc", "--dry-run"],
+            "'--dry-run' is not a setting of the gc command (did you mean dry_run?)",
+        ),
+        (["ls", "gc"], "'gc' is not a setting of the ls command"),
+    ],
+)
 def test_the_cache_command_refuses_a_bad_word_naming_it(argv, said, capsys):
     from pipeline.cache import main
 
@@ -133,12 +174,15 @@ def test_the_cache_command_refuses_a_bad_word_naming_it(argv, said, capsys):
 def test_the_cache_command_answers_a_bad_setting_before_importing_mlflow(tmp_path):
     """A typo is answered before MLflow, torch, Hydra or pandas is imported (seconds each),
     and ``--help`` lists every setting."""
-    probe = ("import sys\nfrom pipeline.cache import main\ntry:\n    main(['gc', 'bogus=1'])\n"
-             "except SystemExit as exit:\n    code = exit.code\n"
-             "print(sorted(m for m in ('mlflow', 'torch', 'hydra', 'pandas') if m in sys.modules))\n"
-             "sys.exit(code)\n")
-    done = subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, capture_output=True,
-                          text=True, timeout=120)
+    probe = (
+        "import sys\nfrom pipeline.cache import main\ntry:\n    main(['gc', 'bogus=1'])\n"
+        "except SystemExit as exit:\n    code = exit.code\n"
+        "print(sorted(m for m in ('mlflow', 'torch', 'hydra', 'pandas') if m in sys.modules))\n"
+        "sys.exit(code)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 2
     assert "'bogus=1' is not a setting of the gc command" in done.stderr
     assert done.stdout.strip() == "[]"

@@ -22,7 +22,11 @@ def test_the_dataset_folder_is_named_by_every_generator_setting():
 
     cfg = compose_config("experiment=paper_cpu")
     names = {synthetic_folder(cfg).name}
-    for override in ("dataset.synthetic.material=knit", "dataset.synthetic.seed=1",
-                     "dataset.synthetic.quality=90", "dataset.synthetic.size=64"):
+    for override in (
+        "dataset.synthetic.material=knit",
+        "dataset.synthetic.seed=1",
+        "dataset.synthetic.quality=90",
+        "dataset.synthetic.size=64",
+    ):
         names.add(synthetic_folder(compose_config("experiment=paper_cpu", override)).name)
     assert len(names) == 5

@@ -47,8 +47,9 @@ def _tiny_btf(m=M, n=N, seed=0):
     rng = np.random.default_rng(seed)
     abrdf = rng.random((m, n, 3), dtype=np.float32)
     theta, phi = rng.uniform(0, 1.2, (n, 2)), rng.uniform(0, 6.28, (n, 2))
-    features = np.concatenate([stereographic(theta[:, 0], phi[:, 0]),
-                               stereographic(theta[:, 1], phi[:, 1])], 1).astype(np.float32)
+    features = np.concatenate(
+        [stereographic(theta[:, 0], phi[:, 0]), stereographic(theta[:, 1], phi[:, 1])], 1
+    ).astype(np.float32)
     return abrdf, features
 
 
@@ -59,10 +60,10 @@ def _sampling(batch_size=5):
 def test_device_batches_are_the_host_batches():
     abrdf, _ = _tiny_btf()
     norm = fit_normalization(abrdf)
-    host = HostBatches(abrdf, abrdf, np.arange(M), norm, _sampling(),
-                       np.random.default_rng(0), CPU)
-    device = DeviceBatches(abrdf, abrdf, np.arange(M), norm, _sampling(),
-                           np.random.default_rng(0), CUDA, seed=0)
+    host = HostBatches(abrdf, abrdf, np.arange(M), norm, _sampling(), np.random.default_rng(0), CPU)
+    device = DeviceBatches(
+        abrdf, abrdf, np.arange(M), norm, _sampling(), np.random.default_rng(0), CUDA, seed=0
+    )
     for batches in (host, device):
         batches.new_pass()
     for first in (0, 5):
@@ -78,8 +79,9 @@ def _one_step(device):
     norm = fit_normalization(abrdf)
     torch.manual_seed(0)
     encoder, decoder = Encoder(N, (4, 8)).to(device), Decoder().to(device)
-    batches = HostBatches(abrdf, abrdf, np.arange(M), norm, _sampling(),
-                          np.random.default_rng(0), device)
+    batches = HostBatches(
+        abrdf, abrdf, np.arange(M), norm, _sampling(), np.random.default_rng(0), device
+    )
     batches.new_pass()
     step = AutogradStep(encoder, decoder, torch.from_numpy(features).to(device))
     loss = float(step(batches.batch(0)))
@@ -102,10 +104,26 @@ def test_training_on_the_gpu_learns_as_on_the_cpu(precision, rtol):
     norm = fit_normalization(abrdf)
 
     def run(device):
-        settings = TrainSettings(epochs=4, lr=0.05, queries_per_abrdf=-1, device=device,
-                                 threads=1, backend="autograd", precision=precision)
-        return train(abrdf, abrdf, np.arange(M), norm, features, np.arange(N), settings,
-                     seed=0, encoder_channels=(4, 8))
+        settings = TrainSettings(
+            epochs=4,
+            lr=0.05,
+            queries_per_abrdf=-1,
+            device=device,
+            threads=1,
+            backend="autograd",
+            precision=precision,
+        )
+        return train(
+            abrdf,
+            abrdf,
+            np.arange(M),
+            norm,
+            features,
+            np.arange(N),
+            settings,
+            seed=0,
+            encoder_channels=(4, 8),
+        )
 
     cpu, gpu = run("cpu"), run("cuda")
     assert gpu.steps == cpu.steps == 8

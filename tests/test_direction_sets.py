@@ -43,9 +43,14 @@ from pipeline.data.directions import (
 )
 
 N_LIGHTS, N_VIEWS = 37, 29
-FIBONACCI = ("dataset.format=ubo2014", "dataset.synthetic.ext=btf", "dataset.views=null",
-             "dataset.synthetic.directions=fibonacci", f"dataset.synthetic.n_lights={N_LIGHTS}",
-             f"dataset.synthetic.n_views={N_VIEWS}")
+FIBONACCI = (
+    "dataset.format=ubo2014",
+    "dataset.synthetic.ext=btf",
+    "dataset.views=null",
+    "dataset.synthetic.directions=fibonacci",
+    f"dataset.synthetic.n_lights={N_LIGHTS}",
+    f"dataset.synthetic.n_views={N_VIEWS}",
+)
 
 
 def _fibonacci_pairs(n_lights: int = N_LIGHTS, n_views: int = N_VIEWS) -> np.ndarray:
@@ -72,10 +77,14 @@ def test_direction_sets_find_the_81_grid_in_canonical_order_whatever_the_pair_or
 
 
 def test_direction_sets_take_another_turn_of_phi_and_any_phi_at_the_normal_as_one():
-    pairs = np.array([[0.0, 0.0, 0.5, 1.0],
-                      [0.0, 2.0, 0.5, 1.0 + 2 * np.pi],    # the normal at another phi
-                      [0.3, 2 * np.pi - 1e-12, 0.5, 1.0],  # phi just below a whole turn
-                      [0.3, 0.0, 0.5, -2 * np.pi + 1.0]])
+    pairs = np.array(
+        [
+            [0.0, 0.0, 0.5, 1.0],
+            [0.0, 2.0, 0.5, 1.0 + 2 * np.pi],  # the normal at another phi
+            [0.3, 2 * np.pi - 1e-12, 0.5, 1.0],  # phi just below a whole turn
+            [0.3, 0.0, 0.5, -2 * np.pi + 1.0],
+        ]
+    )
     sets = direction_sets(pairs)
     assert (len(sets.lights), len(sets.views)) == (2, 1)
     np.testing.assert_array_equal(sets.light_of, [0, 0, 1, 1])
@@ -100,8 +109,9 @@ def test_fibonacci_sets_are_even_in_solid_angle_within_their_cap():
 def test_heldout_lights_on_the_81_grid_are_the_ones_drawn_before(count, seed):
     """The rule for any set draws, on the 81-grid, the lights the grid-only rule drew (the
     train stage's key holds them: cached models stay valid)."""
-    before = np.sort(np.random.default_rng(seed).choice(np.arange(1, 81), size=count,
-                                                        replace=False))
+    before = np.sort(
+        np.random.default_rng(seed).choice(np.arange(1, 81), size=count, replace=False)
+    )
     np.testing.assert_array_equal(heldout_light_indices(_holdout(count, seed), grid_81()), before)
 
 
@@ -125,12 +135,12 @@ def test_the_81_grids_hull_is_the_polygon_of_its_75_degree_ring():
     regular 24-gon that the renderer used before any direction set was allowed."""
     phi = np.random.default_rng(0).uniform(-7.0, 7.0, 20000)
     step = 2 * np.pi / 24
-    radius = (np.tan(np.radians(75.0) / 2) * np.cos(step / 2)
-              / np.cos(np.mod(phi, step) - step / 2))
+    radius = np.tan(np.radians(75.0) / 2) * np.cos(step / 2) / np.cos(np.mod(phi, step) - step / 2)
     hull = DirectionHull(grid_81())
     np.testing.assert_allclose(hull.edge_theta(phi), 2 * np.arctan(radius), rtol=0, atol=1e-12)
     assert np.degrees(hull.inscribed_theta) == pytest.approx(
-        np.degrees(2 * np.arctan(np.tan(np.radians(37.5)) * np.cos(step / 2))))
+        np.degrees(2 * np.arctan(np.tan(np.radians(37.5)) * np.cos(step / 2)))
+    )
     assert offgrid_max_theta(btf_directions()) == np.radians(70.0)  # as before
 
 
@@ -153,8 +163,9 @@ def test_a_fibonacci_sets_hull_clamps_every_direction_into_its_triangulation():
     outside = clamped[moved] + [1e-6, 0.0]
     assert (triangles.find_simplex(stereographic(*outside.T)) < 0).all()
     # Every direction up to the inscribed theta is inside, whatever its phi.
-    ring = np.column_stack([np.full(720, hull.inscribed_theta - 1e-9),
-                            np.linspace(0, 2 * np.pi, 720)])
+    ring = np.column_stack(
+        [np.full(720, hull.inscribed_theta - 1e-9), np.linspace(0, 2 * np.pi, 720)]
+    )
     assert not hull.beyond(ring).any()
 
 
@@ -190,7 +201,8 @@ def test_linear_interpolation_is_exact_for_a_field_bilinear_in_light_and_view():
     inside = min(hull.inscribed_theta for hull in direction_hulls(pairs))  # of both sets
     queries = offgrid_directions(300, seed=2, max_theta=inside)
     nearest, linear = ProductInterpolator(pairs, np.arange(len(pairs))).predict(
-        field(pairs), queries)
+        field(pairs), queries
+    )
     np.testing.assert_allclose(linear, field(queries), atol=1e-5)
     assert np.abs(nearest - field(queries)).max() > 1e-2
 
@@ -217,8 +229,9 @@ def test_measured_interpolation_on_a_fibonacci_set_is_the_data_there_and_near_th
     rng = np.random.default_rng(3)
     texels = rng.integers(0, 4, len(pairs))
     pixel = np.array([0, 1, 8, 9])  # the crop's texels in the 8 x 8 texture
-    np.testing.assert_array_equal(material.evaluate(texels, pairs),
-                                  material.values[texels, np.arange(len(pairs))])
+    np.testing.assert_array_equal(
+        material.evaluate(texels, pairs), material.values[texels, np.arange(len(pairs))]
+    )
 
     queries = offgrid_directions(1500, seed=4, max_theta=np.radians(60.0))
     texels = rng.integers(0, 4, len(queries))
@@ -228,13 +241,19 @@ def test_measured_interpolation_on_a_fibonacci_set_is_the_data_there_and_near_th
         found = _measured_fabric(_fibonacci_pairs(light_count, view_count), fabric)
         return float(np.sqrt(np.mean(np.square(found.evaluate(texels, queries) - truth))))
 
-    grid = float(np.sqrt(np.mean(np.square(
-        _measured_fabric(btf_directions(), fabric).evaluate(texels, queries) - truth))))
+    grid = float(
+        np.sqrt(
+            np.mean(
+                np.square(
+                    _measured_fabric(btf_directions(), fabric).evaluate(texels, queries) - truth
+                )
+            )
+        )
+    )
     assert error(81, 81) < 1.5 * grid
     coarse = error(N_LIGHTS, N_VIEWS)
     assert error(4 * N_LIGHTS, 4 * N_VIEWS) < coarse / 2
-    nearest, _ = ProductInterpolator(pairs, np.arange(len(pairs))).predict(
-        material.values, queries)
+    nearest, _ = ProductInterpolator(pairs, np.arange(len(pairs))).predict(material.values, queries)
     nearest_error = np.sqrt(np.mean(np.square(nearest[texels, np.arange(len(queries))] - truth)))
     assert coarse < 0.6 * nearest_error
 
@@ -246,12 +265,14 @@ def test_the_grid_edge_of_the_render_is_the_datas_own():
     light_hull, view_hull = direction_hulls(pairs)
     truth = AnalyticMaterial(SyntheticBTF(size=8), (0, 0), (8, 8))
     rng = np.random.default_rng(5)
-    queries = np.column_stack([rng.uniform(0, np.radians(95), (400, 2)),
-                               rng.uniform(-7, 7, (400, 2))])[:, [0, 2, 1, 3]]
+    queries = np.column_stack(
+        [rng.uniform(0, np.radians(95), (400, 2)), rng.uniform(-7, 7, (400, 2))]
+    )[:, [0, 2, 1, 3]]
     texels = np.arange(400) % 64
     clamped = np.column_stack([light_hull.clamp(queries[:, :2]), view_hull.clamp(queries[:, 2:])])
-    np.testing.assert_array_equal(GridClamped(truth, pairs).evaluate(texels, queries),
-                                  truth.evaluate(texels, clamped))
+    np.testing.assert_array_equal(
+        GridClamped(truth, pairs).evaluate(texels, queries), truth.evaluate(texels, clamped)
+    )
     phi = np.linspace(0, 2 * np.pi, 3600)
     widest = int(np.argmax(view_hull.edge_theta(phi)))
     steep = view_hull.edge_theta(phi[widest]) - np.radians(0.2)
@@ -261,8 +282,10 @@ def test_the_grid_edge_of_the_render_is_the_datas_own():
     assert BeyondGridIndicator((8, 8)).evaluate(np.array([0]), steep_view)[0, 0] == 1
     # The measured material clamps onto the same edges by itself.
     measured = _measured_fabric(pairs, SyntheticBTF(size=8))
-    np.testing.assert_array_equal(GridClamped(measured, pairs).evaluate(texels % 4, queries),
-                                  measured.evaluate(texels % 4, queries))
+    np.testing.assert_array_equal(
+        GridClamped(measured, pairs).evaluate(texels % 4, queries),
+        measured.evaluate(texels % 4, queries),
+    )
 
 
 # ------------------------------------------------------------------- the built-in BTF
@@ -272,31 +295,56 @@ def test_the_grid_edge_of_the_render_is_the_datas_own():
 def test_a_fibonacci_built_in_btf_round_trips_the_ubo2014_reader_exactly(tmp_path, size):
     from pipeline.data.ubo2014 import load_ubo2014
 
-    path = write_synthetic_btf(tmp_path / "btf", size=size, format="ubo2014", ext="btf",
-                               directions="fibonacci", n_lights=7, n_views=5)
+    path = write_synthetic_btf(
+        tmp_path / "btf",
+        size=size,
+        format="ubo2014",
+        ext="btf",
+        directions="fibonacci",
+        n_lights=7,
+        n_views=5,
+    )
     assert path.name == "synthetic.btf" and path.parent == tmp_path / "btf"
     data = load_ubo2014(path)
     sets = direction_sets(data.directions)
     assert (len(sets.lights), len(sets.views), sets.is_product()) == (7, 5, True)
     # The angles as the file stores them (float32), and the fabric's values there exactly.
-    np.testing.assert_array_equal(sets.lights,
-                                  fibonacci_hemisphere(7).astype(np.float32).astype(np.float64))
+    np.testing.assert_array_equal(
+        sets.lights, fibonacci_hemisphere(7).astype(np.float32).astype(np.float64)
+    )
     np.testing.assert_array_equal(data.images, SyntheticBTF(size=size).evaluate(data.directions))
     mtime = path.stat().st_mtime_ns
-    assert write_synthetic_btf(tmp_path / "btf", size=size, format="ubo2014", ext="btf",
-                               directions="fibonacci", n_lights=7, n_views=5) == path
+    assert (
+        write_synthetic_btf(
+            tmp_path / "btf",
+            size=size,
+            format="ubo2014",
+            ext="btf",
+            directions="fibonacci",
+            n_lights=7,
+            n_views=5,
+        )
+        == path
+    )
     assert path.stat().st_mtime_ns == mtime  # found, not written again
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"directions": "fibonacci", "n_lights": 7, "n_views": 5},
-     "cannot be written in the ubo2003 layout"),
-    ({"format": "ubo2014", "ext": "btf", "directions": "fibonacci", "n_lights": 7},
-     "needs dataset.synthetic.n_views"),
-    ({"n_views": 5}, "n_views=5 goes with directions=fibonacci only"),
-    ({"directions": "spiral"}, "directions='spiral' is not one of"),
-    ({"format": "ubo2014", "ext": "btf", "views": [[0, 0]]}, "writes every view"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (
+            {"directions": "fibonacci", "n_lights": 7, "n_views": 5},
+            "cannot be written in the ubo2003 layout",
+        ),
+        (
+            {"format": "ubo2014", "ext": "btf", "directions": "fibonacci", "n_lights": 7},
+            "needs dataset.synthetic.n_views",
+        ),
+        ({"n_views": 5}, "n_views=5 goes with directions=fibonacci only"),
+        ({"directions": "spiral"}, "directions='spiral' is not one of"),
+        ({"format": "ubo2014", "ext": "btf", "views": [[0, 0]]}, "writes every view"),
+    ],
+)
 def test_the_writer_refuses_a_direction_set_its_layout_cannot_hold(tmp_path, kwargs, match):
     with pytest.raises(ConfigError, match=match):
         write_synthetic_btf(tmp_path / "btf", size=4, **kwargs)
@@ -312,8 +360,9 @@ def test_the_default_direction_set_keeps_the_dataset_folder_and_the_cache_keys()
 
     cfg = compose_config("experiment=smoke")
     gen = plain_settings(cfg.dataset.synthetic)
-    old = {key: value for key, value in gen.items()
-           if key not in ("directions", "n_lights", "n_views")}
+    old = {
+        key: value for key, value in gen.items() if key not in ("directions", "n_lights", "n_views")
+    }
     named = {"gen": old, "views": plain_settings(cfg.dataset.views)}
     tag = hashlib.sha256(canonical_json(named).encode()).hexdigest()[:10]
     assert synthetic_folder(cfg).name == f"synthetic_btf-ubo2003-jpg-{tag}"
@@ -344,17 +393,28 @@ def test_the_whole_chain_runs_on_a_fibonacci_set(tmp_path, mlflow_template):
 
     runs_dir = tmp_path / "runs"
     mlflow_template(runs_dir)
-    run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}",
-                           "model=neural_btf", *FIBONACCI))
+    run_job(
+        compose_config(
+            "experiment=render_smoke", f"paths.runs={runs_dir}", "model=neural_btf", *FIBONACCI
+        )
+    )
     client, run = _only_run(runs_dir, "render_smoke")
     metrics = run.data.metrics
     n, m = N_LIGHTS * N_VIEWS, 12 * 12
     assert (metrics["n_directions"], metrics["n_texels"]) == (n, m)
     assert metrics["bytes_original"] == m * n * 3 * 4
     assert metrics["rmse_data_vs_truth"] == 0  # the layout is lossless
-    for name in ("rmse", "rmse_all_dirs", "rmse_heldout_model", "rmse_heldout_linear",
-                 "rmse_heldout_nearest", "rmse_offgrid_model", "rmse_offgrid_linear",
-                 "render_truth_rmse_cloth", "render_reference_truth_rmse_cloth"):
+    for name in (
+        "rmse",
+        "rmse_all_dirs",
+        "rmse_heldout_model",
+        "rmse_heldout_linear",
+        "rmse_heldout_nearest",
+        "rmse_offgrid_model",
+        "rmse_offgrid_linear",
+        "render_truth_rmse_cloth",
+        "render_reference_truth_rmse_cloth",
+    ):
         assert np.isfinite(metrics[name]), name
     # The reference interpolates lossless data: near the truth, unlike the 20-step model.
     assert metrics["render_reference_truth_rmse_cloth"] < metrics["render_truth_rmse_cloth"]
@@ -374,8 +434,10 @@ def test_the_whole_chain_runs_on_a_fibonacci_set(tmp_path, mlflow_template):
     for row in json.loads(listing.read_text()):
         asked, used = np.radians(row["asked"]), np.radians(row["used"])
         np.testing.assert_allclose(used, crop.array("directions", mmap=False)[row["column"]])
-        light = np.argmax(np.cos(sets.lights[:, 0]) * np.cos(asked[0]) + np.sin(
-            sets.lights[:, 0]) * np.sin(asked[0]) * np.cos(sets.lights[:, 1] - asked[1]))
+        light = np.argmax(
+            np.cos(sets.lights[:, 0]) * np.cos(asked[0])
+            + np.sin(sets.lights[:, 0]) * np.sin(asked[0]) * np.cos(sets.lights[:, 1] - asked[1])
+        )
         np.testing.assert_array_equal(used[:2], sets.lights[light])
         assert not np.allclose(used, asked)  # the paper's pairs are not in a Fibonacci set
 
@@ -388,7 +450,8 @@ def test_the_whole_chain_runs_on_a_fibonacci_set(tmp_path, mlflow_template):
 
 
 def test_measured_data_on_a_fibonacci_set_renders_every_model_clamped_to_its_edge(
-        tmp_path, mlflow_template):
+    tmp_path, mlflow_template
+):
     """A UBO2014 file without a generator behind it (no truth): the PCA baseline and the
     reference interpolate the file's own directions, every model is clamped onto their
     edge, and the share of samples beyond it is reported."""
@@ -397,11 +460,26 @@ def test_measured_data_on_a_fibonacci_set_renders_every_model_clamped_to_its_edg
 
     runs_dir = tmp_path / "runs"
     mlflow_template(runs_dir)
-    path = write_synthetic_btf(tmp_path / "carpet", size=16, format="ubo2014", ext="btf",
-                               directions="fibonacci", n_lights=N_LIGHTS, n_views=N_VIEWS)
-    run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}",
-                           "dataset=ubo2014", f"dataset.root={path}", "dataset.crop=null",
-                           "model=pca", "model.n_components=2"))
+    path = write_synthetic_btf(
+        tmp_path / "carpet",
+        size=16,
+        format="ubo2014",
+        ext="btf",
+        directions="fibonacci",
+        n_lights=N_LIGHTS,
+        n_views=N_VIEWS,
+    )
+    run_job(
+        compose_config(
+            "experiment=render_smoke",
+            f"paths.runs={runs_dir}",
+            "dataset=ubo2014",
+            f"dataset.root={path}",
+            "dataset.crop=null",
+            "model=pca",
+            "model.n_components=2",
+        )
+    )
     _, run = _only_run(runs_dir, "render_smoke")
     metrics = run.data.metrics
     assert metrics["n_directions"] == N_LIGHTS * N_VIEWS

@@ -38,8 +38,15 @@ def _compressed(path: Path) -> Path:
     from pipeline.btf.compressed import write_compressed
     from pipeline.btf.model import Decoder
 
-    return write_compressed(path, Decoder(hidden=64, layers=2), _noise(32 * 32, 8), 1.0,
-                            crop_size=(32, 32), method="neural_btf", dataset="synthetic")
+    return write_compressed(
+        path,
+        Decoder(hidden=64, layers=2),
+        _noise(32 * 32, 8),
+        1.0,
+        crop_size=(32, 32),
+        method="neural_btf",
+        dataset="synthetic",
+    )
 
 
 def _stage(folder: Path, compute) -> None:
@@ -58,14 +65,17 @@ WRITERS = {
     "jpeg": (lambda d: write_image_8bit(d / "img.jpg", _noise(256, 256, 3)), "img.jpg"),
     "exr": (lambda d: write_exr(d / "fig.exr", _noise(128, 128, 3)), "fig.exr"),
     "compressed": (lambda d: _compressed(d / "btf.safetensors"), "btf.safetensors"),
-    "utia brdf": (lambda d: write_utia_brdf(d / "brdf.bin", _noise(6 * 48 * 6 * 48, 3)),
-                  "brdf.bin"),
-    "table": (lambda d: write_table(_table(5000), d, "table2_rmse", "Table 2"),
-              "table2_rmse.csv"),
+    "utia brdf": (
+        lambda d: write_utia_brdf(d / "brdf.bin", _noise(6 * 48 * 6 * 48, 3)),
+        "brdf.bin",
+    ),
+    "table": (lambda d: write_table(_table(5000), d, "table2_rmse", "Table 2"), "table2_rmse.csv"),
     "summary.md": (lambda d: write_file(d / "summary.md", "x" * (100 << 10)), "summary.md"),
     # np.save loses the errno ("N requested and M written"): named from the free space
-    "stage arrays": (lambda d: _stage(d, lambda f: save_arrays(f, images=_noise(100_000))),
-                     "cache/load/*/images.npy"),
+    "stage arrays": (
+        lambda d: _stage(d, lambda f: save_arrays(f, images=_noise(100_000))),
+        "cache/load/*/images.npy",
+    ),
     # torch.save raises RuntimeError("unexpected pos ..."): the entry is named
     "stage torch": (lambda d: _stage(d, _torch_save), "cache/load/*"),
 }
@@ -78,8 +88,11 @@ def _named(message: str, folder: Path, name: str) -> bool:
 
 def _files(folder: Path) -> list[str]:
     """Every file under ``folder`` (cache locks aside)."""
-    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*")
-                  if p.is_file() and not p.name.startswith(".lock-"))
+    return sorted(
+        str(p.relative_to(folder))
+        for p in folder.rglob("*")
+        if p.is_file() and not p.name.startswith(".lock-")
+    )
 
 
 @pytest.fixture
@@ -89,11 +102,16 @@ def small_disk(tmp_path):
     disk.mkdir()
     if shutil.which("mount") is None:
         pytest.skip("no mount command here; test_every_writer_names_a_patched_enospc covers it")
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)],
-                          capture_output=True, text=True)
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)],
+        capture_output=True,
+        text=True,
+    )
     if done.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip() or done.returncode}); "
-                    f"test_every_writer_names_a_patched_enospc covers it")
+        pytest.skip(
+            f"cannot mount a tmpfs here ({done.stderr.strip() or done.returncode}); "
+            f"test_every_writer_names_a_patched_enospc covers it"
+        )
     try:
         (disk / "filler").write_bytes(b"\0" * (shutil.disk_usage(disk).free - FREE))
         assert shutil.disk_usage(disk).free == FREE
@@ -141,8 +159,13 @@ def test_every_writer_names_a_patched_enospc(tmp_path, monkeypatch, writer):
 
         monkeypatch.setattr(files, "free_bytes", lambda path: FREE)
         monkeypatch.setattr(np, "save", lambda *a, **k: enospc())
-        monkeypatch.setattr(torch, "save", lambda *a, **k: (_ for _ in ()).throw(
-            RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 576")))
+        monkeypatch.setattr(
+            torch,
+            "save",
+            lambda *a, **k: (_ for _ in ()).throw(
+                RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 576")
+            ),
+        )
     with pytest.raises(DataError) as caught:
         write(tmp_path)
     assert _named(str(caught.value), tmp_path, name), str(caught.value)

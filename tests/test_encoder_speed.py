@@ -37,14 +37,16 @@ def _relative(a, b):
     return float((a - b).norm()) / max(float(b.norm()), 1e-300)
 
 
-@pytest.mark.parametrize(("length", "batch", "chunk_bytes", "momentum"), [
-    (6561, 5, 1, None),          # one ABRDF per chunk; a cumulative running average
-    (6561, 7, 200_000, 0.1),     # chunks of 1, 2 and 4 ABRDFs by block, a short last one
-    (730, 6, 1 << 30, 0.1),      # one chunk; lengths that leave a remainder to the pools
-    (731, 3, 30_000, 0.3),
-])
-def test_training_step_equals_the_plain_layers_in_float64(length, batch, chunk_bytes,
-                                                          momentum):
+@pytest.mark.parametrize(
+    ("length", "batch", "chunk_bytes", "momentum"),
+    [
+        (6561, 5, 1, None),  # one ABRDF per chunk; a cumulative running average
+        (6561, 7, 200_000, 0.1),  # chunks of 1, 2 and 4 ABRDFs by block, a short last one
+        (730, 6, 1 << 30, 0.1),  # one chunk; lengths that leave a remainder to the pools
+        (731, 3, 30_000, 0.3),
+    ],
+)
+def test_training_step_equals_the_plain_layers_in_float64(length, batch, chunk_bytes, momentum):
     """Latents, the ABRDFs' gradient, every parameter's gradient and the batch-norm running
     statistics over three steps, to float64 rounding. Catches a wrong batch-norm gradient or
     statistic, a chunk boundary off by one, the fc columns in the wrong order, a pool
@@ -59,11 +61,13 @@ def test_training_step_equals_the_plain_layers_in_float64(length, batch, chunk_b
         x = torch.randn(batch, length, 3, dtype=torch.float64).permute(0, 2, 1) * (1 + step)
         weights = torch.randn(batch, 8, dtype=torch.float64)
         got, want = _step(ours, fast, x, weights), _step(plain, plain.reference, x, weights)
-        for name, a, b in zip(["latents", "abrdf"] + [n for n, _ in ours.named_parameters()],
-                              got, want, strict=True):
+        for name, a, b in zip(
+            ["latents", "abrdf"] + [n for n, _ in ours.named_parameters()], got, want, strict=True
+        ):
             assert _relative(a, b) < 1e-10, name
-    for (name, a), (_, b) in zip(ours.state_dict().items(), plain.state_dict().items(),
-                                 strict=True):
+    for (name, a), (_, b) in zip(
+        ours.state_dict().items(), plain.state_dict().items(), strict=True
+    ):
         assert _relative(a.double(), b.double()) < 1e-10, name
     assert int(ours.state_dict()["features.3.num_batches_tracked"]) == 3
 
@@ -86,7 +90,10 @@ def test_ties_in_a_pooled_triple_send_the_gradient_to_the_first():
         conv = ours.features[0]
         y = torch.nn.functional.conv2d(
             x.unsqueeze(2).contiguous(memory_format=torch.channels_last),
-            conv.weight.unsqueeze(2), conv.bias, padding=(0, 1)).view(4, 4, 81, 3)
+            conv.weight.unsqueeze(2),
+            conv.bias,
+            padding=(0, 1),
+        ).view(4, 4, 81, 3)
     assert float((y == y[..., :1]).float().mean()) > 0.9  # the first block's triples tie
     want = _step(ours, ours.forward_layers, x, weights)
     got = _step(ours, ours.forward, x, weights)

@@ -58,31 +58,52 @@ def test_table1_reads_the_stored_types(smoke_cfg):
 
 
 def _row(model: str, k, total: int, rmse: float, seed=0, scaled=None, unscaled=None) -> dict:
-    return {"dataset": "d", "model": model, "family": "clustered" if k else "",
-            "order": k or 0, "params.method.name": "btf", "params.model.name":
-            "clustered" if k else "neural_btf", "seed": seed,
-            "params.btf.sizes.extra_dtype": "float32", "metrics.n_texels": 100.0,
-            "metrics.bytes_decoder": 1000, "metrics.bytes_latents": total - 1000 - 400 * bool(k),
-            "metrics.bytes_list": 400 * bool(k), "metrics.bytes_extra": 0,
-            "metrics.bytes_total": total, "metrics.bytes_original": 10**6, "metrics.rmse": rmse,
-            "metrics.rmse_with_texel_scale": scaled, "metrics.rmse_without_texel_scale": unscaled,
-            "tags.stored_as.decoder": "float32", "tags.stored_as.latents": "float32",
-            "tags.stored_as.list": "int32" if k else None}
+    return {
+        "dataset": "d",
+        "model": model,
+        "family": "clustered" if k else "",
+        "order": k or 0,
+        "params.method.name": "btf",
+        "params.model.name": "clustered" if k else "neural_btf",
+        "seed": seed,
+        "params.btf.sizes.extra_dtype": "float32",
+        "metrics.n_texels": 100.0,
+        "metrics.bytes_decoder": 1000,
+        "metrics.bytes_latents": total - 1000 - 400 * bool(k),
+        "metrics.bytes_list": 400 * bool(k),
+        "metrics.bytes_extra": 0,
+        "metrics.bytes_total": total,
+        "metrics.bytes_original": 10**6,
+        "metrics.rmse": rmse,
+        "metrics.rmse_with_texel_scale": scaled,
+        "metrics.rmse_without_texel_scale": unscaled,
+        "tags.stored_as.decoder": "float32",
+        "tags.stored_as.latents": "float32",
+        "tags.stored_as.list": "int32" if k else None,
+    }
 
 
 def test_the_scale_gets_its_bytes_and_is_compared_at_the_nearest_size():
-    runs = pd.DataFrame([
-        _row("k = 8", 8, 1500, 0.10, scaled=0.08, unscaled=0.10),
-        _row("k = 16", 16, 1900, 0.07, scaled=0.06, unscaled=0.07),
-        _row("Neural BTF", None, 5000, 0.05),
-    ])
+    runs = pd.DataFrame(
+        [
+            _row("k = 8", 8, 1500, 0.10, scaled=0.08, unscaled=0.10),
+            _row("k = 16", 16, 1900, 0.07, scaled=0.06, unscaled=0.07),
+            _row("Neural BTF", None, 5000, 0.05),
+        ]
+    )
     sizes = tables.table_sizes(runs)
-    assert list(sizes["model"]) == ["Neural BTF", "k = 8", "k = 8 + per-texel scale", "k = 16",
-                                    "k = 16 + per-texel scale"]
+    assert list(sizes["model"]) == [
+        "Neural BTF",
+        "k = 8",
+        "k = 8 + per-texel scale",
+        "k = 16",
+        "k = 16 + per-texel scale",
+    ]
     scaled = sizes.set_index("model").loc["k = 8 + per-texel scale"]
     assert scaled["per-texel scale [B]"] == 400 and scaled["total [B]"] == 1900
-    assert scaled["stored as"] == ("decoder float32, latents float32, list int32, "
-                                   "per-texel scale float32")
+    assert scaled["stored as"] == (
+        "decoder float32, latents float32, list int32, per-texel scale float32"
+    )
     grain = tables.table_graininess(runs).set_index("model")
     # k = 8 with its scale (1900 B) against k = 16 without (1900 B): the same bytes.
     assert grain.loc["k = 8", "bytes with scale"] == 1900
@@ -92,12 +113,24 @@ def test_the_scale_gets_its_bytes_and_is_compared_at_the_nearest_size():
 
 
 def test_table2_shows_the_floor_for_built_in_data_only():
-    runs = pd.DataFrame([
-        {"dataset": "synthetic", "model": "k = 8", "order": 8, "metrics.rmse": 0.1,
-         "metrics.rmse_data_vs_truth": 0.0078},
-        {"dataset": "wool", "model": "k = 8", "order": 8, "metrics.rmse": 0.2,
-         "metrics.rmse_data_vs_truth": np.nan},
-    ])
+    runs = pd.DataFrame(
+        [
+            {
+                "dataset": "synthetic",
+                "model": "k = 8",
+                "order": 8,
+                "metrics.rmse": 0.1,
+                "metrics.rmse_data_vs_truth": 0.0078,
+            },
+            {
+                "dataset": "wool",
+                "model": "k = 8",
+                "order": 8,
+                "metrics.rmse": 0.2,
+                "metrics.rmse_data_vs_truth": np.nan,
+            },
+        ]
+    )
     table = tables.with_truth_floor(tables.table_rmse(runs), runs)
     assert list(table.columns) == ["data vs truth", "k = 8"]
     assert table.loc["synthetic", "data vs truth"] == "0.0078"

@@ -312,7 +312,7 @@ def _hand_made_runs() -> pd.DataFrame:
                     }
                 )
     for row in rows:  # the recipe tag a job logs (pipeline.core.tracking.job_run)
-        params = {k[len("params."):]: v for k, v in row.items() if k.startswith("params.")}
+        params = {k[len("params.") :]: v for k, v in row.items() if k.startswith("params.")}
         row["tags.recipe"] = recipe_tags(params)["recipe"]
     runs = pd.DataFrame(rows)
     stale = runs.iloc[[0]].assign(start_time=pd.Timestamp("2025-01-01"))

@@ -42,8 +42,7 @@ def test_fused_gradient_equals_autograd(workers, chunk, fused_kernels):
         targets=torch.rand(4, 33, 3, dtype=torch.float64),
     )
     loss, expected, expected_latents = _autograd(decoder, batch, features)
-    step = DecoderStep(decoder, features, workers=workers, chunk=chunk,
-                       fused_kernels=fused_kernels)
+    step = DecoderStep(decoder, features, workers=workers, chunk=chunk, fused_kernels=fused_kernels)
     grads = step(batch)
     step.close()
     assert grads.loss == pytest.approx(loss, rel=1e-12)
@@ -81,18 +80,29 @@ def test_bfloat16_gradient_is_autograds_to_bfloat16_rounding(workers, chunk, fus
     decoder = Decoder()
     features = torch.rand(300, 4) * 2 - 1
     batch = Batch(torch.randn(4, 8), torch.randint(0, 300, (4, 257)), torch.rand(4, 257, 3))
-    loss, expected, expected_latents = _autograd(decoder.double(), Batch(
-        batch.latents.double(), batch.directions, batch.targets.double()), features.double())
+    loss, expected, expected_latents = _autograd(
+        decoder.double(),
+        Batch(batch.latents.double(), batch.directions, batch.targets.double()),
+        features.double(),
+    )
     decoder.float()
-    step = DecoderStep(decoder, features, workers=workers, chunk=chunk, precision="bfloat16",
-                       fused_kernels=fused_kernels)
+    step = DecoderStep(
+        decoder,
+        features,
+        workers=workers,
+        chunk=chunk,
+        precision="bfloat16",
+        fused_kernels=fused_kernels,
+    )
     grads = step(batch)
     step.close()
     assert grads.loss == pytest.approx(loss, rel=1e-3)
     decoder.zero_grad(set_to_none=True)
     step.assign(grads)
-    errors = [_relative_error(p.grad, want) for p, want in zip(decoder.parameters(), expected,
-                                                               strict=True)]
+    errors = [
+        _relative_error(p.grad, want)
+        for p, want in zip(decoder.parameters(), expected, strict=True)
+    ]
     errors.append(_relative_error(grads.latents, expected_latents))
     assert max(errors) < 0.03, errors
     assert all(p.grad.dtype == torch.float32 for p in decoder.parameters())
@@ -104,8 +114,9 @@ def test_bfloat16_step_is_deterministic_for_a_number_of_workers(fused_kernels):
     decoder = Decoder()
     features = torch.rand(300, 4)
     batch = Batch(torch.randn(5, 8), torch.randint(0, 300, (5, 301)), torch.rand(5, 301, 3))
-    step = DecoderStep(decoder, features, workers=2, chunk=64, precision="bfloat16",
-                       fused_kernels=fused_kernels)
+    step = DecoderStep(
+        decoder, features, workers=2, chunk=64, precision="bfloat16", fused_kernels=fused_kernels
+    )
     first, second = step(batch), step(batch)
     step.close()
     for a, b in zip(first.weights + first.biases, second.weights + second.biases, strict=True):
@@ -128,15 +139,19 @@ def test_chunks_may_span_abrdfs(fused_kernels):
     torch.manual_seed(2)
     decoder = Decoder().double()
     features = torch.rand(40, 4, dtype=torch.float64) * 2 - 1
-    batch = Batch(torch.randn(3, 8, dtype=torch.float64), torch.randint(0, 40, (3, 10)),
-                  torch.rand(3, 10, 3, dtype=torch.float64))
+    batch = Batch(
+        torch.randn(3, 8, dtype=torch.float64),
+        torch.randint(0, 40, (3, 10)),
+        torch.rand(3, 10, 3, dtype=torch.float64),
+    )
     loss, expected, expected_latents = _autograd(decoder, batch, features)
     for chunk in (30, 25, 4):  # one chunk; chunks across ABRDF boundaries
         step = DecoderStep(decoder, features, chunk=chunk, fused_kernels=fused_kernels)
         grads = step(batch)
         assert grads.loss == pytest.approx(loss, rel=1e-12)
-        for got, want in zip(grads.weights + grads.biases, expected[0::2] + expected[1::2],
-                             strict=True):
+        for got, want in zip(
+            grads.weights + grads.biases, expected[0::2] + expected[1::2], strict=True
+        ):
             torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-12)
         torch.testing.assert_close(grads.latents, expected_latents, rtol=1e-10, atol=1e-12)
 
@@ -152,18 +167,27 @@ def test_float32_and_bfloat16_storage_against_float64_autograd(hidden, precision
     decoder = Decoder(hidden=hidden)
     features = torch.rand(200, 4) * 2 - 1
     batch = Batch(torch.randn(3, 8), torch.randint(0, 200, (3, 150)), torch.rand(3, 150, 3))
-    loss, expected, expected_latents = _autograd(decoder.double(), Batch(
-        batch.latents.double(), batch.directions, batch.targets.double()), features.double())
+    loss, expected, expected_latents = _autograd(
+        decoder.double(),
+        Batch(batch.latents.double(), batch.directions, batch.targets.double()),
+        features.double(),
+    )
     decoder.float()
-    step = DecoderStep(decoder, features, workers=2, chunk=100, precision=precision,
-                       fused_kernels=fused_kernels)
+    step = DecoderStep(
+        decoder, features, workers=2, chunk=100, precision=precision, fused_kernels=fused_kernels
+    )
     grads = step(batch)
     step.close()
     tolerance = 1e-5 if precision == "float32" else 0.03
     assert grads.loss == pytest.approx(loss, rel=tolerance)
-    errors = [_relative_error(got, want) for got, want in zip(
-        grads.weights + grads.biases + [grads.latents],
-        expected[0::2] + expected[1::2] + [expected_latents], strict=True)]
+    errors = [
+        _relative_error(got, want)
+        for got, want in zip(
+            grads.weights + grads.biases + [grads.latents],
+            expected[0::2] + expected[1::2] + [expected_latents],
+            strict=True,
+        )
+    ]
     assert max(errors) < tolerance, errors
 
 

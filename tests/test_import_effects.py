@@ -141,7 +141,8 @@ def test_importing_pipeline_leaves_the_environment_alone(import_probe):
     for key in import_probe["library_env"]:
         assert any(key in keys for keys in LIBRARY_ENV.values()), (
             f"a library set {key}; add it to LIBRARY_ENV with where it is set",
-            import_probe["env_writes"])
+            import_probe["env_writes"],
+        )
     writes = [w for w in import_probe["env_writes"] if w[0] == "pipeline"]
     assert import_probe["pipeline_env"] == {}, writes
     # Set and restored again counts too: nothing writes the environment while importing.

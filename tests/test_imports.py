@@ -20,7 +20,6 @@ from helpers import PIPELINE_MODULES as MODULES
 TESTS = ROOT / "tests"
 
 
-
 @dataclass(frozen=True)
 class Import:
     """One import statement's target, as written in a file."""
@@ -75,8 +74,11 @@ def _imports(path: Path) -> tuple[list[Import], list[tuple[str, int]]]:
                 visit(child.body, True)  # read by type checkers only
                 visit(child.orelse, deferred)
             else:
-                visit(child, deferred or isinstance(
-                    child, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda))
+                visit(
+                    child,
+                    deferred
+                    or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda),
+                )
 
     visit(tree, False)
 
@@ -141,14 +143,21 @@ def test_tests_use_only_public_names():
 def test_tests_take_helpers_from_helpers_and_fixtures_from_conftest():
     """No test imports ``conftest`` (pytest loads it as a plugin; importing it again runs
     it twice under another name); conftest.py defines fixtures (and hooks) only."""
-    importers = [f"{path.name}:{imp.line}" for path in sorted(TESTS.glob("*.py"))
-                 for imp in _imports(path)[0] if imp.target.split(".")[0] == "conftest"]
+    importers = [
+        f"{path.name}:{imp.line}"
+        for path in sorted(TESTS.glob("*.py"))
+        for imp in _imports(path)[0]
+        if imp.target.split(".")[0] == "conftest"
+    ]
     assert importers == []
     tree = ast.parse((TESTS / "conftest.py").read_text())
-    plain = [node.name for node in tree.body
-             if isinstance(node, ast.FunctionDef | ast.ClassDef)
-             and not node.name.startswith("pytest_")
-             and not any("fixture" in ast.unparse(d) for d in node.decorator_list)]
+    plain = [
+        node.name
+        for node in tree.body
+        if isinstance(node, ast.FunctionDef | ast.ClassDef)
+        and not node.name.startswith("pytest_")
+        and not any("fixture" in ast.unparse(d) for d in node.decorator_list)
+    ]
     assert plain == [], "move these to tests/helpers.py"
 
 
@@ -158,8 +167,11 @@ def _graph(include_deferred: bool) -> dict[str, dict[str, int]]:
     graph: dict[str, dict[str, int]] = {name: {} for name in MODULES}
     for name, path in MODULES.items():
         for imp in _imports(path)[0]:
-            if imp.target in MODULES and imp.target != name and (
-                    include_deferred or not imp.deferred):
+            if (
+                imp.target in MODULES
+                and imp.target != name
+                and (include_deferred or not imp.deferred)
+            ):
                 graph[name].setdefault(imp.target, imp.line)
     return graph
 
@@ -194,8 +206,13 @@ def _cycles(graph: dict[str, dict[str, int]]) -> list[list[str]]:
 
 
 def _describe(graph, components) -> list[str]:
-    return [f"{a} -> {b} (line {graph[a][b]})"
-            for component in components for a in component for b in graph[a] if b in component]
+    return [
+        f"{a} -> {b} (line {graph[a][b]})"
+        for component in components
+        for a in component
+        for b in graph[a]
+        if b in component
+    ]
 
 
 def test_no_import_cycle():
@@ -223,8 +240,7 @@ def test_import_cycles_through_functions_are_the_listed_ones():
     loaded = {frozenset(c) for c in _cycles(_graph(include_deferred=False))}
     deferred = [c for c in _cycles(graph) if frozenset(c) not in loaded]
     new = [c for c in deferred if frozenset(c) not in DEFERRED_CYCLES]
-    assert new == [], "import cycles closed inside functions: " + "; ".join(
-        _describe(graph, new))
+    assert new == [], "import cycles closed inside functions: " + "; ".join(_describe(graph, new))
     gone = set(DEFERRED_CYCLES) - {frozenset(c) for c in deferred}
     assert gone == set(), f"listed in DEFERRED_CYCLES but no longer there: {gone}"
 
@@ -247,15 +263,24 @@ def test_imports_inside_functions_and_type_checking_blocks_are_deferred(tmp_path
         "    from pipeline.core import errors\n"
     )
     found = [(imp.target, imp.deferred) for imp in _imports(module)[0]]
-    assert found == [("os", False), ("typing", False), ("json", True), ("math", False),
-                     ("re", True), ("pipeline.core.errors", True)]
+    assert found == [
+        ("os", False),
+        ("typing", False),
+        ("json", True),
+        ("math", False),
+        ("re", True),
+        ("pipeline.core.errors", True),
+    ]
 
 
 def test_cycle_finder_finds_cycles():
     graph = {"a": {"b": 1}, "b": {"c": 2}, "c": {"a": 3, "d": 4}, "d": {}}
     assert _cycles(graph) == [["a", "b", "c"]]
     assert _describe(graph, _cycles(graph)) == [
-        "a -> b (line 1)", "b -> c (line 2)", "c -> a (line 3)"]
+        "a -> b (line 1)",
+        "b -> c (line 2)",
+        "c -> a (line 3)",
+    ]
 
 
 # What each package may import (imports inside functions included); the commands
@@ -291,16 +316,20 @@ def test_private_name_rules_see_every_kind_of_use(tmp_path):
         "from pipeline.btf.fast import kernels\n"
         "def f():\n"
         "    from pipeline.fourier.quilting import _OverlapSearch\n"
-        "    return kernels._cpu_key(), c._publish, pipeline.core.cache._write_atomic\n")
+        "    return kernels._cpu_key(), c._publish, pipeline.core.cache._write_atomic\n"
+    )
     uses = _private_uses(path, True)
     imports, _ = _imports(path)
     assert sorted(u.split(" ", 1)[1] for u in uses) == [
-        "pipeline.btf.fast.kernels._cpu_key", "pipeline.core.cache._publish",
-        "pipeline.core.cache._publish", "pipeline.core.cache._write_atomic",
-        "pipeline.fourier.quilting._OverlapSearch"]
+        "pipeline.btf.fast.kernels._cpu_key",
+        "pipeline.core.cache._publish",
+        "pipeline.core.cache._publish",
+        "pipeline.core.cache._write_atomic",
+        "pipeline.fourier.quilting._OverlapSearch",
+    ]
     assert [(i.target, i.deferred) for i in imports if i.target.startswith("pipeline.f")] == [
-        ("pipeline.fourier.quilting", True)]
-
+        ("pipeline.fourier.quilting", True)
+    ]
 
 
 # ------------------------------------------------------- the renderer imports no method
@@ -337,8 +366,11 @@ def test_the_general_renderer_imports_no_method_package():
     method can build on: none of its modules imports a method package, not even inside a
     function. A method's materials, render stages and reports live in its own package
     (method A's in ``pipeline/btf/render/``)."""
-    renderer = {name: path for name, path in MODULES.items()
-                if name == "pipeline.render" or name.startswith("pipeline.render.")}
+    renderer = {
+        name: path
+        for name, path in MODULES.items()
+        if name == "pipeline.render" or name.startswith("pipeline.render.")
+    }
     assert {"pipeline.render", "pipeline.render.engine", "pipeline.render.scene"} <= set(renderer)
     assert set(METHOD_PACKAGES) <= set(MODULES)  # the names checked are the real packages
     found = [hit for name, path in renderer.items() for hit in _method_imports(path, name)]
@@ -356,8 +388,12 @@ def test_the_method_import_check_sees_every_kind_of_import(tmp_path):
         "    from ..brdf_map import report\n"
         "    return 1\n"
         "class C:\n"
-        "    from pipeline.btf.interpolation import Barycentric, ProductInterpolator\n")
+        "    from pipeline.btf.interpolation import Barycentric, ProductInterpolator\n"
+    )
     found = _method_imports(path, "pipeline.render.probe")
     assert [hit.split(" ", 1)[1] for hit in found] == [
-        "pipeline.btf", "pipeline.fourier.series", "pipeline.brdf_map",
-        "pipeline.btf.interpolation"]
+        "pipeline.btf",
+        "pipeline.fourier.series",
+        "pipeline.brdf_map",
+        "pipeline.btf.interpolation",
+    ]

@@ -23,12 +23,26 @@ def installed(tmp_path_factory):
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(ROOT / name, source / name)
     for name in ("pipeline", "hydra_plugins"):
-        shutil.copytree(ROOT / name, source / name,
-                        ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+        shutil.copytree(
+            ROOT / name, source / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info")
+        )
     done = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
-         "--no-build-isolation", "--target", str(target), str(source)],
-        capture_output=True, text=True, timeout=300)
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "install",
+            "--quiet",
+            "--no-deps",
+            "--no-build-isolation",
+            "--target",
+            str(target),
+            str(source),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     return target
 
@@ -47,11 +61,28 @@ def test_the_smoke_job_runs_from_another_folder(installed, tmp_path):
     work.mkdir()
     done = subprocess.run(
         [sys.executable, "-c", "import pipeline; print(pipeline.__file__)"],
-        cwd=work, env=env, capture_output=True, text=True, timeout=120)
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.stdout.strip().startswith(str(installed)), done.stdout + done.stderr
     done = subprocess.run(
-        [sys.executable, "-m", "pipeline", "-m", "experiment=smoke", "model=pca",
-         f"paths.runs={tmp_path / 'runs'}"],
-        cwd=work, env=env, capture_output=True, text=True, timeout=300)
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "-m",
+            "experiment=smoke",
+            "model=pca",
+            f"paths.runs={tmp_path / 'runs'}",
+        ],
+        cwd=work,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert "pca s0: run" in done.stdout and "Launching 1 jobs" in done.stdout + done.stderr

@@ -22,12 +22,25 @@ def _linear_field(directions):
 
 
 def test_linear_interpolation_is_exact_for_a_field_linear_in_each_direction():
-    directions = btf_directions(views=[(0, 0), (15, 0), (15, 60), (15, 120), (15, 180),
-                                       (15, 240), (15, 300), (30, 0), (30, 30)])
+    directions = btf_directions(
+        views=[
+            (0, 0),
+            (15, 0),
+            (15, 60),
+            (15, 120),
+            (15, 180),
+            (15, 240),
+            (15, 300),
+            (30, 0),
+            (30, 30),
+        ]
+    )
     columns = np.arange(len(directions))
     interp = ProductInterpolator(directions, columns)
     queries = offgrid_directions(50, seed=1)
-    queries[:, 2] = np.minimum(queries[:, 2], np.radians(12.0))  # inside the hexagon of 15-degree views
+    queries[:, 2] = np.minimum(
+        queries[:, 2], np.radians(12.0)
+    )  # inside the hexagon of 15-degree views
     nearest, linear = interp.predict(_linear_field(directions), queries)
     np.testing.assert_allclose(linear, _linear_field(queries), atol=1e-5)
     assert np.abs(nearest - _linear_field(queries)).max() > 1e-3  # nearest is not exact

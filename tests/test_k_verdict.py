@@ -69,8 +69,12 @@ def test_more_noise_needs_more_seeds():
 
 
 def test_two_values_of_k_use_the_sign_test():
-    table = pd.DataFrame({500: [0.03, 0.031, 0.029, 0.032, 0.030, 0.028],
-                          1000: [0.029, 0.030, 0.028, 0.031, 0.029, 0.027]})
+    table = pd.DataFrame(
+        {
+            500: [0.03, 0.031, 0.029, 0.032, 0.030, 0.028],
+            1000: [0.029, 0.030, 0.028, 0.031, 0.029, 0.027],
+        }
+    )
     verdict = blocked_verdict(table)
     assert (verdict.rank_test, verdict.rank_method) == ("sign test", "exact")
     assert verdict.p_rank == pytest.approx(2 * 0.5**6)
@@ -94,28 +98,34 @@ def test_a_table_with_k_columns_out_of_order_is_sorted_and_bad_k_values_refused(
 # Friedman's test: exact p from the permutation distribution, chi-square when too costly.
 
 
-@pytest.mark.parametrize(("blocks", "p"), [
-    ([[1, 2, 3]] * 3, 6 / 216),  # the 6 of 6^3 orderings where all blocks agree: 1/36
-    ([[1, 2, 3]] * 2, 6 / 36),
-    ([[1, 2, 3], [3, 2, 1]], 1.0),  # equal rank sums: the smallest statistic there is
-    # Ties, by hand: block 1 has 3 distinct orderings (the 2 at any place) of 6, block 2
-    # has 6; the statistic is largest, as observed, when both put their top rank in the
-    # same place: 3 x 2 of 18.
-    ([[1, 1, 2], [1, 2, 3]], 1 / 3),
-])
+@pytest.mark.parametrize(
+    ("blocks", "p"),
+    [
+        ([[1, 2, 3]] * 3, 6 / 216),  # the 6 of 6^3 orderings where all blocks agree: 1/36
+        ([[1, 2, 3]] * 2, 6 / 36),
+        ([[1, 2, 3], [3, 2, 1]], 1.0),  # equal rank sums: the smallest statistic there is
+        # Ties, by hand: block 1 has 3 distinct orderings (the 2 at any place) of 6, block 2
+        # has 6; the statistic is largest, as observed, when both put their top rank in the
+        # same place: 3 x 2 of 18.
+        ([[1, 1, 2], [1, 2, 3]], 1 / 3),
+    ],
+)
 def test_the_exact_friedman_p_of_small_tables_worked_by_hand(blocks, p):
     assert friedman_exact_p(np.array(blocks, dtype=float)) == pytest.approx(p, rel=1e-12)
 
 
-@pytest.mark.parametrize(("blocks", "chi2", "p"), [
-    ([[1, 2, 3]] * 3, 6.0, 0.028),
-    ([[1, 2, 3]] * 2 + [[1, 3, 2]], 4.667, 0.194),
-    ([[1, 2, 3]] * 3 + [[2, 1, 3]], 6.5, 0.042),
-    ([[1, 2, 3]] * 4, 8.0, 0.0046),
-    ([[1, 2, 3, 4]] * 2, 6.0, 0.042),
-    ([[1, 2, 3, 4]] * 2 + [[2, 1, 3, 4]], 8.2, 0.017),
-    ([[1, 2, 3, 4]] * 3, 9.0, 0.0017),
-])
+@pytest.mark.parametrize(
+    ("blocks", "chi2", "p"),
+    [
+        ([[1, 2, 3]] * 3, 6.0, 0.028),
+        ([[1, 2, 3]] * 2 + [[1, 3, 2]], 4.667, 0.194),
+        ([[1, 2, 3]] * 3 + [[2, 1, 3]], 6.5, 0.042),
+        ([[1, 2, 3]] * 4, 8.0, 0.0046),
+        ([[1, 2, 3, 4]] * 2, 6.0, 0.042),
+        ([[1, 2, 3, 4]] * 2 + [[2, 1, 3, 4]], 8.2, 0.017),
+        ([[1, 2, 3, 4]] * 3, 9.0, 0.0017),
+    ],
+)
 def test_the_exact_friedman_p_matches_the_published_table(blocks, chi2, p):
     """Friedman (1937) and Siegel's Nonparametric Statistics (1956), Table N: the exact
     probability of a chi-square_r at least this large, three or two decimals."""
@@ -124,8 +134,9 @@ def test_the_exact_friedman_p_matches_the_published_table(blocks, chi2, p):
     assert friedman_exact_p(y) == pytest.approx(p, abs=0.5 * 10 ** -len(f"{p}".split(".")[1]))
 
 
-@pytest.mark.parametrize(("blocks", "k", "seed"), [(2, 3, 0), (3, 3, 1), (4, 3, 2), (3, 4, 3),
-                                                   (2, 5, 4), (5, 3, 5)])
+@pytest.mark.parametrize(
+    ("blocks", "k", "seed"), [(2, 3, 0), (3, 3, 1), (4, 3, 2), (3, 4, 3), (2, 5, 4), (5, 3, 5)]
+)
 def test_the_exact_friedman_p_matches_a_brute_force_enumeration(blocks, k, seed):
     """scipy's permutation test enumerates all (k!)^b orderings of the values within the
     blocks and computes scipy's statistic (tie correction included) on each; values on a
@@ -136,8 +147,14 @@ def test_the_exact_friedman_p_matches_a_brute_force_enumeration(blocks, k, seed)
     def statistic(*samples, axis):
         return stats.friedmanchisquare(*samples, axis=axis).statistic
 
-    brute = stats.permutation_test(tuple(y.T), statistic, permutation_type="samples",
-                                   n_resamples=np.inf, alternative="greater", vectorized=True)
+    brute = stats.permutation_test(
+        tuple(y.T),
+        statistic,
+        permutation_type="samples",
+        n_resamples=np.inf,
+        alternative="greater",
+        vectorized=True,
+    )
     assert brute.null_distribution.size == np.prod(np.arange(1, k + 1)) ** blocks
     assert friedman_exact_p(y) == pytest.approx(brute.pvalue, rel=1e-9)
 
@@ -155,6 +172,7 @@ def test_the_exact_friedman_p_with_two_k_is_the_sign_test():
 
 def test_the_exact_friedman_p_converges_to_the_chi_square_p_with_many_blocks():
     """With 3 blocks the chi-square p is far from the exact one; with 100, close."""
+
     def largest_gap(blocks):
         rng = np.random.default_rng(blocks)
         gaps = []
@@ -178,8 +196,9 @@ def test_a_costly_exact_friedman_p_falls_back_to_the_chi_square():
 
 def test_the_verdict_reports_the_exact_friedman_p_and_says_so():
     """Three seeds ranking three k alike: exact 1/36, where the chi-square gives 0.0498."""
-    table = pd.DataFrame([[0.031, 0.028, 0.026], [0.033, 0.030, 0.029],
-                          [0.030, 0.027, 0.025]], columns=KS)
+    table = pd.DataFrame(
+        [[0.031, 0.028, 0.026], [0.033, 0.030, 0.029], [0.030, 0.027, 0.025]], columns=KS
+    )
     verdict = blocked_verdict(table)
     assert (verdict.rank_test, verdict.rank_method) == ("Friedman", "exact")
     assert verdict.p_rank == pytest.approx(1 / 36)
@@ -192,11 +211,14 @@ def test_the_verdict_reports_the_exact_friedman_p_and_says_so():
 # The steps of the k grid: Holm-adjusted p, Bonferroni intervals, relative to the smaller k.
 
 
-@pytest.mark.parametrize(("p", "adjusted"), [
-    ([0.01, 0.04, 0.03], [0.03, 0.06, 0.06]),  # 3 x 0.01; 2 x 0.03; max(0.06, 1 x 0.04)
-    ([0.5, 0.6], [1.0, 1.0]),  # 2 x 0.5, capped; then max(1.0, 0.6)
-    ([0.02], [0.02]),
-])
+@pytest.mark.parametrize(
+    ("p", "adjusted"),
+    [
+        ([0.01, 0.04, 0.03], [0.03, 0.06, 0.06]),  # 3 x 0.01; 2 x 0.03; max(0.06, 1 x 0.04)
+        ([0.5, 0.6], [1.0, 1.0]),  # 2 x 0.5, capped; then max(1.0, 0.6)
+        ([0.02], [0.02]),
+    ],
+)
 def test_holm_adjusts_p_values_worked_by_hand(p, adjusted):
     assert holm(np.array(p)) == pytest.approx(adjusted)
 
@@ -217,15 +239,18 @@ def test_the_steps_worked_by_hand():
     se = c * np.sqrt(2 / 3)  # sqrt(2 var / seeds)
     t = np.array([-0.003, -0.0027]) / se
     p = 2 * stats.t.sf(np.abs(t), 4)
-    for step, d, p_step, p_holm in zip(verdict.steps, [-0.003, -0.0027], p,
-                                       [2 * p[0], max(2 * p[0], p[1])], strict=True):
+    for step, d, p_step, p_holm in zip(
+        verdict.steps, [-0.003, -0.0027], p, [2 * p[0], max(2 * p[0], p[1])], strict=True
+    ):
         assert step.diff == pytest.approx(d) and step.relative == pytest.approx(-0.1)
         assert step.p == pytest.approx(p_step) and step.p_holm == pytest.approx(p_holm)
         half, half_bonferroni = stats.t.ppf(0.975, 4) * se, stats.t.ppf(1 - 0.05 / 4, 4) * se
         assert step.ci == pytest.approx((d - half, d + half))
         assert step.ci_bonferroni == pytest.approx((d - half_bonferroni, d + half_bonferroni))
     assert [(s.k_from, s.k_to, s.mean_from) for s in verdict.steps] == [
-        (500, 1000, pytest.approx(0.030)), (1000, 2000, pytest.approx(0.027))]
+        (500, 1000, pytest.approx(0.030)),
+        (1000, 2000, pytest.approx(0.027)),
+    ]
 
 
 def test_the_steps_match_a_regression_on_k_and_seed_dummies():
@@ -250,9 +275,11 @@ def test_the_steps_match_a_regression_on_k_and_seed_dummies():
     assert [s.diff for s in steps] == pytest.approx(diff)
     assert [s.p for s in steps] == pytest.approx(p)
     assert [s.p_holm for s in steps] == pytest.approx(
-        [min(1, 2 * p.min()) if q == p.min() else max(min(1, 2 * p.min()), q) for q in p])
-    assert [s.ci_bonferroni for s in steps] == [pytest.approx((d - h, d + h))
-                                                for d, h in zip(diff, half, strict=True)]
+        [min(1, 2 * p.min()) if q == p.min() else max(min(1, 2 * p.min()), q) for q in p]
+    )
+    assert [s.ci_bonferroni for s in steps] == [
+        pytest.approx((d - h, d + h)) for d, h in zip(diff, half, strict=True)
+    ]
 
 
 def test_with_two_k_the_bonferroni_interval_is_the_plain_one():
@@ -264,16 +291,22 @@ def test_with_two_k_the_bonferroni_interval_is_the_plain_one():
 def test_describe_names_what_each_column_is():
     verdict = blocked_verdict(_hand_table())
     row = describe(verdict)
-    assert list(row) == ["k values", "seeds (blocks)", "two-way ANOVA p (k | seed)",
-                         "Friedman p (exact)", "trend per doubling of k [95 % CI]",
-                         "500 → 1000 [95 % CI, Bonferroni]", "1000 → 2000 [95 % CI, Bonferroni]",
-                         "verdict"]
+    assert list(row) == [
+        "k values",
+        "seeds (blocks)",
+        "two-way ANOVA p (k | seed)",
+        "Friedman p (exact)",
+        "trend per doubling of k [95 % CI]",
+        "500 → 1000 [95 % CI, Bonferroni]",
+        "1000 → 2000 [95 % CI, Bonferroni]",
+        "verdict",
+    ]
     first, second = verdict.steps
     assert row["500 → 1000 [95 % CI, Bonferroni]"] == (
         f"-0.00300 [{first.ci_bonferroni[0]:+.5f}, {first.ci_bonferroni[1]:+.5f}] "
-        f"(-10.0 % of k = 500); p={first.p:.3g}, Holm p={first.p_holm:.3g}")
+        f"(-10.0 % of k = 500); p={first.p:.3g}, Holm p={first.p_holm:.3g}"
+    )
     # Relative to the smaller k's mean, not to the grand mean (0.02743: -10.9 %, -9.8 %).
     assert "(-10.0 % of k = 1000)" in row["1000 → 2000 [95 % CI, Bonferroni]"]
     assert "-10.9" not in str(row) and "-9.8" not in str(row)
-    assert "[90 % CI, Bonferroni]" in " ".join(describe(blocked_verdict(_hand_table(),
-                                                                        alpha=0.1)))
+    assert "[90 % CI, Bonferroni]" in " ".join(describe(blocked_verdict(_hand_table(), alpha=0.1)))

@@ -86,8 +86,9 @@ def test_a_stage_runs_only_with_its_code_version(tmp_path):
 # --------------------------------------------------------------------------- doctests
 
 # Modules with examples, found by reading the files (only these are imported here).
-EXAMPLES = sorted(name for name, path in MODULES.items()
-                  if re.search(r"^\s*>>> ", path.read_text(), re.MULTILINE))
+EXAMPLES = sorted(
+    name for name, path in MODULES.items() if re.search(r"^\s*>>> ", path.read_text(), re.MULTILINE)
+)
 # The examples in these must run (not all be skipped).
 MUST_RUN = {"pipeline.btf.synthetic", "pipeline.fourier.series", "pipeline.fourier.quilting"}
 # Examples that fail because of a mistake in pipeline/ (reported; strict: remove the
@@ -99,9 +100,15 @@ def test_examples_are_found():
     assert MUST_RUN <= set(EXAMPLES)
 
 
-@pytest.mark.parametrize("name", [
-    pytest.param(name, marks=pytest.mark.xfail(reason=BROKEN_EXAMPLES[name], strict=True))
-    if name in BROKEN_EXAMPLES else name for name in EXAMPLES])
+@pytest.mark.parametrize(
+    "name",
+    [
+        pytest.param(name, marks=pytest.mark.xfail(reason=BROKEN_EXAMPLES[name], strict=True))
+        if name in BROKEN_EXAMPLES
+        else name
+        for name in EXAMPLES
+    ],
+)
 def test_docstring_examples(name):
     """The ``>>>`` examples of the module run and print what they show (doctest, with
     pytest's default ELLIPSIS; ``pytest --doctest-modules pipeline`` runs the same)."""

@@ -7,8 +7,10 @@ import pytest
 
 from pipeline.core.memory import process_peak_mb, stage_peak
 
-resettable = pytest.mark.skipif(not os.access("/proc/self/clear_refs", os.W_OK),
-                                reason="/proc/self/clear_refs is not writable here")
+resettable = pytest.mark.skipif(
+    not os.access("/proc/self/clear_refs", os.W_OK),
+    reason="/proc/self/clear_refs is not writable here",
+)
 
 
 @resettable

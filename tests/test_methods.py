@@ -16,7 +16,7 @@ from pipeline.core.methods import Method, method_of, registered, reports
 from pipeline.core.tracking import NOTE_TAG, tracking_uri
 
 # A method that lives outside the package: the job must find it through its YAML only.
-DUMMY_MODULE = '''
+DUMMY_MODULE = """
 from pipeline.core.methods import Method
 
 def run(ctx):
@@ -28,7 +28,7 @@ def sections(runs, out, settings):
 
 DUMMY = Method(name="dummy", paper="Z", run=run, description="**A dummy method**",
                headline=("rmse",), reports=("dummy_method",))
-'''
+"""
 DUMMY_YAML = "name: dummy\nspec: dummy_method:DUMMY\nscale: 2.0\n"
 
 
@@ -46,10 +46,22 @@ def test_a_method_added_by_config_alone_runs_and_reports(dummy_conf, tmp_path):
     runs = tmp_path / "runs"
     env = {"PYTHONPATH": str(dummy_conf / "code"), "PATH": "/usr/bin:/bin"}
     done = subprocess.run(
-        [sys.executable, "-m", "pipeline", "method=dummy", "experiment=none",
-         "tracking.experiment=dummy",
-         f"paths.runs={runs}", f"hydra.searchpath=[file://{dummy_conf / 'conf'}]"],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "method=dummy",
+            "experiment=none",
+            "tracking.experiment=dummy",
+            f"paths.runs={runs}",
+            f"hydra.searchpath=[file://{dummy_conf / 'conf'}]",
+        ],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert "dummy s0: run" in done.stdout and "rmse" in done.stdout and "0.5" in done.stdout
     client = MlflowClient(tracking_uri(runs))
@@ -96,17 +108,30 @@ def test_a_spec_of_another_method_or_missing_is_refused():
         method_of(cfg)
 
 
-@pytest.mark.parametrize("override, hint", [
-    ("+btf.crop.szie=32", "did you mean btf.crop.size"),
-    ("++btf.crop.szie=32", "did you mean btf.crop.size"),
-    ("+method.prior_strenght=0.1", "did you mean method.prior_strength"),
-])
+@pytest.mark.parametrize(
+    "override, hint",
+    [
+        ("+btf.crop.szie=32", "did you mean btf.crop.size"),
+        ("++btf.crop.szie=32", "did you mean btf.crop.size"),
+        ("+method.prior_strenght=0.1", "did you mean method.prior_strength"),
+    ],
+)
 def test_an_added_unknown_setting_is_refused_naming_the_closest(override, hint, tmp_path):
     experiment = "brdf_smoke" if "prior" in override else "smoke"
     done = subprocess.run(
-        [sys.executable, "-m", "pipeline", f"experiment={experiment}",
-         f"paths.runs={tmp_path}", override],
-        cwd=ROOT, capture_output=True, text=True, timeout=120)
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            f"experiment={experiment}",
+            f"paths.runs={tmp_path}",
+            override,
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode != 0 and hint in done.stderr, done.stderr[-2000:]
     assert not (tmp_path / "mlflow.db").exists()  # refused before anything ran
 
@@ -121,5 +146,7 @@ def test_open_maps_groups_and_real_settings_may_be_added():
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("config", overrides)
         check_added_keys(cfg, overrides, CONF_DIR, compose=lambda o: compose("config", o))
-        check_added_keys(cfg, ["+experiment_model=smoke_clustered", "+hydra/launcher=local"], CONF_DIR)  # groups
+        check_added_keys(
+            cfg, ["+experiment_model=smoke_clustered", "+hydra/launcher=local"], CONF_DIR
+        )  # groups
     assert not GlobalHydra.instance().is_initialized()

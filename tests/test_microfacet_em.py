@@ -212,8 +212,9 @@ def test_fit_outputs(grazing_removed):
     base = fit.evaluate(light, view)
 
     def moves(fit_changes=None, param_changes=None):
-        changed = replace(fit, **(fit_changes or {}),
-                          params=replace(fit.params, **(param_changes or {})))
+        changed = replace(
+            fit, **(fit_changes or {}), params=replace(fit.params, **(param_changes or {}))
+        )
         return not np.array_equal(changed.evaluate(light, view), base)
 
     def nudge(value):
@@ -225,17 +226,26 @@ def test_fit_outputs(grazing_removed):
             nudged.flat[i] = nudge(nudged.flat[i])
             yield {name: nudged}
 
-    count = sum(moves(fit_changes=c) for name in ("rho_s", "rho_d")
-                for c in each_entry(name, getattr(fit, name)))
+    count = sum(
+        moves(fit_changes=c)
+        for name in ("rho_s", "rho_d")
+        for c in each_entry(name, getattr(fit, name))
+    )
     count += moves(fit_changes={"rs": nudge(fit.rs)})
-    count += sum(moves(param_changes=c) for name in ("u", "v")
-                 for c in each_entry(name, getattr(fit.params, name)))
-    count += sum(moves(param_changes={name: nudge(getattr(fit.params, name))})
-                 for name in ("tau", "sigma", "gamma", "lam"))
+    count += sum(
+        moves(param_changes=c)
+        for name in ("u", "v")
+        for c in each_entry(name, getattr(fit.params, name))
+    )
+    count += sum(
+        moves(param_changes={name: nudge(getattr(fit.params, name))})
+        for name in ("tau", "sigma", "gamma", "lam")
+    )
     assert count == fit.n_parameters
     # ... and nothing else it stores moves them: Theta is the whole model.
-    assert not moves(fit_changes={"observed": np.zeros_like(fit.observed),
-                                  "cell_measured": ~fit.cell_measured})
+    assert not moves(
+        fit_changes={"observed": np.zeros_like(fit.observed), "cell_measured": ~fit.cell_measured}
+    )
     theta = fit.parameters()
     assert sum(np.size(value) for value in theta.values()) == fit.n_parameters
     assert fit.params.u.sum() == pytest.approx(1.0)
@@ -260,8 +270,12 @@ def test_ashikhmin_shirley_baseline_fits_measured_samples(grazing_removed):
     # phi0 and phi0 + pi are one fit; it is reported in [-pi/2, pi/2).
     assert -0.5 * np.pi <= fit.phi0 < 0.5 * np.pi
     turned = replace(fit, phi0=fit.phi0 + np.pi)
-    np.testing.assert_allclose(turned.evaluate(data.light, data.view),
-                               fit.evaluate(data.light, data.view), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        turned.evaluate(data.light, data.view),
+        fit.evaluate(data.light, data.view),
+        rtol=1e-9,
+        atol=1e-12,
+    )
 
 
 def test_settings_are_checked(grazing_removed):

@@ -42,7 +42,12 @@ def test_a_k_by_seed_sweep_composes_nine_jobs_not_twenty_seven():
     for job in jobs:
         cfg = compose_config(*job)
         assert cfg.model.name == "clustered" and set(cfg.model) == {
-            "name", "k", "lr", "target", "texel_scale"}
+            "name",
+            "k",
+            "lr",
+            "target",
+            "texel_scale",
+        }
         found.add((cfg.model.k, cfg.seed))
     assert found == {(k, s) for k in (500, 1000, 2000) for s in (0, 1, 2)}
 
@@ -54,7 +59,13 @@ def test_the_default_and_paper_experiments_compose_their_arms():
     assert default[2].dtype == "float16"
     paper = [compose_config(*job).model for job in _jobs("experiment=paper", "seed=0,1")]
     assert len(paper) == 10 and sorted(m.k for m in paper if m.name == "clustered") == [
-        500, 500, 1000, 1000, 2000, 2000]
+        500,
+        500,
+        1000,
+        1000,
+        2000,
+        2000,
+    ]
     # A command-line value replaces the arm's: k = 64 in the clustered arm only.
     jobs = _jobs("experiment=paper", "model=clustered", "model.k=64")
     assert [compose_config(*job).model.k for job in jobs] == [64]
@@ -102,8 +113,7 @@ def test_keys_recipe_and_logged_settings_follow_from_the_declaration(name):
     declared = {**roles(TrainSettings, "train"), **roles(model.config, "model")}
     for key, role in declared.items():
         assert left_out(key) == (role != RESULT), key
-    assert SPEED_ONLY == {k.removeprefix("train.") for k, r in declared.items()
-                           if r == "speed"}
+    assert SPEED_ONLY == {k.removeprefix("train.") for k, r in declared.items() if r == "speed"}
     logged = set(flatten(cfg)) - set(unused(cfg))
     assert {f"model.{f.name}" for f in dataclasses.fields(model.config)} - {"model.lr"} <= logged
     assert ("train.epochs" in logged) == model.trains
@@ -114,9 +124,12 @@ def test_keys_recipe_and_logged_settings_follow_from_the_declaration(name):
 
 def test_no_model_is_chosen_by_comparing_names():
     pattern = re.compile(r'name == "(pca|clustered|neural_btf)"')
-    found = [f"{path}:{number}" for path in PACKAGE.rglob("*.py")
-             for number, line in enumerate(path.read_text().splitlines(), 1)
-             if pattern.search(line)]
+    found = [
+        f"{path}:{number}"
+        for path in PACKAGE.rglob("*.py")
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if pattern.search(line)
+    ]
     assert found == []
 
 
@@ -150,10 +163,22 @@ def test_the_latent_texture_model_runs_through_the_chain(smoke_cfg):
     compressed = load_compressed(path)
     rng = np.random.default_rng(0)
     texels = rng.integers(0, latents.shape[0], 50)
-    directions = np.column_stack([rng.uniform(0, 1.3, 50), rng.uniform(-3, 3, 50),
-                                  rng.uniform(0, 1.3, 50), rng.uniform(-3, 3, 50)])
+    directions = np.column_stack(
+        [
+            rng.uniform(0, 1.3, 50),
+            rng.uniform(-3, 3, 50),
+            rng.uniform(0, 1.3, 50),
+            rng.uniform(-3, 3, 50),
+        ]
+    )
     with torch.no_grad():
-        expected = decoder(torch.from_numpy(latents[texels]),
-                           torch.from_numpy(direction_features(directions)).float()).numpy()
-    np.testing.assert_allclose(compressed.query_pairs(texels, directions),
-                               expected * compressed.alpha, rtol=1e-4, atol=1e-6)
+        expected = decoder(
+            torch.from_numpy(latents[texels]),
+            torch.from_numpy(direction_features(directions)).float(),
+        ).numpy()
+    np.testing.assert_allclose(
+        compressed.query_pairs(texels, directions),
+        expected * compressed.alpha,
+        rtol=1e-4,
+        atol=1e-6,
+    )

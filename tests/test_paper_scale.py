@@ -20,9 +20,20 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_paper_experiment_produces_table1_with_the_papers_bytes(tmp_path):
     runs = tmp_path / "runs"
     done = subprocess.run(
-        [sys.executable, "-m", "pipeline", "-m", "experiment=paper", "train.max_steps=10",
-         "btf.interpolation.offgrid=4", f"paths.runs={runs}"],
-        cwd=ROOT, capture_output=True, text=True, timeout=3600,
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "-m",
+            "experiment=paper",
+            "train.max_steps=10",
+            "btf.interpolation.offgrid=4",
+            f"paths.runs={runs}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=3600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
     sizes = pd.read_csv(runs / "tables" / "table1_sizes.csv").set_index("model")
@@ -55,8 +66,7 @@ def test_bench_prints_its_figures_as_json(capsys):
     # each timed in a child process of its own; bfloat16 only where oneDNN supports it.
     bf16 = "bf16_skipped" not in figures
     suffixes = ["", "_bf16"] if bf16 else [""]
-    keys = ["train_naive", "train_autograd", "train_paper_recipe", "decoder_naive",
-            "decoder_fused"]
+    keys = ["train_naive", "train_autograd", "train_paper_recipe", "decoder_naive", "decoder_fused"]
     for suffix in suffixes:
         keys += [f"train_default{suffix}", f"train_tuned{suffix}", f"train_fused{suffix}"]
     if bf16:
@@ -64,8 +74,9 @@ def test_bench_prints_its_figures_as_json(capsys):
     # Queries per step from the configs, not from the bench: the paper's batch of ABRDFs
     # at all 81 x 81 directions, and the CPU recipe's batch for its own loop; the FLOPs
     # per query from the decoder's layers.
-    per_step = {key: compose_config("experiment=paper").train.batch_size * N_DIRECTIONS**2
-                for key in keys}
+    per_step = {
+        key: compose_config("experiment=paper").train.batch_size * N_DIRECTIONS**2 for key in keys
+    }
     recipe = compose_config("experiment=paper_cpu").train
     per_step["train_paper_recipe"] = recipe.batch_size * recipe.queries_per_abrdf
     flops_per_query = 3 * 2 * _decoder_multiply_adds()  # backward ~ twice the forward
@@ -76,8 +87,9 @@ def test_bench_prints_its_figures_as_json(capsys):
         assert row["gflops"] * 1e9 == pytest.approx(rate(key) * flops_per_query), key
         if key.endswith("_bf16"):
             assert row["share_of_bf16_peak"] > 0, key
-    ratios = ["decoder_speedup", "backend_speedup"] + [f"{name}_speedup{suffix}" for suffix in suffixes
-                                    for name in ("train", "tuning")]
+    ratios = ["decoder_speedup", "backend_speedup"] + [
+        f"{name}_speedup{suffix}" for suffix in suffixes for name in ("train", "tuning")
+    ]
     if bf16:
         ratios.append("decoder_speedup_bf16")
     assert all(figures[name] > 0 for name in ratios)
@@ -87,18 +99,25 @@ def test_bench_prints_its_figures_as_json(capsys):
     assert figures["tuning"]["keep_awake_processes"] >= 0
     if not bf16:
         assert "train_tuned_bf16" not in figures and "matmul_gflops_bf16" not in figures
-    assert figures["cpu_bf16"] in ("amx_bf16,avx512_bf16", "amx_bf16", "avx512_bf16", "none",
-                                   "unknown")
+    assert figures["cpu_bf16"] in (
+        "amx_bf16,avx512_bf16",
+        "amx_bf16",
+        "avx512_bf16",
+        "none",
+        "unknown",
+    )
     # Every texel of the paper's crop at every direction.
     texels = compose_config("experiment=paper").btf.crop.size ** 2
     assert figures["reconstruct_neural_btf_s"] == pytest.approx(
-        texels * N_DIRECTIONS**2 / figures["reconstruct_queries_per_s"])
+        texels * N_DIRECTIONS**2 / figures["reconstruct_queries_per_s"]
+    )
 
 
 def _decoder_multiply_adds() -> int:
     """Multiply-adds per query of the decoder the pipeline trains: its layers' weights."""
-    return sum(layer.weight.numel() for layer in Decoder().modules()
-               if isinstance(layer, torch.nn.Linear))
+    return sum(
+        layer.weight.numel() for layer in Decoder().modules() if isinstance(layer, torch.nn.Linear)
+    )
 
 
 def test_bench_counts_the_decoders_flops_and_the_papers_sizes():
@@ -124,14 +143,22 @@ def test_the_gpu_figures_print_on_a_machine_without_one(capsys):
     recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
 
     def loop(steps_per_s, queries):
-        return {"queries_per_s": steps_per_s * queries, "gflops": 1000.0,
-                "steps_per_s": steps_per_s}
+        return {
+            "queries_per_s": steps_per_s * queries,
+            "gflops": 1000.0,
+            "steps_per_s": steps_per_s,
+        }
 
     paper = 5 * N_DIRECTIONS**2
-    figures = {"device": "cuda (test)", "matmul_gflops": 50000.0,
-               "matmul_gflops_bf16": 700000.0, "train_autograd": loop(200.0, paper),
-               "train_autograd_bf16": loop(100.0, paper), "train_fused": loop(400.0, paper),
-               "train_paper_recipe": loop(7488 / 30, recipe.batch_size * recipe.queries_per_abrdf)}
+    figures = {
+        "device": "cuda (test)",
+        "matmul_gflops": 50000.0,
+        "matmul_gflops_bf16": 700000.0,
+        "train_autograd": loop(200.0, paper),
+        "train_autograd_bf16": loop(100.0, paper),
+        "train_fused": loop(400.0, paper),
+        "train_paper_recipe": loop(7488 / 30, recipe.batch_size * recipe.queries_per_abrdf),
+    }
     print_cuda(figures, recipe)
     out = capsys.readouterr().out
     assert figures["bf16_speedup"] == pytest.approx(0.5)

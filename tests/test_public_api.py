@@ -17,10 +17,12 @@ HEAVY = ("torch", "mlflow", "hydra", "pandas", "sklearn")
 
 
 def test_import_pipeline_loads_no_heavy_library(tmp_path):
-    probe = ("import sys\nimport pipeline\n"
-             f"print(sorted(m for m in {HEAVY!r} if m in sys.modules))\n")
-    done = subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, capture_output=True,
-                          text=True, timeout=120)
+    probe = (
+        f"import sys\nimport pipeline\nprint(sorted(m for m in {HEAVY!r} if m in sys.modules))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
 
@@ -59,15 +61,18 @@ def test_the_docstring_example_loads_a_run_s_model_from_another_folder(smoke_cfg
     cfg = smoke_cfg("train.max_steps=10")  # any model will do
     run_job(cfg)
     code = _docstring_example()
-    for old, new in (('runs = "runs"', f"runs = {str(cfg.paths.runs)!r}"),
-                     ('experiment_names=["btf"]', 'experiment_names=["smoke"]')):
+    for old, new in (
+        ('runs = "runs"', f"runs = {str(cfg.paths.runs)!r}"),
+        ('experiment_names=["btf"]', 'experiment_names=["smoke"]'),
+    ):
         assert code.count(old) == 1, old
         code = code.replace(old, new)
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     (elsewhere / "example.py").write_text(code)
-    done = subprocess.run([sys.executable, "example.py"], cwd=elsewhere, capture_output=True,
-                          text=True, timeout=300)
+    done = subprocess.run(
+        [sys.executable, "example.py"], cwd=elsewhere, capture_output=True, text=True, timeout=300
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert not (elsewhere / "mlflow.db").exists()
     table, array = done.stdout.split("[[", 1)

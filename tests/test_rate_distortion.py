@@ -24,28 +24,82 @@ DATASET = "synthetic:plain_weave"
 # latent 2" differ in train.lr only: pooled, their mean (0.050) would lose to PCA c = 1 at
 # 128 KB; apart, the lr = 0.01 one wins there.
 POINTS = [
-    ("pca16", {"method.name": "btf", "model.name": "pca", "model.dtype": "float16"}, 1, 98_732,
-     [0.0500, 0.0502, 0.0498]),
-    ("pca16", {"method.name": "btf", "model.name": "pca", "model.dtype": "float16"}, 2, 158_098,
-     [0.0330, 0.0331, 0.0329]),
-    ("neural16", {"method.name": "btf", "model.name": "neural_btf", "btf.sizes.weight_dtype": "float16",
-                  "btf.network.latent": 2, "train.lr": 0.002}, None, 87_494,
-     [0.060, 0.062, 0.058]),
-    ("neural16", {"method.name": "btf", "model.name": "neural_btf", "btf.sizes.weight_dtype": "float16",
-                  "btf.network.latent": 2, "train.lr": 0.01}, None, 87_494,
-     [0.040, 0.041, 0.039]),
-    ("clustered32", {"method.name": "btf", "model.name": "clustered", "model.k": 500,
-                     "btf.sizes.list_dtype": "uint16"}, None, 133_532,
-     [0.030, 0.036, 0.024]),
-    ("neural32", {"method.name": "btf", "model.name": "neural_btf", "btf.network.latent": 8}, None, 417_532,
-     [0.020, 0.021]),
+    (
+        "pca16",
+        {"method.name": "btf", "model.name": "pca", "model.dtype": "float16"},
+        1,
+        98_732,
+        [0.0500, 0.0502, 0.0498],
+    ),
+    (
+        "pca16",
+        {"method.name": "btf", "model.name": "pca", "model.dtype": "float16"},
+        2,
+        158_098,
+        [0.0330, 0.0331, 0.0329],
+    ),
+    (
+        "neural16",
+        {
+            "method.name": "btf",
+            "model.name": "neural_btf",
+            "btf.sizes.weight_dtype": "float16",
+            "btf.network.latent": 2,
+            "train.lr": 0.002,
+        },
+        None,
+        87_494,
+        [0.060, 0.062, 0.058],
+    ),
+    (
+        "neural16",
+        {
+            "method.name": "btf",
+            "model.name": "neural_btf",
+            "btf.sizes.weight_dtype": "float16",
+            "btf.network.latent": 2,
+            "train.lr": 0.01,
+        },
+        None,
+        87_494,
+        [0.040, 0.041, 0.039],
+    ),
+    (
+        "clustered32",
+        {
+            "method.name": "btf",
+            "model.name": "clustered",
+            "model.k": 500,
+            "btf.sizes.list_dtype": "uint16",
+        },
+        None,
+        133_532,
+        [0.030, 0.036, 0.024],
+    ),
+    (
+        "neural32",
+        {"method.name": "btf", "model.name": "neural_btf", "btf.network.latent": 8},
+        None,
+        417_532,
+        [0.020, 0.021],
+    ),
 ]
-BASE = {"model.k": None, "dataset.name": "synthetic", "dataset.root": None,
-        "dataset.synthetic.material": "plain_weave", "model.texel_scale": "none",
-        "model.target": "texel", "model.dtype": "float32", "train.epochs": 24,
-        "train.precision": "float32", "train.lr": 0.002, "btf.network.latent": 8,
-        "btf.sizes.weight_dtype": "float32", "btf.sizes.list_dtype": "int32",
-        "btf.sizes.extra_dtype": "float32"}
+BASE = {
+    "model.k": None,
+    "dataset.name": "synthetic",
+    "dataset.root": None,
+    "dataset.synthetic.material": "plain_weave",
+    "model.texel_scale": "none",
+    "model.target": "texel",
+    "model.dtype": "float32",
+    "train.epochs": 24,
+    "train.precision": "float32",
+    "train.lr": 0.002,
+    "btf.network.latent": 8,
+    "btf.sizes.weight_dtype": "float32",
+    "btf.sizes.list_dtype": "int32",
+    "btf.sizes.extra_dtype": "float32",
+}
 
 
 @pytest.fixture
@@ -78,9 +132,9 @@ def _expected_best(budget: int):
     return min(fits, key=lambda p: np.mean(p[4])) if fits else None
 
 
-def test_best_at_budget_matches_the_runs_and_never_pools_two_recipes(tmp_path,
-                                                                      mlflow_template,
-                                                                      settings):
+def test_best_at_budget_matches_the_runs_and_never_pools_two_recipes(
+    tmp_path, mlflow_template, settings
+):
     mlflow_template(tmp_path)
     _log_points(tmp_path)
     out = build_tables(tmp_path, settings)
@@ -99,8 +153,9 @@ def test_best_at_budget_matches_the_runs_and_never_pools_two_recipes(tmp_path,
     # over PCA c = 1 beyond the seeds' noise.
     row = budget.loc[128]
     assert "latent 2" in row["best"] and "train.lr=0.01" in row["best"]
-    assert row["best other method"].startswith("PCA (float16)") and "c = 1" in row[
-        "best other method"]
+    assert (
+        row["best other method"].startswith("PCA (float16)") and "c = 1" in row["best other method"]
+    )
     assert row["verdict"] == "wins beyond seed noise"
     # 256 KB: clustered k = 500 (std 0.006) against PCA c = 2 (0.0330): within noise.
     row = budget.loc[256]
@@ -154,11 +209,20 @@ def _point(dataset, method, setting, nbytes, rmses, line=None) -> dict:
     """A row of the points table (:func:`pipeline.btf.rate_distortion.points`) from the
     RMSE of each seed; ``line`` (also the arm) defaults to the method."""
     line = line or method
-    return {"dataset": dataset, "method": method, "arm": line, "line": line,
-            "setting": setting, "label": f"{line} {setting}", "size": None, "bytes": nbytes,
-            "rmse_mean": np.mean(rmses),
-            "rmse_std": np.std(rmses, ddof=1) if len(rmses) > 1 else np.nan,
-            "n": len(rmses), "seeds": ",".join(map(str, range(len(rmses))))}
+    return {
+        "dataset": dataset,
+        "method": method,
+        "arm": line,
+        "line": line,
+        "setting": setting,
+        "label": f"{line} {setting}",
+        "size": None,
+        "bytes": nbytes,
+        "rmse_mean": np.mean(rmses),
+        "rmse_std": np.std(rmses, ddof=1) if len(rmses) > 1 else np.nan,
+        "n": len(rmses),
+        "seeds": ",".join(map(str, range(len(rmses)))),
+    }
 
 
 def test_each_dataset_gets_its_own_bytes_to_reach_table(tmp_path):
@@ -166,8 +230,11 @@ def test_each_dataset_gets_its_own_bytes_to_reach_table(tmp_path):
     empty cells (one table of both would have eight columns, half of them empty)."""
     from pipeline.btf.rate_distortion import reach_sections
 
-    points = [_point(name, "pca", f"c = {c}", 100_000 * c, [scale / c], "PCA (float16)")
-              for name, scale in (("a", 0.1), ("b", 0.03)) for c in (1, 2, 4, 8, 16)]
+    points = [
+        _point(name, "pca", f"c = {c}", 100_000 * c, [scale / c], "PCA (float16)")
+        for name, scale in (("a", 0.1), ("b", 0.03))
+        for c in (1, 2, 4, 8, 16)
+    ]
     text = "\n".join(reach_sections(pd.DataFrame(points), tmp_path))
     for name in ("a", "b"):
         reach = pd.read_csv(tmp_path / f"rate_distortion_reach_{name}.csv")
@@ -180,19 +247,22 @@ def test_the_winners_table_reads_the_budget_table_across_datasets():
     budget table (the best, its RMSE, the other method's gap and verdict)."""
     from pipeline.btf.rate_distortion import best_at_budgets, winners
 
-    points = pd.DataFrame([
-        _point("a", "pca", "c = 1", 100_000, [0.050, 0.051]),
-        _point("a", "clustered", "k = 500", 120_000, [0.030, 0.031]),
-        _point("b", "pca", "c = 1", 100_000, [0.020, 0.021]),
-        _point("b", "clustered", "k = 500", 120_000, [0.030, 0.031]),
-        _point("b", "clustered", "k = 5000", 400_000, [0.010, 0.0102]),
-    ])
+    points = pd.DataFrame(
+        [
+            _point("a", "pca", "c = 1", 100_000, [0.050, 0.051]),
+            _point("a", "clustered", "k = 500", 120_000, [0.030, 0.031]),
+            _point("b", "pca", "c = 1", 100_000, [0.020, 0.021]),
+            _point("b", "clustered", "k = 500", 120_000, [0.030, 0.031]),
+            _point("b", "clustered", "k = 5000", 400_000, [0.010, 0.0102]),
+        ]
+    )
     budget = best_at_budgets(points, budgets_kb=(64, 128, 512))
     table = winners(budget).set_index("budget [KB]")
     assert list(table.columns) == ["a", "b"]
     assert (table.loc[64] == "nothing fits").all()
-    assert table.loc[128, "a"] == ("clustered k = 500: 0.0305; pca c = 1 +0.0200 "
-                                   "(wins beyond seed noise)")
+    assert table.loc[128, "a"] == (
+        "clustered k = 500: 0.0305; pca c = 1 +0.0200 (wins beyond seed noise)"
+    )
     assert table.loc[128, "b"].startswith("pca c = 1: 0.0205; clustered k = 500 +0.0100")
     assert table.loc[512, "b"].startswith("clustered k = 5000: 0.0101; pca c = 1")
 
@@ -203,11 +273,15 @@ def test_a_float32_copy_better_by_rounding_loses_to_its_float16_model():
     from pipeline.btf.rate_distortion import best_at_budgets, pareto_front
 
     def table(gain):
-        return pd.DataFrame([
-            _point("a", "neural_btf", "latent 4", 127_918, [0.0173], "Neural BTF (float16)"),
-            _point("a", "neural_btf", "latent 4", 255_836, [0.0173 - gain],
-                   "Neural BTF (float32)"),
-            _point("a", "pca", "c = 1", 100_000, [0.05], "PCA (float16)")])
+        return pd.DataFrame(
+            [
+                _point("a", "neural_btf", "latent 4", 127_918, [0.0173], "Neural BTF (float16)"),
+                _point(
+                    "a", "neural_btf", "latent 4", 255_836, [0.0173 - gain], "Neural BTF (float32)"
+                ),
+                _point("a", "pca", "c = 1", 100_000, [0.05], "PCA (float16)"),
+            ]
+        )
 
     rounding, real = table(1e-6), table(2e-5)
     assert list(pareto_front(rounding)) == [True, False, True]
@@ -222,12 +296,15 @@ def test_without_runs_the_section_says_what_to_run(tmp_path):
     assert "experiment=rate_distortion" in section(pd.DataFrame(), tmp_path)
 
 
-@pytest.mark.parametrize("method, latent, weights, scale", [
-    ("neural_btf", 4, "float32", "none"),
-    ("neural_btf", 8, "float16", "none"),
-    ("clustered", 4, "float16", "lstsq"),
-    ("clustered", 8, "float32", "none"),
-])
+@pytest.mark.parametrize(
+    "method, latent, weights, scale",
+    [
+        ("neural_btf", 4, "float32", "none"),
+        ("neural_btf", 8, "float16", "none"),
+        ("clustered", 4, "float16", "lstsq"),
+        ("clustered", 8, "float32", "none"),
+    ],
+)
 def test_bytes_and_rmse_are_those_of_the_stored_file(tmp_path, method, latent, weights, scale):
     """Through method A's chain: the export stage's file holds bytes_total bytes of tensors,
     part by part, in the run's storage types; decoded, it gives the evaluate stage's RMSE
@@ -239,9 +316,14 @@ def test_bytes_and_rmse_are_those_of_the_stored_file(tmp_path, method, latent, w
     from pipeline.btf.stereographic import direction_features
     from pipeline.core.stage import Context
 
-    overrides = [f"model={method}", f"btf.network.latent={latent}",
-                 f"btf.sizes.weight_dtype={weights}", "btf.sizes.extra_dtype=float16",
-                 "btf.crop.size=8", "train.max_steps=5"]
+    overrides = [
+        f"model={method}",
+        f"btf.network.latent={latent}",
+        f"btf.sizes.weight_dtype={weights}",
+        "btf.sizes.extra_dtype=float16",
+        "btf.crop.size=8",
+        "train.max_steps=5",
+    ]
     if method == "clustered":
         overrides += [f"model.texel_scale={scale}", "btf.sizes.list_dtype=uint16"]
     cfg = compose_config("experiment=smoke", f"paths.runs={tmp_path / 'runs'}", *overrides)
@@ -271,8 +353,11 @@ def test_bytes_and_rmse_are_those_of_the_stored_file(tmp_path, method, latent, w
         # The check has teeth: the float32 model training left scores otherwise, by far
         # more than the tolerance.
         trained = cache / "train" / ctx.keys["train"]
-        decoded = decode_all(load_decoder(trained / "decoder.pt"),
-                             np.load(trained / "latents.npy"), direction_features(directions))
+        decoded = decode_all(
+            load_decoder(trained / "decoder.pt"),
+            np.load(trained / "latents.npy"),
+            direction_features(directions),
+        )
         ids = np.load(trained / "latent_of_texel.npy")
         unrounded = decoded[ids]
         if btf.texel_scale is not None:
@@ -292,10 +377,12 @@ def test_pca_scores_what_it_stores():
     for dtype in ("float32", "float16"):
         model = fit_linear(targets, 3, dtype)
         assert {a.dtype.name for a in (model.mean, model.basis, model.coefficients)} == {dtype}
-        assert (model.mean.nbytes + model.basis.nbytes + model.coefficients.nbytes
-                == pca_bytes(3, 40, 27, dtype))
-        stored = (model.coefficients.astype(np.float64) @ model.basis.astype(np.float64)
-                  + model.mean.astype(np.float64))
+        assert model.mean.nbytes + model.basis.nbytes + model.coefficients.nbytes == pca_bytes(
+            3, 40, 27, dtype
+        )
+        stored = model.coefficients.astype(np.float64) @ model.basis.astype(
+            np.float64
+        ) + model.mean.astype(np.float64)
         by_hand = np.sqrt(np.mean(np.square(stored - targets.reshape(40, -1))))
         assert linear_error(model, targets)[0] == pytest.approx(by_hand, rel=1e-6)
 
@@ -305,23 +392,39 @@ def test_a_latent_size_outside_2_to_16_is_refused_at_the_door(smoke_cfg, latent)
     from pipeline.app import run_job
     from pipeline.core.errors import ConfigError
 
-    with pytest.raises(ConfigError, match=f"btf.network.latent={latent} must be an integer "
-                                          ">= 2 and <= 16"):
+    with pytest.raises(
+        ConfigError, match=f"btf.network.latent={latent} must be an integer >= 2 and <= 16"
+    ):
         run_job(smoke_cfg("model=neural_btf", f"btf.network.latent={latent}"))
 
 
 def _sweep(runs: Path, *overrides: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "pipeline", "-m", "experiment=rate_distortion_smoke",
-         f"paths.runs={runs}", "hydra.callbacks.mlflow_parent.run_tables=false", *overrides],
-        cwd=ROOT, capture_output=True, text=True, timeout=900)
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "-m",
+            "experiment=rate_distortion_smoke",
+            f"paths.runs={runs}",
+            "hydra.callbacks.mlflow_parent.run_tables=false",
+            *overrides,
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
 
 
 def _check_sweep(runs: Path, n_jobs: int) -> pd.DataFrame:
     client = MlflowClient(tracking_uri(runs))
     experiment = client.get_experiment_by_name("rate_distortion_smoke")
-    children = [r for r in client.search_runs([experiment.experiment_id])
-                if "mlflow.parentRunId" in r.data.tags]
+    children = [
+        r
+        for r in client.search_runs([experiment.experiment_id])
+        if "mlflow.parentRunId" in r.data.tags
+    ]
     assert len(children) == n_jobs and {r.info.status for r in children} == {"FINISHED"}
     # MLflow holds the settings the size class selected, resolved (not "${rd...}").
     for run in children:
@@ -332,7 +435,8 @@ def _check_sweep(runs: Path, n_jobs: int) -> pd.DataFrame:
         params = run.data.params
         if params["model.name"] == "neural_btf":
             trained.setdefault(params["btf.network.latent"], set()).add(
-                run.data.tags["cache.train"])
+                run.data.tags["cache.train"]
+            )
     assert trained and all(len(keys) == 1 for keys in trained.values()), trained
 
     out = build_tables(runs)
@@ -343,8 +447,7 @@ def _check_sweep(runs: Path, n_jobs: int) -> pd.DataFrame:
     points = pd.read_csv(out / "rate_distortion_points.csv")
     # Every budget's best is the lowest mean RMSE within it, from the runs' own metrics (up
     # to the tie rule: within RMSE_TIE of it, the fewer bytes win).
-    metrics = pd.DataFrame([{**r.data.metrics, "recipe": r.data.tags["recipe"]}
-                            for r in children])
+    metrics = pd.DataFrame([{**r.data.metrics, "recipe": r.data.tags["recipe"]} for r in children])
     means = metrics.groupby("recipe").agg(rmse=("rmse", "mean"), size=("bytes_total", "max"))
     for _, row in budget.iterrows():
         fits = means[means["size"] <= row["budget [B]"]]

@@ -57,27 +57,59 @@ def test_every_entry_of_the_list_names_settings_that_exist():
 # ----------------------------------------------------------------- never averaged
 
 
-def _run(seed: int, value, metric: float, setting: str = "train.lr", render_lights="point",
-         method: str = "clustered", k=8, truth: bool = False) -> dict:
+def _run(
+    seed: int,
+    value,
+    metric: float,
+    setting: str = "train.lr",
+    render_lights="point",
+    method: str = "clustered",
+    k=8,
+    truth: bool = False,
+) -> dict:
     """One row as mlflow.search_runs returns it, with a job's recipe tags."""
-    params = {"method.name": "btf", "model.name": method, "model.k": k, "seed": seed, "dataset.name": "synthetic",
-              "dataset.root": None, "dataset.synthetic.material": "plain_weave",
-              "btf.crop.size": 12, "train.epochs": 1, "train.precision": "float32",
-              "model.texel_scale": "none", "model.target": "texel",
-              "btf.render.lights": render_lights, setting: value}
+    params = {
+        "method.name": "btf",
+        "model.name": method,
+        "model.k": k,
+        "seed": seed,
+        "dataset.name": "synthetic",
+        "dataset.root": None,
+        "dataset.synthetic.material": "plain_weave",
+        "btf.crop.size": 12,
+        "train.epochs": 1,
+        "train.precision": "float32",
+        "model.texel_scale": "none",
+        "model.target": "texel",
+        "btf.render.lights": render_lights,
+        setting: value,
+    }
     row = {f"params.{k}": str(v) for k, v in params.items()}
     row.update({f"tags.{k}": v for k, v in recipe_tags(params).items()})
-    row.update({"run_id": f"r{seed}{value}{render_lights}", "status": "FINISHED",
-                "metrics.rmse": metric, "metrics.n_directions": 81.0,
-                "metrics.rmse_offgrid_model": metric,
-                "metrics.rmse_without_texel_scale": metric,
-                "metrics.rmse_with_texel_scale": metric,
-                "tags.cache.render": f"c{seed}{value}{render_lights}",
-                # One reference and one truth render per data and render set-up.
-                "tags.cache.render_reference": f"ref-{render_lights}",
-                "tags.cache.render_truth": f"truth-{render_lights}"})
-    for name in ("rmse_dark", "rmse_bright", "rmse_dark_spp4", "rmse_bright_spp4",
-                 "hf_ratio_dark_spp4", "hf_ratio_bright_spp4", "rmse_cloth_spp4"):
+    row.update(
+        {
+            "run_id": f"r{seed}{value}{render_lights}",
+            "status": "FINISHED",
+            "metrics.rmse": metric,
+            "metrics.n_directions": 81.0,
+            "metrics.rmse_offgrid_model": metric,
+            "metrics.rmse_without_texel_scale": metric,
+            "metrics.rmse_with_texel_scale": metric,
+            "tags.cache.render": f"c{seed}{value}{render_lights}",
+            # One reference and one truth render per data and render set-up.
+            "tags.cache.render_reference": f"ref-{render_lights}",
+            "tags.cache.render_truth": f"truth-{render_lights}",
+        }
+    )
+    for name in (
+        "rmse_dark",
+        "rmse_bright",
+        "rmse_dark_spp4",
+        "rmse_bright_spp4",
+        "hf_ratio_dark_spp4",
+        "hf_ratio_bright_spp4",
+        "rmse_cloth_spp4",
+    ):
         row[f"metrics.render_{name}"] = metric
         if truth:  # the built-in material: scored against its analytic truth too
             row[f"metrics.render_truth_{name}"] = metric
@@ -112,22 +144,31 @@ def test_btf_tables_never_average_two_recipes(first, second):
 @pytest.mark.parametrize(("first", "second"), PAIRS)
 def test_render_tables_never_average_two_recipes(first, second, truth):
     rows = [_run(0, first, 0.1, truth=truth), _run(1, second, 0.2, truth=truth)]
-    runs = render_report.scored_runs(render_report.rendered_runs(
-        tables.label_runs(pd.DataFrame(rows), render=True)))
+    runs = render_report.scored_runs(
+        render_report.rendered_runs(tables.label_runs(pd.DataFrame(rows), render=True))
+    )
     assert runs["model"].nunique() >= 2
-    for table in (render_report.table_crop(runs, "dark"), render_report.table_cloth(runs),
-                  render_report.table_graininess(runs)):
+    for table in (
+        render_report.table_crop(runs, "dark"),
+        render_report.table_cloth(runs),
+        render_report.table_graininess(runs),
+    ):
         assert not any("n=2" in c for c in _cells(table)), table
 
 
 def test_render_tables_never_average_two_render_setups_that_table2_pools():
-    rows = [_run(0, 0.1, 0.1, render_lights="point"),
-            _run(1, 0.1, 0.2, render_lights="directional")]
+    rows = [
+        _run(0, 0.1, 0.1, render_lights="point"),
+        _run(1, 0.1, 0.2, render_lights="directional"),
+    ]
     assert tables.label_runs(pd.DataFrame(rows))["model"].nunique() == 1  # one model
-    runs = render_report.scored_runs(render_report.rendered_runs(
-        tables.label_runs(pd.DataFrame(rows), render=True)))
-    assert set(runs["model"]) == {"k = 8 [btf.render.lights=point]",
-                                  "k = 8 [btf.render.lights=directional]"}
+    runs = render_report.scored_runs(
+        render_report.rendered_runs(tables.label_runs(pd.DataFrame(rows), render=True))
+    )
+    assert set(runs["model"]) == {
+        "k = 8 [btf.render.lights=point]",
+        "k = 8 [btf.render.lights=directional]",
+    }
     assert not any("n=2" in c for c in _cells(render_report.table_crop(runs, "dark")))
 
 
@@ -140,13 +181,24 @@ def test_seeds_of_one_recipe_pool():
 def test_brdf_table_never_averages_two_recipes():
     rows = []
     for seed, value in ((0, None), (1, 0.5)):
-        params = {"method.name": "brdf_map", "seed": seed, "dataset.name": "synthetic_brdf",
-                  "dataset.root": None, "dataset.missing_above_deg": 60,
-                  "method.prior_strength": 1.0, "method.lobes": value}
+        params = {
+            "method.name": "brdf_map",
+            "seed": seed,
+            "dataset.name": "synthetic_brdf",
+            "dataset.root": None,
+            "dataset.missing_above_deg": 60,
+            "method.prior_strength": 1.0,
+            "method.lobes": value,
+        }
         row = {f"params.{k}": str(v) for k, v in params.items()}
         row.update({f"tags.{k}": v for k, v in recipe_tags(params).items()})
-        row.update({f"metrics.rmse_{where}{suffix}": 0.1 + seed
-                    for where in ("measured", "missing") for suffix in ("", "_noprior", "_as")})
+        row.update(
+            {
+                f"metrics.rmse_{where}{suffix}": 0.1 + seed
+                for where in ("measured", "missing")
+                for suffix in ("", "_noprior", "_as")
+            }
+        )
         rows.append(row)
     table = brdf_report.table_rmse(pd.DataFrame(rows))
     assert len(table) == 2 and not any("n=2" in c for c in _cells(table))
@@ -178,15 +230,23 @@ def test_the_smoke_run_at_another_learning_rate_is_another_column(smoke_cfg, tmp
     assert not any("n=2" in str(c) for c in table.to_numpy().ravel())
 
 
-def test_a_store_of_untagged_runs_gives_empty_tables_and_says_why(tmp_path, mlflow_template,
-                                                                  caplog):
+def test_a_store_of_untagged_runs_gives_empty_tables_and_says_why(
+    tmp_path, mlflow_template, caplog
+):
     from pipeline.tables import build_tables, default_settings
 
     mlflow_template(tmp_path)
     experiment_id = init_store(tmp_path, "btf")
     with mlflow.start_run(experiment_id=experiment_id):
-        mlflow.log_params({"method.name": "btf", "model.name": "clustered", "model.k": 8, "seed": 0,
-                           "dataset.name": "synthetic"})
+        mlflow.log_params(
+            {
+                "method.name": "btf",
+                "model.name": "clustered",
+                "model.k": 8,
+                "seed": 0,
+                "dataset.name": "synthetic",
+            }
+        )
         mlflow.log_metrics({"rmse": 0.1})
     with caplog.at_level(logging.WARNING):
         out = build_tables(tmp_path, default_settings())

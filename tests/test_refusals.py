@@ -35,9 +35,13 @@ AT_THE_JOB = [
 
 
 def _run(tmp_path, *arguments: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline", *arguments,
-                           f"paths.runs={tmp_path / 'runs'}"],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "pipeline", *arguments, f"paths.runs={tmp_path / 'runs'}"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def _check_one_line(done: subprocess.CompletedProcess, named: str) -> None:
@@ -63,8 +67,9 @@ def test_a_bad_value_is_one_line_and_its_run_says_why(tmp_path, experiment, over
     if (tmp_path / "runs" / "mlflow.db").exists():  # a run was opened: it says why it failed
         client = MlflowClient(tracking_uri(tmp_path / "runs"))
         runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
-        assert all(r.info.status == "FAILED" and named.split("=")[0] in r.data.tags["error"]
-                   for r in runs), [(r.info.status, r.data.tags.get("error")) for r in runs]
+        assert all(
+            r.info.status == "FAILED" and named.split("=")[0] in r.data.tags["error"] for r in runs
+        ), [(r.info.status, r.data.tags.get("error")) for r in runs]
 
 
 def test_a_sweep_checks_every_job_before_the_first_runs(tmp_path):
@@ -82,8 +87,19 @@ def test_a_setting_read_from_the_data_is_refused_naming_it(tmp_path):
 
 
 def test_debug_shows_the_traceback(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "pipeline", "experiment=smoke", "threads=0",
-                           f"paths.runs={tmp_path / 'runs'}"], cwd=ROOT, capture_output=True,
-                          text=True, timeout=300, env={**__import__("os").environ,
-                                                       "PIPELINE_DEBUG": "1"})
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "experiment=smoke",
+            "threads=0",
+            f"paths.runs={tmp_path / 'runs'}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**__import__("os").environ, "PIPELINE_DEBUG": "1"},
+    )
     assert done.returncode != 0 and "Traceback" in done.stdout + done.stderr

@@ -171,8 +171,9 @@ def test_coverage_is_one_on_lit_cloth_zero_in_shadow_and_partial_at_edges():
     np.testing.assert_array_equal(coverage * 16, np.round(coverage * 16))
 
 
-@pytest.mark.parametrize("spp, grid", [(1, (1, 1)), (16, (4, 4)), (128, (16, 8)), (7, (7, 1)),
-                                       (12, (4, 3))])
+@pytest.mark.parametrize(
+    "spp, grid", [(1, (1, 1)), (16, (4, 4)), (128, (16, 8)), (7, (7, 1)), (12, (4, 3))]
+)
 def test_every_spp_is_stratified_one_sample_per_stratum(spp, grid):
     assert strata(spp) == grid
     offsets = subpixel_offsets(np.arange(spp), spp, np.random.default_rng(0).random((spp, 2)))
@@ -292,8 +293,9 @@ def test_analytic_material_is_the_generator_at_any_direction():
     grazing = np.radians([[85.0, 10.0, 20.0, 200.0]])
     clamped = np.column_stack([clamp_to_grid(grazing[:, :2]), grazing[:, 2:]])
     at_grazing = truth.evaluate(np.arange(24), np.repeat(grazing, 24, axis=0))
-    np.testing.assert_allclose(at_grazing, fabric.evaluate(grazing)[0, 2:6, 3:9].reshape(24, 3),
-                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        at_grazing, fabric.evaluate(grazing)[0, 2:6, 3:9].reshape(24, 3), rtol=1e-5, atol=1e-6
+    )
     assert not np.allclose(at_grazing, truth.evaluate(np.arange(24), np.repeat(clamped, 24, 0)))
 
 
@@ -320,8 +322,7 @@ def test_analytic_material_agrees_with_the_measured_data_at_grid_directions(tmp_
     if ext == "png":  # lossless: only the 8-bit rounding of the encoded value
         assert np.abs(error).max() <= rounding + 1e-6
         # ... which a wrong direction convention (phi mirrored) is far from.
-        mirrored = truth.evaluate(texels, pairs * [1, -1, 1, -1]) - measured.evaluate(
-            texels, pairs)
+        mirrored = truth.evaluate(texels, pairs * [1, -1, 1, -1]) - measured.evaluate(texels, pairs)
         assert np.abs(mirrored).max() > 10 * rounding
     else:  # JPEG q95 adds its own rounding: the built-in data's distance from its truth
         assert np.sqrt(np.mean(np.square(error))) < 0.012
@@ -350,12 +351,14 @@ def test_grid_clamped_material_answers_at_the_clamped_directions():
     queries = _queries(300, seed=2)
     texels = np.arange(300) % 64
     clamped = np.column_stack([clamp_to_grid(queries[:, :2]), clamp_to_grid(queries[:, 2:])])
-    np.testing.assert_array_equal(GridClamped(truth).evaluate(texels, queries),
-                                  truth.evaluate(texels, clamped))
+    np.testing.assert_array_equal(
+        GridClamped(truth).evaluate(texels, queries), truth.evaluate(texels, clamped)
+    )
     # The measured material clamps by itself: wrapping it changes nothing.
     _, measured = _measured()
-    np.testing.assert_array_equal(GridClamped(measured).evaluate(texels % 4, queries),
-                                  measured.evaluate(texels % 4, queries))
+    np.testing.assert_array_equal(
+        GridClamped(measured).evaluate(texels % 4, queries), measured.evaluate(texels % 4, queries)
+    )
 
 
 def test_beyond_grid_share_is_zero_within_the_grid_and_counts_grazing_light():
@@ -372,11 +375,15 @@ def test_beyond_grid_share_is_zero_within_the_grid_and_counts_grazing_light():
         return beyond_grid_shares(image, stats.lit_cloth, crops, size)
 
     within = shares([DirectionalLight(SUN, [1.0, 1.0, 1.0])])
-    assert within == {"beyond_grid_share": 0.0, "beyond_grid_share_dark": 0.0,
-                      "beyond_grid_share_bright": 0.0}
+    assert within == {
+        "beyond_grid_share": 0.0,
+        "beyond_grid_share_dark": 0.0,
+        "beyond_grid_share_bright": 0.0,
+    }
     # One light within the grid and one grazing, of equal irradiance: half the pairs.
-    both = shares([DirectionalLight(SUN, [1.0, 1.0, 1.0]),
-                   DirectionalLight(grazing, [1.0, 1.0, 1.0])])
+    both = shares(
+        [DirectionalLight(SUN, [1.0, 1.0, 1.0]), DirectionalLight(grazing, [1.0, 1.0, 1.0])]
+    )
     assert both == pytest.approx({name: 0.5 for name in within})
 
 
@@ -387,11 +394,11 @@ def _pca(texels: int = 6, components: int = 3, seed: int = 4):
     basis = (rng.standard_normal((components, 3 * 6561)) * 0.1).astype(np.float16)
     coefficients = rng.standard_normal((texels, components)).astype(np.float16)
     scale = 2.5
-    dense = scale * (coefficients.astype(np.float64) @ basis.astype(np.float64)
-                     + mean.astype(np.float64))
+    dense = scale * (
+        coefficients.astype(np.float64) @ basis.astype(np.float64) + mean.astype(np.float64)
+    )
     linear = LinearMaterial(mean, basis, coefficients, (2, texels // 2), scale)
-    measured = MeasuredMaterial(dense.reshape(texels, 6561, 3).astype(np.float32),
-                                (2, texels // 2))
+    measured = MeasuredMaterial(dense.reshape(texels, 6561, 3).astype(np.float32), (2, texels // 2))
     return linear, measured, dense.reshape(texels, 6561, 3)
 
 
@@ -403,8 +410,9 @@ def test_pca_material_is_the_measured_interpolation_of_its_reconstruction():
     np.testing.assert_allclose(at_grid, dense[texels, columns], rtol=1e-5, atol=1e-5)
     queries = offgrid_directions(200, seed=6)
     texels = rng.integers(0, 6, 200)
-    np.testing.assert_allclose(linear.evaluate(texels, queries),
-                               measured.evaluate(texels, queries), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        linear.evaluate(texels, queries), measured.evaluate(texels, queries), rtol=1e-5, atol=1e-5
+    )
 
 
 def test_pca_material_rejects_arrays_that_do_not_fit():

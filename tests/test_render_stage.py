@@ -41,8 +41,12 @@ def test_crops_are_the_darkest_and_brightest_wholly_lit_windows():
     coverage[:, 6] = 0.5
     crops = choose_crops(image, coverage, size=8)
     luminance = image[..., 0]
-    windows = [(r, c) for r in range(0, 17, 2) for c in range(0, 25, 2)
-               if coverage[r : r + 8, c : c + 8].min() == 1]
+    windows = [
+        (r, c)
+        for r in range(0, 17, 2)
+        for c in range(0, 25, 2)
+        if coverage[r : r + 8, c : c + 8].min() == 1
+    ]
     means = {w: luminance[w[0] : w[0] + 8, w[1] : w[1] + 8].mean() for w in windows}
     assert crops["dark"] == list(min(means, key=means.get))
     assert crops["bright"] == list(max(means, key=means.get))
@@ -72,17 +76,21 @@ def test_comparison_of_a_render_with_itself_and_with_grain():
     coverage[:, 16:] = 0.5
     grainy[:, 16:] += 1.0
     assert compare(grainy.astype(np.float32), reference, coverage, crops, 16)[
-        "rmse_cloth"] == pytest.approx(0.05, rel=1e-4)
+        "rmse_cloth"
+    ] == pytest.approx(0.05, rel=1e-4)
     assert found["hf_ratio_dark"] > 1.5
     # Smooth images have less high-frequency energy than grainy ones.
     assert high_frequency_energy(np.full((8, 8, 3), 0.3)) == pytest.approx(0.0, abs=1e-12)
 
 
-@pytest.mark.parametrize("override, named", [
-    ("btf.render.spp=[0]", "btf.render.spp"),
-    ("btf.render.crop_size=64", "btf.render.crop_size"),
-    ("btf.render.crops.dark=[14,14]", "btf.render.crops.dark"),
-])
+@pytest.mark.parametrize(
+    "override, named",
+    [
+        ("btf.render.spp=[0]", "btf.render.spp"),
+        ("btf.render.crop_size=64", "btf.render.crop_size"),
+        ("btf.render.crops.dark=[14,14]", "btf.render.crops.dark"),
+    ],
+)
 def test_bad_render_settings_name_the_setting(override, named):
     cfg = compose_config("experiment=render_smoke", override)
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
@@ -100,31 +108,49 @@ def test_scores_name_what_each_render_is_compared_with():
     model, reference, truth = (rng.random((16, 16, 3)).astype(np.float32) for _ in range(3))
     crops, coverage = {"dark": [0, 0], "bright": [8, 8]}, np.ones((16, 16), np.float32)
     found = scores(model, reference, coverage, crops, 8, truth)
-    for prefix, (a, b) in {"render_": (model, reference), "render_truth_": (model, truth),
-                           "render_reference_truth_": (reference, truth)}.items():
+    for prefix, (a, b) in {
+        "render_": (model, reference),
+        "render_truth_": (model, truth),
+        "render_reference_truth_": (reference, truth),
+    }.items():
         for name, value in compare(a, b, coverage, crops, 8).items():
             assert found[prefix + name] == value, prefix + name
     assert len(found) == 3 * 8
     assert set(scores(model, reference, coverage, crops, 8)) == {
-        f"render_{name}" for name in compare(model, reference, coverage, crops, 8)}
+        f"render_{name}" for name in compare(model, reference, coverage, crops, 8)
+    }
 
 
 def _hand_made_runs() -> pd.DataFrame:
     """Labelled rendered runs of two datasets: "built-in" with truth metrics (two seeds of
     one model, one reference render), "measured" without."""
     rows = []
-    for dataset, truth, seed in (("built-in", True, 0), ("built-in", True, 1),
-                                 ("measured", False, 0)):
-        row = {"dataset": dataset, "model": "k = 8", "order": 8.0, "seed": seed,
-               "run_id": f"{dataset}{seed}", "tags.cache.render_reference": f"ref-{dataset}",
-               "tags.cache.render_truth": "truth" if truth else None,
-               "metrics.render_rmse_dark": 0.1 + seed, "metrics.render_rmse_dark_spp4": 0.2,
-               "metrics.render_beyond_grid_share_dark": 0.25 if truth else 0.0}
+    for dataset, truth, seed in (
+        ("built-in", True, 0),
+        ("built-in", True, 1),
+        ("measured", False, 0),
+    ):
+        row = {
+            "dataset": dataset,
+            "model": "k = 8",
+            "order": 8.0,
+            "seed": seed,
+            "run_id": f"{dataset}{seed}",
+            "tags.cache.render_reference": f"ref-{dataset}",
+            "tags.cache.render_truth": "truth" if truth else None,
+            "metrics.render_rmse_dark": 0.1 + seed,
+            "metrics.render_rmse_dark_spp4": 0.2,
+            "metrics.render_beyond_grid_share_dark": 0.25 if truth else 0.0,
+        }
         if truth:
-            row.update({"metrics.render_truth_rmse_dark": 0.3 + seed,
-                        "metrics.render_truth_rmse_dark_spp4": 0.4,
-                        "metrics.render_reference_truth_rmse_dark": 0.05,
-                        "metrics.render_reference_truth_rmse_dark_spp4": 0.06})
+            row.update(
+                {
+                    "metrics.render_truth_rmse_dark": 0.3 + seed,
+                    "metrics.render_truth_rmse_dark_spp4": 0.4,
+                    "metrics.render_reference_truth_rmse_dark": 0.05,
+                    "metrics.render_reference_truth_rmse_dark_spp4": 0.06,
+                }
+            )
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -159,8 +185,11 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     mlflow_template(runs_dir)
     cfg = compose_config("experiment=render_smoke", f"paths.runs={runs_dir}")
     run_job(cfg)
-    run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}", "model=pca",
-                           "model.n_components=2"))
+    run_job(
+        compose_config(
+            "experiment=render_smoke", f"paths.runs={runs_dir}", "model=pca", "model.n_components=2"
+        )
+    )
 
     client = MlflowClient(tracking_uri(runs_dir))
     experiment = client.get_experiment_by_name("render_smoke")
@@ -174,10 +203,18 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
         logged |= {a.path for a in client.list_artifacts(artifacts.info.run_id, "evaluate")}
         assert {"metrics.json", "evaluate/rmse_per_direction.npy"} <= logged
     metrics = run.data.metrics
-    for name in ("render_rmse_dark", "render_rmse_bright", "render_rmse_dark_spp1",
-                 "render_hf_ratio_bright_spp4", "render_seconds", "render_truth_rmse_dark",
-                 "render_truth_rmse_cloth_spp1", "render_truth_hf_ratio_dark_spp4",
-                 "render_reference_truth_rmse_bright", "render_reference_truth_hf_ratio_dark"):
+    for name in (
+        "render_rmse_dark",
+        "render_rmse_bright",
+        "render_rmse_dark_spp1",
+        "render_hf_ratio_bright_spp4",
+        "render_seconds",
+        "render_truth_rmse_dark",
+        "render_truth_rmse_cloth_spp1",
+        "render_truth_hf_ratio_dark_spp4",
+        "render_reference_truth_rmse_bright",
+        "render_reference_truth_hf_ratio_dark",
+    ):
         assert np.isfinite(metrics[name]), name
     assert metrics["render_rmse_dark"] == metrics["render_rmse_dark_spp4"]
     assert metrics["render_truth_rmse_cloth"] == metrics["render_truth_rmse_cloth_spp4"]
@@ -189,14 +226,24 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     assert metrics["render_reference_truth_rmse_cloth"] < 0.05
     assert {"cache.render", "cache.render_reference", "cache.render_truth"} <= set(run.data.tags)
     logged = {a.path for a in client.list_artifacts(run.info.run_id, "render")}
-    assert {"render/model_spp4.png", "render/model_spp4.exr", "render/reference_spp4.png",
-            "render/truth_spp4.png", "render/model_spp1.png", "render/crops.json"} <= logged
+    assert {
+        "render/model_spp4.png",
+        "render/model_spp4.exr",
+        "render/reference_spp4.png",
+        "render/truth_spp4.png",
+        "render/model_spp1.png",
+        "render/crops.json",
+    } <= logged
 
     settings = default_settings()
     settings.experiments = ["render_smoke"]
     out = build_tables(runs_dir, settings)
-    for name in ("table3_render_dark.md", "table4_render_bright.md", "render_graininess.md",
-                 "render_cloth.md"):
+    for name in (
+        "table3_render_dark.md",
+        "table4_render_bright.md",
+        "render_graininess.md",
+        "render_cloth.md",
+    ):
         assert (out / name).is_file(), name
         text = (out / name).read_text()
         assert "against the analytic truth" in text and "measured reference" in text, name
@@ -207,8 +254,11 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     assert sorted(cloth["spp"]) == [1, 4]  # one row per spp level of render_smoke
     top = cloth.loc[cloth["spp"] == 4]
     assert top["k = 8"].item().startswith(f"{metrics['render_truth_rmse_cloth']:.4f}")
-    assert top["measured reference"].item().startswith(
-        f"{metrics['render_reference_truth_rmse_cloth']:.4f}")
+    assert (
+        top["measured reference"]
+        .item()
+        .startswith(f"{metrics['render_reference_truth_rmse_cloth']:.4f}")
+    )
     assert top["beyond grid"].item() == f"{100 * metrics['render_beyond_grid_share']:.1f} %"
     grain = pd.read_csv(out / "render_graininess.csv")
     assert set(grain["model"]) == {"measured reference", "k = 8", "PCA c = 2"}
@@ -220,7 +270,8 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
 
 
 def test_measured_data_is_scored_against_the_reference_with_every_material_clamped(
-        tmp_path, mlflow_template):
+    tmp_path, mlflow_template
+):
     """Data without a generator (a dataset folder): no truth; the model is queried at
     directions clamped onto the grid, and the tables say they score against the reference."""
     from pipeline.app import run_job
@@ -231,15 +282,21 @@ def test_measured_data_is_scored_against_the_reference_with_every_material_clamp
     runs_dir = tmp_path / "runs"
     mlflow_template(runs_dir)
     root = write_synthetic_btf(tmp_path / "WOOL", size=16)
-    run_job(compose_config("experiment=render_smoke", f"paths.runs={runs_dir}",
-                           "dataset=ubo2003", f"dataset.root={root}", "model=pca",
-                           "model.n_components=2"))
+    run_job(
+        compose_config(
+            "experiment=render_smoke",
+            f"paths.runs={runs_dir}",
+            "dataset=ubo2003",
+            f"dataset.root={root}",
+            "model=pca",
+            "model.n_components=2",
+        )
+    )
     client = MlflowClient(tracking_uri(runs_dir))
     experiment = client.get_experiment_by_name("render_smoke")
     (run,) = client.search_runs([experiment.experiment_id])
     metrics = run.data.metrics
-    assert not any(name.startswith(("render_truth", "render_reference_truth"))
-                   for name in metrics)
+    assert not any(name.startswith(("render_truth", "render_reference_truth")) for name in metrics)
     assert "cache.render_truth" not in run.data.tags
     assert 0 <= metrics["render_beyond_grid_share"] <= 1
     entry = StageCache(runs_dir / "cache").lookup("render", run.data.tags["cache.render"])

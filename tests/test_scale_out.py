@@ -24,8 +24,14 @@ def _script(name: str, *args: str, env: dict | None = None) -> subprocess.Comple
     import sys
 
     environment = {**os.environ, "PY": sys.executable, **(env or {})}
-    return subprocess.run(["bash", str(ROOT / "scripts" / name), *args], cwd=ROOT, env=environment,
-                          capture_output=True, text=True, timeout=900)
+    return subprocess.run(
+        ["bash", str(ROOT / "scripts" / name), *args],
+        cwd=ROOT,
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
 
 
 def _assert_all_finished(done: subprocess.CompletedProcess) -> None:
@@ -45,8 +51,10 @@ def test_a_sweep_logs_to_an_mlflow_tracking_server(tmp_path):
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="a one-node SLURM needs root (munged, slurmd)")
-@pytest.mark.skipif(shutil.which("slurmctld") is None and shutil.which("apt-get") is None,
-                    reason="no slurm-wlm and no apt-get to install it")
+@pytest.mark.skipif(
+    shutil.which("slurmctld") is None and shutil.which("apt-get") is None,
+    reason="no slurm-wlm and no apt-get to install it",
+)
 def test_a_sweep_runs_through_slurm_and_shares_one_cache(tmp_path):
     runs = tmp_path / "runs"
     done = _script("slurm_sweep.sh", str(runs))

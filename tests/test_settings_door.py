@@ -11,9 +11,17 @@ from pipeline.core.settings import Integer, ListOf, OneOf, Real, check_settings
 
 # train.* is a structured config (pipeline.btf.train_settings.TrainSettings): Hydra refuses
 # a value of the wrong type as it composes, naming the key.
-BAD_TYPES = ["train.lr=abc", "train.epochs=nan", "train.batch_size=nan",
-             "train.queries_per_abrdf=nan", "train.epoch_texels=nan", "train.epochs=1.5",
-             "train.epochs=true", "model.k=true", "model.k=1.5"]
+BAD_TYPES = [
+    "train.lr=abc",
+    "train.epochs=nan",
+    "train.batch_size=nan",
+    "train.queries_per_abrdf=nan",
+    "train.epoch_texels=nan",
+    "train.epochs=1.5",
+    "train.epochs=true",
+    "model.k=true",
+    "model.k=1.5",
+]
 BAD = [
     ("train.lr=nan", "train.lr=nan must be a finite number"),
     ("train.lr=-1", "train.lr=-1.0 must be a finite number > 0"),
@@ -60,13 +68,20 @@ def test_the_pca_arm_checks_its_own_settings(smoke_cfg):
         run_job(smoke_cfg("model=pca", "model.dtype=float64"))
 
 
-@pytest.mark.parametrize(("constraint", "good", "bad"), [
-    (Integer(1), [1, 10**12], [0, 1.0, True, None, "1", float("nan")]),
-    (Integer(0, 3, optional=True), [0, 3, None], [4, -1, 2.5]),
-    (Real(0.0, closed=False), [1e-9, 2, 0.5], [0, 0.0, -1, float("inf"), float("nan"), True, "1"]),
-    (OneOf("a", None), ["a", None], ["b", 0, False]),
-    (ListOf(Integer(0), length=2), [[0, 1], (2, 3)], [[0], [0, -1], "01", [0, 1.5]]),
-])
+@pytest.mark.parametrize(
+    ("constraint", "good", "bad"),
+    [
+        (Integer(1), [1, 10**12], [0, 1.0, True, None, "1", float("nan")]),
+        (Integer(0, 3, optional=True), [0, 3, None], [4, -1, 2.5]),
+        (
+            Real(0.0, closed=False),
+            [1e-9, 2, 0.5],
+            [0, 0.0, -1, float("inf"), float("nan"), True, "1"],
+        ),
+        (OneOf("a", None), ["a", None], ["b", 0, False]),
+        (ListOf(Integer(0), length=2), [[0, 1], (2, 3)], [[0], [0, -1], "01", [0, 1.5]]),
+    ],
+)
 def test_constraints_by_hand(constraint, good, bad):
     for value in good:
         check_settings({"x": value}, {"x": constraint})

@@ -80,14 +80,25 @@ def _statuses(runs: Path) -> list[str]:
     return [r.info.status for r in client.search_runs(ids)] if ids else []
 
 
-def _stop_job(runs: Path, delay_s: float, after: str | None, gc_pressure: bool = True,
-              signum: int = signal.SIGTERM) -> Outcome:
+def _stop_job(
+    runs: Path,
+    delay_s: float,
+    after: str | None,
+    gc_pressure: bool = True,
+    signum: int = signal.SIGTERM,
+) -> Outcome:
     """Run a smoke job, send ``signum`` ``delay_s`` after the first output line that
     contains ``after`` (None: after the start), and wait for it to end."""
-    command = [sys.executable, "-c", GC_PRESSURE] if gc_pressure else [
-        sys.executable, "-m", "pipeline"]
-    job = subprocess.Popen([*command, "experiment=smoke", f"paths.runs={runs}"], cwd=ROOT,
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    command = (
+        [sys.executable, "-c", GC_PRESSURE] if gc_pressure else [sys.executable, "-m", "pipeline"]
+    )
+    job = subprocess.Popen(
+        [*command, "experiment=smoke", f"paths.runs={runs}"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     lines: list[str] = []
     seen = threading.Event()
     if after is None:
@@ -132,8 +143,11 @@ def _check(outcome: Outcome, signum: int = signal.SIGTERM) -> None:
 
 
 def _leftovers(runs: Path) -> list[Path]:
-    return [*(runs / "cache").glob("*/.tmp-*"), *(runs / "data").glob(".*partial*"),
-            *runs.glob(".mlflow.db.partial-*")]
+    return [
+        *(runs / "cache").glob("*/.tmp-*"),
+        *(runs / "data").glob(".*partial*"),
+        *runs.glob(".mlflow.db.partial-*"),
+    ]
 
 
 # --- in this process: the handler's logic --------------------------------------------
@@ -215,7 +229,7 @@ def test_the_watchdog_ends_a_job_that_swallows_every_stop(tmp_path):
         from pipeline.core import stopping
         stopping.GRACE_S = 1.0
         stopping.install()
-        stopping.on_stop(lambda: Path({str(tmp_path / 'cleaned')!r}).write_text("yes"))
+        stopping.on_stop(lambda: Path({str(tmp_path / "cleaned")!r}).write_text("yes"))
         Path({str(leftover)!r}.format(pid=os.getpid())).mkdir()
         with stopping.job_scope(leftovers_in=[{str(tmp_path)!r}]):
             while True:
@@ -226,8 +240,13 @@ def test_the_watchdog_ends_a_job_that_swallows_every_stop(tmp_path):
                 except BaseException:
                     pass
     """)
-    job = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, text=True,
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    job = subprocess.Popen(
+        [sys.executable, "-c", script],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     assert job.stdout.readline().strip() == "ready"
     started = time.monotonic()
     job.send_signal(signal.SIGTERM)
@@ -242,10 +261,17 @@ def test_the_watchdog_ends_a_job_that_swallows_every_stop(tmp_path):
 def test_a_stop_outside_a_job_ends_the_process_at_once():
     """During imports (here: a busy loop where one would be) the handler raises nothing
     that an imported module could turn into its own error: the process ends, saying why."""
-    script = ("from pipeline.core import stopping\nstopping.install()\nprint('ready', flush=True)\n"
-              "while True:\n    pass\n")
-    job = subprocess.Popen([sys.executable, "-c", script], cwd=ROOT, text=True,
-                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    script = (
+        "from pipeline.core import stopping\nstopping.install()\nprint('ready', flush=True)\n"
+        "while True:\n    pass\n"
+    )
+    job = subprocess.Popen(
+        [sys.executable, "-c", script],
+        cwd=ROOT,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     assert job.stdout.readline().strip() == "ready"
     job.send_signal(signal.SIGTERM)
     output = job.communicate(timeout=30)[0]
@@ -286,16 +312,19 @@ def test_sigterm_at_many_points_always_stops_the_job(tmp_path, mlflow_template):
     for attempt in range(16):
         runs = tmp_path / f"runs{attempt}"
         mlflow_template(runs)
-        after, delay = (None, rng.uniform(0.2, 5.0)) if attempt < 4 else (
-            "MLflow run", rng.uniform(0.0, 6.0))
+        after, delay = (
+            (None, rng.uniform(0.2, 5.0)) if attempt < 4 else ("MLflow run", rng.uniform(0.0, 6.0))
+        )
         outcome = _stop_job(runs, delay, after=after)
         _check(outcome)
         assert not _leftovers(runs)
         landed = outcome.output.count("a stop landed where Python drops exceptions")
         dropped += landed > 0
-        print(f"{delay:.2f} s after {after or 'the start'}: status {outcome.returncode}, "
-              f"runs {outcome.statuses}, {landed} deliveries where exceptions are dropped, "
-              f"watchdog: {'did not stop within' in outcome.output}")
+        print(
+            f"{delay:.2f} s after {after or 'the start'}: status {outcome.returncode}, "
+            f"runs {outcome.statuses}, {landed} deliveries where exceptions are dropped, "
+            f"watchdog: {'did not stop within' in outcome.output}"
+        )
     assert dropped > 0
 
 
@@ -306,10 +335,24 @@ def _start_sweep(runs: Path) -> tuple[subprocess.Popen, list[int], list[str]]:
     """A two-job sweep on loky workers, returned once both jobs have opened their runs,
     with the launcher's descendants (workers, loky's resource tracker) at that time."""
     sweep = subprocess.Popen(
-        [sys.executable, "-m", "pipeline", "-m", "experiment=smoke", "seed=0,1",
-         "hydra/launcher=local", "train.threads=1", f"paths.runs={runs}",
-         "train.max_steps=100000", "train.epochs=100"],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "-m",
+            "experiment=smoke",
+            "seed=0,1",
+            "hydra/launcher=local",
+            "train.threads=1",
+            f"paths.runs={runs}",
+            "train.max_steps=100000",
+            "train.epochs=100",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     lines: list[str] = []
 
     def read() -> None:
@@ -343,13 +386,15 @@ def _wait_gone(pids: list[int], timeout_s: float) -> list[int]:
     return alive
 
 
-@pytest.mark.parametrize("signum", [
-    pytest.param(signal.SIGKILL, id="kill-9"),
-    pytest.param(signal.SIGTERM, id="sigterm"),
-    pytest.param(signal.SIGINT, id="sigint", marks=pytest.mark.slow),
-])
-def test_a_stopped_sweep_leaves_no_worker_and_no_running_run(tmp_path, mlflow_template,
-                                                            signum):
+@pytest.mark.parametrize(
+    "signum",
+    [
+        pytest.param(signal.SIGKILL, id="kill-9"),
+        pytest.param(signal.SIGTERM, id="sigterm"),
+        pytest.param(signal.SIGINT, id="sigint", marks=pytest.mark.slow),
+    ],
+)
+def test_a_stopped_sweep_leaves_no_worker_and_no_running_run(tmp_path, mlflow_template, signum):
     runs = tmp_path / "runs"
     mlflow_template(runs)
     sweep, workers, lines = _start_sweep(runs)
@@ -378,16 +423,20 @@ def test_a_stop_removes_this_process_temporaries_and_no_one_elses(tmp_path):
 
     me, other = os.getpid(), os.getpid() + 1
     (tmp_path / "cache" / "train").mkdir(parents=True)
-    ours = [tmp_path / "cache" / "train" / temporary_name("0123456789abcdef0123"),
-            tmp_path / "data" / f".synthetic_btf.partial-{me}-0a1b2c3d",
-            tmp_path / f".mlflow.db.partial-{me}",
-            tmp_path / f".mlflow.db.partial-{me}-journal"]
-    theirs = [tmp_path / "cache" / "train" / f".tmp-0123-0a1b2c3d-{other}@{process.host_name()}",
-              tmp_path / "cache" / "train" / f".tmp-0123-0a1b2c3d-{me}@another-host",
-              tmp_path / "data" / f".synthetic_btf.partial-{other}-0a1b2c3d",
-              tmp_path / "data" / f".synthetic_btf.partial-{me}1-0a1b2c3d",
-              tmp_path / f".mlflow.db.partial-{other}",
-              tmp_path / "cache" / "train" / "0123456789abcdef0123"]
+    ours = [
+        tmp_path / "cache" / "train" / temporary_name("0123456789abcdef0123"),
+        tmp_path / "data" / f".synthetic_btf.partial-{me}-0a1b2c3d",
+        tmp_path / f".mlflow.db.partial-{me}",
+        tmp_path / f".mlflow.db.partial-{me}-journal",
+    ]
+    theirs = [
+        tmp_path / "cache" / "train" / f".tmp-0123-0a1b2c3d-{other}@{process.host_name()}",
+        tmp_path / "cache" / "train" / f".tmp-0123-0a1b2c3d-{me}@another-host",
+        tmp_path / "data" / f".synthetic_btf.partial-{other}-0a1b2c3d",
+        tmp_path / "data" / f".synthetic_btf.partial-{me}1-0a1b2c3d",
+        tmp_path / f".mlflow.db.partial-{other}",
+        tmp_path / "cache" / "train" / "0123456789abcdef0123",
+    ]
     for path in ours + theirs:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.mkdir() if "tmp-" in path.name or "btf" in path.name else path.write_text("x")

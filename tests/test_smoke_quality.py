@@ -28,11 +28,16 @@ def _only_run(runs_dir, experiment: str):
 def _check(run, records) -> None:
     metrics = run.data.metrics
     ratio = metrics["rmse"] / metrics["rmse_mean_abrdf"]
-    assert ratio <= BAR, (f"{run.data.params['model.name']}: RMSE {metrics['rmse']:.4g} is "
-                          f"{ratio:.2f} x the mean-ABRDF baseline")
+    assert ratio <= BAR, (
+        f"{run.data.params['model.name']}: RMSE {metrics['rmse']:.4g} is "
+        f"{ratio:.2f} x the mean-ABRDF baseline"
+    )
     assert "training_failed" not in run.data.tags
-    warnings = [r.getMessage() for r in records if r.levelno >= logging.WARNING
-                and r.name.startswith("pipeline")]
+    warnings = [
+        r.getMessage()
+        for r in records
+        if r.levelno >= logging.WARNING and r.name.startswith("pipeline")
+    ]
     assert not warnings, warnings
 
 
@@ -47,13 +52,17 @@ def test_the_smoke_run_ends_well_below_the_mean_abrdf_baseline(smoke_cfg, caplog
 @pytest.mark.slow
 @pytest.mark.parametrize("method", ["clustered", "neural_btf"])
 def test_the_render_smoke_run_ends_well_below_the_mean_abrdf_baseline(
-        tmp_path, mlflow_template, caplog, method):
+    tmp_path, mlflow_template, caplog, method
+):
     """All 81 views (N = 6561): the smoke's encoder and recipe must still train."""
     runs_dir = tmp_path / "runs"
     mlflow_template(runs_dir)
-    cfg = compose_config("experiment=render_smoke", f"model={method}",
-                         f"paths.runs={runs_dir}",
-                         "btf.render.enabled=false")  # the model is what is checked here
+    cfg = compose_config(
+        "experiment=render_smoke",
+        f"model={method}",
+        f"paths.runs={runs_dir}",
+        "btf.render.enabled=false",
+    )  # the model is what is checked here
     with caplog.at_level(logging.WARNING):
         run_job(cfg)
     _check(_only_run(runs_dir, "render_smoke"), caplog.records)

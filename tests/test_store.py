@@ -22,8 +22,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _dead_pid() -> int:
-    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                          capture_output=True, text=True, check=True)
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     return int(gone.stdout)
 
 
@@ -43,7 +47,8 @@ def test_a_damaged_store_is_named_in_the_error(tmp_path):
 
 
 def test_runs_of_any_experiment_left_running_by_a_dead_process_are_marked_failed(
-        tmp_path, mlflow_template):
+    tmp_path, mlflow_template
+):
     mlflow_template(tmp_path)
     smoke = init_store(tmp_path, "smoke")
     client = MlflowClient(tracking_uri(tmp_path))
@@ -55,10 +60,17 @@ def test_runs_of_any_experiment_left_running_by_a_dead_process_are_marked_failed
     pid_zero = client.create_run(smoke, tags={"host": host, "pid": "0"})  # no such process
 
     init_store(tmp_path, "fourier_smoke")  # the next start, of another experiment
-    status = {r: client.get_run(r.info.run_id).info.status
-              for r in (dead, alive, elsewhere, untagged, pid_zero)}
-    assert status == {dead: "FAILED", alive: "RUNNING", elsewhere: "RUNNING",
-                      untagged: "RUNNING", pid_zero: "FAILED"}
+    status = {
+        r: client.get_run(r.info.run_id).info.status
+        for r in (dead, alive, elsewhere, untagged, pid_zero)
+    }
+    assert status == {
+        dead: "FAILED",
+        alive: "RUNNING",
+        elsewhere: "RUNNING",
+        untagged: "RUNNING",
+        pid_zero: "FAILED",
+    }
     assert "gone" in client.get_run(dead.info.run_id).data.tags["ended_by"]
 
 
@@ -79,12 +91,14 @@ def test_a_zombie_is_not_alive():
 
 
 def _entry(cache: StageCache, stage: str, value: float):
-    return cache.run(stage, "1", {"value": value}, {},
-                     lambda folder: save_arrays(folder, x=np.full(4, value)))
+    return cache.run(
+        stage, "1", {"value": value}, {}, lambda folder: save_arrays(folder, x=np.full(4, value))
+    )
 
 
 def test_cache_gc_ends_dead_runs_and_no_longer_keeps_what_they_used(
-        tmp_path, mlflow_template, monkeypatch, capsys):
+    tmp_path, mlflow_template, monkeypatch, capsys
+):
     """A run killed with kill -9 stays RUNNING; gc used to keep everything used since
     it started. gc marks it FAILED (dry_run=true only says so) and removes what no finished
     run uses."""
@@ -97,8 +111,9 @@ def test_cache_gc_ends_dead_runs_and_no_longer_keeps_what_they_used(
     kept, unused = _entry(cache, "a", 1.0), _entry(cache, "b", 2.0)
     finished = client.create_run(experiment, tags={"cache.a": kept.key})
     client.set_terminated(finished.info.run_id, "FINISHED")
-    killed = client.create_run(experiment, tags={"host": socket.gethostname(),
-                                                 "pid": str(_dead_pid())})
+    killed = client.create_run(
+        experiment, tags={"host": socket.gethostname(), "pid": str(_dead_pid())}
+    )
 
     assert cache_command.main(["gc", "dry_run=true", f"paths.runs={runs}"]) == 0
     out = capsys.readouterr().out
@@ -130,16 +145,19 @@ def test_a_tracking_server_chosen_by_the_user_stays_chosen(tmp_path, monkeypatch
     first = use_store(tmp_path / "a", must_exist=False)
     assert first == f"sqlite:///{(tmp_path / 'a').resolve() / 'mlflow.db'}"
     assert tracking_uri(tmp_path / "b", must_exist=False) == (
-        f"sqlite:///{(tmp_path / 'b').resolve() / 'mlflow.db'}")
+        f"sqlite:///{(tmp_path / 'b').resolve() / 'mlflow.db'}"
+    )
 
 
-def test_a_folder_without_a_store_is_named_not_filled_with_an_empty_store(tmp_path,
-                                                                          monkeypatch):
+def test_a_folder_without_a_store_is_named_not_filled_with_an_empty_store(tmp_path, monkeypatch):
     """Reading a store that is not there (a relative paths.runs from another folder, a
     typo) is a StoreError naming the path; only a job's init_store creates one."""
     monkeypatch.chdir(tmp_path)
-    with pytest.raises(StoreError, match=rf"no MLflow store at {tmp_path}/runs/mlflow.db "
-                                         rf"\('runs' from {tmp_path}\)"):
+    with pytest.raises(
+        StoreError,
+        match=rf"no MLflow store at {tmp_path}/runs/mlflow.db "
+        rf"\('runs' from {tmp_path}\)",
+    ):
         tracking_uri("runs")
     assert not (tmp_path / "runs").exists()
     init_store("runs", "btf")  # a job's own run creates it
@@ -148,17 +166,22 @@ def test_a_folder_without_a_store_is_named_not_filled_with_an_empty_store(tmp_pa
 
 def test_the_tables_command_refuses_a_runs_folder_without_a_store_in_one_line(tmp_path):
     missing = tmp_path / "nonexistent"
-    done = subprocess.run([sys.executable, "-m", "pipeline.tables", f"paths.runs={missing}"],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "pipeline.tables", f"paths.runs={missing}"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip().splitlines() == [
         f"error: no MLflow store at {missing}/mlflow.db: give the jobs' paths.runs, as an "
-        "absolute path or from the folder they ran in"]
+        "absolute path or from the folder they ran in"
+    ]
     assert not missing.exists()  # no store, no tables, no Hydra folder
 
 
-def test_each_experiment_gets_a_description_that_a_user_s_edit_replaces(tmp_path,
-                                                                        mlflow_template):
+def test_each_experiment_gets_a_description_that_a_user_s_edit_replaces(tmp_path, mlflow_template):
     """The experiment's note (mlflow.note.content) says what its runs are and which
     metrics to read first; a job of another method extends it; an edited note stays."""
     from helpers import compose_config
@@ -172,8 +195,9 @@ def test_each_experiment_gets_a_description_that_a_user_s_edit_replaces(tmp_path
     note = client.get_experiment(experiment_id).tags[NOTE_TAG]
     assert note.startswith("**Experiment `mixed`**: runs of Method A: Neural BTF")
     assert "Read first: `rmse`, `psnr_db`" in note and "tables.experiments=[mixed]" in note
-    init_store(tmp_path, "mixed", job=compose_config("experiment=brdf_smoke",
-                                                     f"paths.runs={tmp_path}"))
+    init_store(
+        tmp_path, "mixed", job=compose_config("experiment=brdf_smoke", f"paths.runs={tmp_path}")
+    )
     note = client.get_experiment(experiment_id).tags[NOTE_TAG]
     assert "Method A" in note and "(`method=brdf_map`)" in note and "`rmse_missing`" in note
     client.set_experiment_tag(experiment_id, NOTE_TAG, "my own words")
@@ -194,7 +218,8 @@ def _readme_example() -> str:
 
 
 def test_the_readme_example_from_another_folder_names_the_missing_store_or_finds_the_run(
-        smoke_cfg, tmp_path):
+    smoke_cfg, tmp_path
+):
     """As written ("runs", relative) from a folder without a store: a StoreError naming
     the path it looked at, and no ./runs/mlflow.db made (MLflow used to make one, then
     fail with KeyError: 0). With the jobs' paths.runs: the clustered model answers."""
@@ -208,13 +233,17 @@ def test_the_readme_example_from_another_folder_names_the_missing_store_or_finds
     elsewhere.mkdir()
     (elsewhere / "as_written.py").write_text(code)
     (elsewhere / "with_paths_runs.py").write_text(
-        code.replace('tracking_uri("runs")', f"tracking_uri({str(cfg.paths.runs)!r})"))
-    probe = ("import runpy, sys\n"
-             "try:\n    runpy.run_path('as_written.py')\n"
-             "except Exception as error:\n    print(type(error).__name__, error)\n"
-             "runpy.run_path('with_paths_runs.py')\n")
-    done = subprocess.run([sys.executable, "-c", probe], cwd=elsewhere, capture_output=True,
-                          text=True, timeout=300)
+        code.replace('tracking_uri("runs")', f"tracking_uri({str(cfg.paths.runs)!r})")
+    )
+    probe = (
+        "import runpy, sys\n"
+        "try:\n    runpy.run_path('as_written.py')\n"
+        "except Exception as error:\n    print(type(error).__name__, error)\n"
+        "runpy.run_path('with_paths_runs.py')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", probe], cwd=elsewhere, capture_output=True, text=True, timeout=300
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     first, *answer = done.stdout.strip().splitlines()
     assert first.startswith(f"StoreError no MLflow store at {elsewhere}/runs/mlflow.db")

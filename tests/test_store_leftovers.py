@@ -18,8 +18,12 @@ from pipeline.core.tracking import init_store
 
 
 def _dead_pid() -> int:
-    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
-                          capture_output=True, text=True, check=True)
+    gone = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     return int(gone.stdout)
 
 
@@ -34,13 +38,16 @@ def _own_store(monkeypatch):
 
 @pytest.mark.parametrize("existing_store", [True, False], ids=["existing", "new"])
 def test_partial_stores_of_killed_processes_are_removed_at_the_next_start(
-        tmp_path, mlflow_template, existing_store):
+    tmp_path, mlflow_template, existing_store
+):
     if existing_store:
         mlflow_template(tmp_path)
     dead = _dead_pid()
-    leftovers = [tmp_path / f".mlflow.db.partial-{dead}",
-                 tmp_path / f".mlflow.db.partial-{dead}-journal",
-                 tmp_path / ".mlflow.db.partial-1"]  # an old pid, reused since
+    leftovers = [
+        tmp_path / f".mlflow.db.partial-{dead}",
+        tmp_path / f".mlflow.db.partial-{dead}-journal",
+        tmp_path / ".mlflow.db.partial-1",
+    ]  # an old pid, reused since
     for path in leftovers:
         path.write_bytes(b"SQLite format 3\x00 half made")
     unrelated = tmp_path / ".mlflow.db.partial-notes.txt"

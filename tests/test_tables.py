@@ -31,31 +31,56 @@ def _store(tmp_path, mlflow_template):
     mlflow_template(tmp_path)
 
 
-def _log_runs(runs_dir, rows, experiment="btf", failed=False, evaluate_key=None, epochs=16,
-              curve=(), precision=None):
+def _log_runs(
+    runs_dir,
+    rows,
+    experiment="btf",
+    failed=False,
+    evaluate_key=None,
+    epochs=16,
+    curve=(),
+    precision=None,
+):
     experiment_id = init_store(runs_dir, experiment)
     for method, k, seed, rmse in rows:
         m = 10_000
         latents = (k or m) * 8 * 4
         listing = m * 4 if k else 0
-        params = {"method.name": "btf", "model.name": method, "model.k": k, "seed": seed,
-                  "dataset.name": "synthetic", "dataset.root": None,
-                  "dataset.synthetic.material": "plain_weave",
-                  "model.texel_scale": "none", "model.target": "texel",
-                  "train.epochs": epochs, "train.precision": precision or "float32"}
-        tags = {"cache.evaluate": evaluate_key or f"{method}-{k}-{seed}-{rmse}-{precision}",
-                **recipe_tags(params)}
+        params = {
+            "method.name": "btf",
+            "model.name": method,
+            "model.k": k,
+            "seed": seed,
+            "dataset.name": "synthetic",
+            "dataset.root": None,
+            "dataset.synthetic.material": "plain_weave",
+            "model.texel_scale": "none",
+            "model.target": "texel",
+            "train.epochs": epochs,
+            "train.precision": precision or "float32",
+        }
+        tags = {
+            "cache.evaluate": evaluate_key or f"{method}-{k}-{seed}-{rmse}-{precision}",
+            **recipe_tags(params),
+        }
         with mlflow.start_run(experiment_id=experiment_id, tags=tags) as run:
             mlflow.log_params(params)
             for step, seconds, value in curve:
                 mlflow.log_metrics({"curve_rmse": value, "curve_seconds": seconds}, step=step)
-            mlflow.log_metrics({
-                "rmse": rmse, "bytes_decoder": 97_532, "bytes_latents": latents,
-                "bytes_list": listing, "bytes_extra": 0,
-                "bytes_total": 97_532 + latents + listing, "bytes_original": 787_320_000,
-                "compression_ratio": 787_320_000 / (97_532 + latents + listing),
-                "rmse_offgrid_model": rmse * 2, "rmse_offgrid_linear": 0.01,
-            })
+            mlflow.log_metrics(
+                {
+                    "rmse": rmse,
+                    "bytes_decoder": 97_532,
+                    "bytes_latents": latents,
+                    "bytes_list": listing,
+                    "bytes_extra": 0,
+                    "bytes_total": 97_532 + latents + listing,
+                    "bytes_original": 787_320_000,
+                    "compression_ratio": 787_320_000 / (97_532 + latents + listing),
+                    "rmse_offgrid_model": rmse * 2,
+                    "rmse_offgrid_linear": 0.01,
+                }
+            )
             if failed:
                 mlflow.end_run(status="FAILED")
         assert run.info.run_id
@@ -157,22 +182,40 @@ def test_a_rerun_of_the_same_job_is_not_another_seed(tmp_path, settings):
 def test_different_crops_of_one_source_are_different_datasets(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
     for crop, n, rmse, key in ((12, 729, 0.16, "btf.crop.size"), (48, 6561, 0.03, "btf.crop.size")):
-        _log_run(experiment_id, {"method.name": "btf", "model.name": "clustered", "model.k": 8, "seed": 0,
-                               "dataset.name": "synthetic", key: crop,
-                                 "dataset.synthetic.material": "plain_weave"},
-                 {"rmse": rmse, "n_directions": n}, {"cache.evaluate": str(crop)})
+        _log_run(
+            experiment_id,
+            {
+                "method.name": "btf",
+                "model.name": "clustered",
+                "model.k": 8,
+                "seed": 0,
+                "dataset.name": "synthetic",
+                key: crop,
+                "dataset.synthetic.material": "plain_weave",
+            },
+            {"rmse": rmse, "n_directions": n},
+            {"cache.evaluate": str(crop)},
+        )
     rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
     assert dict(zip(rmse["dataset"], rmse["k = 8"], strict=True)) == {
-        "synthetic:plain_weave 12²×729": "0.1600 (n=1)", "synthetic:plain_weave 48²×6561": "0.0300 (n=1)"}
+        "synthetic:plain_weave 12²×729": "0.1600 (n=1)",
+        "synthetic:plain_weave 48²×6561": "0.0300 (n=1)",
+    }
 
 
 def test_a_longer_run_is_its_own_model_and_its_curve_is_drawn(tmp_path, settings):
     _log_runs(tmp_path, RUNS)
-    _log_runs(tmp_path, [("neural_btf", None, 0, 0.019)], epochs=64,
-              curve=[(0, 0.0, 0.2), (100, 60.0, 0.05), (200, 120.0, 0.02)])
+    _log_runs(
+        tmp_path,
+        [("neural_btf", None, 0, 0.019)],
+        epochs=64,
+        curve=[(0, 0.0, 0.2), (100, 60.0, 0.05), (200, 120.0, 0.02)],
+    )
     out = build_tables(tmp_path, settings)
     rmse = pd.read_csv(out / "table2_rmse.csv").set_index("dataset")
-    assert rmse.loc["synthetic:plain_weave", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"  # not mixed in
+    assert (
+        rmse.loc["synthetic:plain_weave", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"
+    )  # not mixed in
     assert rmse.loc["synthetic:plain_weave", "Neural BTF (64 epochs)"] == "0.0190 (n=1)"
     points = pd.read_csv(out / "training_curves.csv")
     assert list(points["step"]) == [0, 100, 200]
@@ -186,23 +229,28 @@ def test_a_bfloat16_run_is_its_own_model_not_another_seed(tmp_path, settings):
     _log_runs(tmp_path, RUNS[:1])
     _log_runs(tmp_path, RUNS[1:2], precision="float32")
     _log_runs(tmp_path, [("neural_btf", None, 0, 0.0230)], precision="bfloat16")
-    rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv").set_index(
-        "dataset")
+    rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv").set_index("dataset")
     assert rmse.loc["synthetic:plain_weave", "Neural BTF"] == "0.0205 ± 0.0007 (n=2)"
     assert rmse.loc["synthetic:plain_weave", "Neural BTF (bfloat16)"] == "0.0230 (n=1)"
 
 
 def test_convergence_compares_each_run_with_the_same_model_and_seed_trained_longest(
-        tmp_path, settings):
+    tmp_path, settings
+):
     _log_runs(tmp_path, RUNS, curve=[(0, 0.0, 0.2), (100, 60.0, 0.03)])  # 16 epochs
-    _log_runs(tmp_path, [("neural_btf", None, 0, 0.0195), ("clustered", 1000, 0, 0.0200)],
-              epochs=64, curve=[(0, 0.0, 0.2), (100, 60.0, 0.03), (400, 240.0, 0.02)])
+    _log_runs(
+        tmp_path,
+        [("neural_btf", None, 0, 0.0195), ("clustered", 1000, 0, 0.0200)],
+        epochs=64,
+        curve=[(0, 0.0, 0.2), (100, 60.0, 0.03), (400, 240.0, 0.02)],
+    )
     out = build_tables(tmp_path, settings)
     assert (out / "training_curves_0.png").is_file()  # with the models' 5 % lines
     table = pd.read_csv(out / "convergence.csv")
     # Only seed 0 of Neural BTF and k = 1000 has a longer run beside it; k = 500 has none.
-    assert list(zip(table["model"], table["seed"], table["epochs"], table["reference epochs"],
-                    strict=True)) == [("Neural BTF", 0, 16, 64), ("k = 1000", 0, 16, 64)]
+    assert list(
+        zip(table["model"], table["seed"], table["epochs"], table["reference epochs"], strict=True)
+    ) == [("Neural BTF", 0, 16, 64), ("k = 1000", 0, 16, 64)]
     # 0.0200 / 0.0195 - 1 = +2.6 %, within 5 %; 0.0250 / 0.0200 - 1 = +25.0 %, not.
     assert list(table["excess"]) == ["+2.6 %", "+25.0 %"]
     assert list(table["within 5 %"]) == [True, False]
@@ -219,9 +267,18 @@ def test_no_convergence_table_without_runs_of_different_lengths(tmp_path, settin
 def test_runs_near_the_mean_abrdf_baseline_are_flagged(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
     for seed, rmse in ((0, 0.03), (1, 0.14)):  # against a baseline of 0.15
-        _log_run(experiment_id, {"method.name": "btf", "model.name": "neural_btf", "model.k": None, "seed": seed,
-                               "dataset.name": "synthetic"},
-                 {"rmse": rmse, "rmse_mean_abrdf": 0.15}, {"cache.evaluate": str(seed)})
+        _log_run(
+            experiment_id,
+            {
+                "method.name": "btf",
+                "model.name": "neural_btf",
+                "model.k": None,
+                "seed": seed,
+                "dataset.name": "synthetic",
+            },
+            {"rmse": rmse, "rmse_mean_abrdf": 0.15},
+            {"cache.evaluate": str(seed)},
+        )
     out = build_tables(tmp_path, settings)
     failed = pd.read_csv(out / "failed_runs.csv")
     assert list(failed["seed"]) == [1] and failed.loc[0, "ratio"] == 0.93
@@ -243,12 +300,27 @@ def test_runs_of_two_recipes_are_never_averaged_as_seeds(tmp_path, settings):
     """SGD and Adam runs of one model at the same epochs: two columns, labelled by what
     differs; the threads setting (speed only) does not split them."""
     experiment_id = init_store(tmp_path, "btf")
-    for seed, optimizer, threads, rmse in ((0, "sgd", 1, 0.05), (1, "sgd", 2, 0.07),
-                                           (0, "adam", 1, 0.02), (1, "adam", 2, 0.04)):
-        _log_run(experiment_id, {"method.name": "btf", "model.name": "clustered", "model.k": 500, "seed": seed,
-                               "dataset.name": "synthetic", "train.epochs": 16,
-                               "train.optimizer": optimizer, "train.threads": threads},
-                 {"rmse": rmse}, {"cache.evaluate": f"{optimizer}{seed}"})
+    for seed, optimizer, threads, rmse in (
+        (0, "sgd", 1, 0.05),
+        (1, "sgd", 2, 0.07),
+        (0, "adam", 1, 0.02),
+        (1, "adam", 2, 0.04),
+    ):
+        _log_run(
+            experiment_id,
+            {
+                "method.name": "btf",
+                "model.name": "clustered",
+                "model.k": 500,
+                "seed": seed,
+                "dataset.name": "synthetic",
+                "train.epochs": 16,
+                "train.optimizer": optimizer,
+                "train.threads": threads,
+            },
+            {"rmse": rmse},
+            {"cache.evaluate": f"{optimizer}{seed}"},
+        )
     rmse = pd.read_csv(build_tables(tmp_path, settings) / "table2_rmse.csv")
     assert rmse.loc[0, "k = 500 (adam)"] == "0.0300 ± 0.0141 (n=2)"
     assert rmse.loc[0, "k = 500 (sgd)"] == "0.0600 ± 0.0141 (n=2)"
@@ -257,18 +329,31 @@ def test_runs_of_two_recipes_are_never_averaged_as_seeds(tmp_path, settings):
 
 def test_table2_names_each_columns_learning_rate(tmp_path, settings):
     experiment_id = init_store(tmp_path, "btf")
-    for method, k, train_lr, method_lr in (("neural_btf", None, "None", 0.05),
-                                          ("clustered", 500, 0.05, 0.08)):
-        _log_run(experiment_id, {"method.name": "btf", "model.name": method, "model.k": k, "seed": 0,
-                               "dataset.name": "synthetic", "train.lr": train_lr,
-                               "model.lr": method_lr},
-                 {"rmse": 0.03}, {"cache.evaluate": method})
+    for method, k, train_lr, method_lr in (
+        ("neural_btf", None, "None", 0.05),
+        ("clustered", 500, 0.05, 0.08),
+    ):
+        _log_run(
+            experiment_id,
+            {
+                "method.name": "btf",
+                "model.name": method,
+                "model.k": k,
+                "seed": 0,
+                "dataset.name": "synthetic",
+                "train.lr": train_lr,
+                "model.lr": method_lr,
+            },
+            {"rmse": 0.03},
+            {"cache.evaluate": method},
+        )
     text = (build_tables(tmp_path, settings) / "table2_rmse.md").read_text()
     assert "Learning rates: Neural BTF: 0.05; k = 500: 0.05." in text
 
 
 def test_experiments_or_a_filter_that_match_nothing_are_refused_and_nothing_is_rewritten(
-        tmp_path, settings):
+    tmp_path, settings
+):
     from pipeline.core.errors import ConfigError
 
     _log_runs(tmp_path, RUNS)
@@ -300,7 +385,7 @@ def test_the_summary_page_shows_its_tables_and_figures_in_one_file(tmp_path, set
     out = build_tables(tmp_path, settings)
     assert "![rmse_vs_k](rmse_vs_k.png)" in (out / "summary.md").read_text()
     html = (out / "summary.html").read_text()
-    assert "<table>" in html and "src=\"rmse_vs_k.png\"" not in html
+    assert "<table>" in html and 'src="rmse_vs_k.png"' not in html
     [png] = re.findall(r'alt="rmse_vs_k" src="data:image/png;base64,([^"]+)"', html)
     assert base64.b64decode(png) == (out / "rmse_vs_k.png").read_bytes()
 
@@ -309,8 +394,17 @@ def test_rmse_versus_k_says_so_when_it_has_nothing_to_draw(tmp_path):
     """A store of PCA runs alone: no empty figure (and no matplotlib warning), a line."""
     from pipeline.btf.report import plot_rmse_vs_k
 
-    runs = pd.DataFrame({"dataset": ["d"], "params.method.name": "btf", "params.model.name": ["pca"], "family": ["f"],
-                         "model": ["PCA"], "k": [128], "metrics.rmse": [0.1]})
+    runs = pd.DataFrame(
+        {
+            "dataset": ["d"],
+            "params.method.name": "btf",
+            "params.model.name": ["pca"],
+            "family": ["f"],
+            "model": ["PCA"],
+            "k": [128],
+            "metrics.rmse": [0.1],
+        }
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         section = plot_rmse_vs_k(runs, tmp_path)
@@ -320,9 +414,16 @@ def test_rmse_versus_k_says_so_when_it_has_nothing_to_draw(tmp_path):
 
 def _log_btf(experiment_id, model: str, seed: int, metrics: dict, **settings) -> None:
     """One finished method-A run on the smoke's data (12 x 12 crop) with these settings."""
-    params = {"method.name": "btf", "model.name": model, "seed": seed,
-              "dataset.name": "synthetic", "dataset.synthetic.material": "plain_weave",
-              "btf.crop.size": 12, "train.epochs": 6, **settings}
+    params = {
+        "method.name": "btf",
+        "model.name": model,
+        "seed": seed,
+        "dataset.name": "synthetic",
+        "dataset.synthetic.material": "plain_weave",
+        "btf.crop.size": 12,
+        "train.epochs": 6,
+        **settings,
+    }
     key = f"{model}-{seed}-{sorted(settings.items())}"
     _log_run(experiment_id, params, {"n_directions": 729, **metrics}, {"cache.evaluate": key})
 
@@ -337,24 +438,43 @@ def test_a_table_holds_one_experiment_and_names_what_differs_in_words(tmp_path, 
     rate = init_store(tmp_path, "rate_distortion_smoke")
     for latent in (2, 8):
         for dtype in ("float32", "float16"):
-            _log_btf(rate, "neural_btf", 0, {"rmse": 0.1 / latent},
-                     **{"btf.network.latent": latent, "btf.sizes.weight_dtype": dtype})
+            _log_btf(
+                rate,
+                "neural_btf",
+                0,
+                {"rmse": 0.1 / latent},
+                **{"btf.network.latent": latent, "btf.sizes.weight_dtype": dtype},
+            )
     # Another Neural BTF recipe in five settings at once (a longer, held-out demo run).
-    _log_btf(rate, "neural_btf", 0, {"rmse": 0.02},
-             **{"btf.network.latent": 8, "btf.sizes.weight_dtype": "float32",
-                "btf.interpolation.holdout_lights": 6, "train.lr": 0.01,
-                "train.optimizer": "sgd", "train.batch_size": 64, "train.max_steps": 500})
+    _log_btf(
+        rate,
+        "neural_btf",
+        0,
+        {"rmse": 0.02},
+        **{
+            "btf.network.latent": 8,
+            "btf.sizes.weight_dtype": "float32",
+            "btf.interpolation.holdout_lights": 6,
+            "train.lr": 0.01,
+            "train.optimizer": "sgd",
+            "train.batch_size": 64,
+            "train.max_steps": 500,
+        },
+    )
     out = build_tables(tmp_path, settings)
 
     assert out == tmp_path / "tables"
-    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["rate_distortion_smoke",
-                                                                    "smoke"]
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["rate_distortion_smoke", "smoke"]
     assert list(pd.read_csv(out / "smoke" / "table2_rmse.csv").columns) == ["dataset", "k = 8"]
     columns = list(pd.read_csv(out / "rate_distortion_smoke" / "table2_rmse.csv").columns)
-    assert columns == ["dataset", "Neural BTF (latent 2, float16)",
-                       "Neural BTF (latent 2, float32)", "Neural BTF (latent 8, float16)",
-                       "Neural BTF (latent 8, float32)",
-                       "Neural BTF (latent 8, float32, 6 lights held out)"]
+    assert columns == [
+        "dataset",
+        "Neural BTF (latent 2, float16)",
+        "Neural BTF (latent 2, float32)",
+        "Neural BTF (latent 8, float16)",
+        "Neural BTF (latent 8, float32)",
+        "Neural BTF (latent 8, float32, 6 lights held out)",
+    ]
     recipes = pd.read_csv(out / "rate_distortion_smoke" / "table2_columns.csv")
     five = recipes.loc[recipes["model"].str.contains("held out"), "differs in"].iloc[0]
     assert "train.lr=0.01" in five and "btf.interpolation.holdout_lights=6" in five
@@ -372,11 +492,22 @@ def test_the_graininess_table_compares_rmse_over_the_same_directions(tmp_path, s
     latter for every model, the nearest unscaled one included, and says so."""
     experiment_id = init_store(tmp_path, "btf")
     for k, trained, every in ((128, 0.05244, 0.05251), (256, 0.04000, 0.04100)):
-        _log_btf(experiment_id, "clustered", 0, {
-            "rmse": trained, "rmse_train_dirs": trained, "rmse_all_dirs": every,
-            "rmse_without_texel_scale": every, "rmse_with_texel_scale": every - 0.005,
-            "bytes_total": 100_000 + k, "bytes_extra": 0, "n_texels": 144},
-            **{"model.k": k, "btf.interpolation.holdout_lights": 6})
+        _log_btf(
+            experiment_id,
+            "clustered",
+            0,
+            {
+                "rmse": trained,
+                "rmse_train_dirs": trained,
+                "rmse_all_dirs": every,
+                "rmse_without_texel_scale": every,
+                "rmse_with_texel_scale": every - 0.005,
+                "bytes_total": 100_000 + k,
+                "bytes_extra": 0,
+                "n_texels": 144,
+            },
+            **{"model.k": k, "btf.interpolation.holdout_lights": 6},
+        )
     out = build_tables(tmp_path, settings)
     rmse = pd.read_csv(out / "table2_rmse.csv")
     assert rmse.loc[0, "k = 128"] == "0.0524 (n=1)"  # over the trained directions
@@ -387,8 +518,7 @@ def test_the_graininess_table_compares_rmse_over_the_same_directions(tmp_path, s
     assert "Table 2's are over the trained directions" in (out / "graininess.md").read_text()
 
 
-def test_a_model_that_stores_its_scale_lists_its_bytes_without_and_with_it(tmp_path,
-                                                                           settings):
+def test_a_model_that_stores_its_scale_lists_its_bytes_without_and_with_it(tmp_path, settings):
     """A +scale run's bytes_total holds the scale (144 texels x float16 = 288 B): the
     'bytes' column is without it, 'bytes with scale' with it, never the same number; the
     nearest unscaled model is of the same recipe but k and scale."""
@@ -396,12 +526,25 @@ def test_a_model_that_stores_its_scale_lists_its_bytes_without_and_with_it(tmp_p
     common = {"btf.sizes.weight_dtype": "float32", "btf.sizes.list_dtype": "uint16"}
     for k, scale, extra in ((4, "lstsq", 288), (4, "none", 0), (16, "none", 0)):
         rmse = 0.15 - k / 1000 - (0.01 if extra else 0)
-        _log_btf(experiment_id, "clustered", 0, {
-            "rmse": rmse, "rmse_without_texel_scale": 0.15 - k / 1000,
-            "rmse_with_texel_scale": 0.14 - k / 1000, "bytes_extra": extra,
-            "bytes_total": 97_948 + 96 * (k > 4) * 4 + extra, "n_texels": 144},
-            **common, **{"model.k": k, "model.texel_scale": scale,
-                         "btf.sizes.extra_dtype": "float16" if extra else "float32"})
+        _log_btf(
+            experiment_id,
+            "clustered",
+            0,
+            {
+                "rmse": rmse,
+                "rmse_without_texel_scale": 0.15 - k / 1000,
+                "rmse_with_texel_scale": 0.14 - k / 1000,
+                "bytes_extra": extra,
+                "bytes_total": 97_948 + 96 * (k > 4) * 4 + extra,
+                "n_texels": 144,
+            },
+            **common,
+            **{
+                "model.k": k,
+                "model.texel_scale": scale,
+                "btf.sizes.extra_dtype": "float16" if extra else "float32",
+            },
+        )
     grain = pd.read_csv(build_tables(tmp_path, settings) / "graininess.csv").set_index("model")
     assert grain.loc["k = 4 +scale", "bytes"] == 97_948
     assert grain.loc["k = 4 +scale", "bytes with scale"] == 97_948 + 288
@@ -412,12 +555,22 @@ def test_a_model_that_stores_its_scale_lists_its_bytes_without_and_with_it(tmp_p
 def test_a_hash_names_a_column_only_where_no_logged_setting_tells_it_apart():
     from pipeline.btf.tables import recipe_labels
 
-    runs = pd.DataFrame({"dataset": "d", "model": "k = 8",
-                         "params.train.lr": ["0.1", "0.1", "0.2"],
-                         "params.btf.crop.size": ["12", "12", "48"],
-                         "tags.recipe": ["aaaaaa1", "bbbbbb2", "cccccc3"]})
+    runs = pd.DataFrame(
+        {
+            "dataset": "d",
+            "model": "k = 8",
+            "params.train.lr": ["0.1", "0.1", "0.2"],
+            "params.btf.crop.size": ["12", "12", "48"],
+            "tags.recipe": ["aaaaaa1", "bbbbbb2", "cccccc3"],
+        }
+    )
     assert list(recipe_labels(runs, ["dataset", "model"])) == [
-        " (12² crop) recipe aaaaaa", " (12² crop) recipe bbbbbb", " (48² crop)"]
+        " (12² crop) recipe aaaaaa",
+        " (12² crop) recipe bbbbbb",
+        " (48² crop)",
+    ]
     alike = runs.assign(**{"params.btf.crop.size": "12"})  # no setting differs at all
     assert list(recipe_labels(alike.iloc[:2], ["dataset", "model"])) == [
-        " recipe aaaaaa", " recipe bbbbbb"]
+        " recipe aaaaaa",
+        " recipe bbbbbb",
+    ]

@@ -12,8 +12,9 @@ import pipeline.btf.fast.tuning
 from pipeline.btf.fast.tuning import can_keep_awake, glibc, keep_cpus_awake, set_omp_spin_count
 from pipeline.core.errors import ConfigError
 
-needs_sched_idle = pytest.mark.skipif(not can_keep_awake(),
-                                      reason="no SCHED_IDLE, or a CPU quota: no spinners here")
+needs_sched_idle = pytest.mark.skipif(
+    not can_keep_awake(), reason="no SCHED_IDLE, or a CPU quota: no spinners here"
+)
 
 
 def _alive(pid: int) -> bool:
@@ -32,7 +33,8 @@ def test_one_idle_class_spinner_per_core_while_the_block_lasts():
         for pid in pids:
             assert os.sched_getscheduler(pid) == os.SCHED_IDLE
         assert [os.sched_getaffinity(pid) for pid in pids] == [
-            {cpu} for cpu in sorted(os.sched_getaffinity(0))]
+            {cpu} for cpu in sorted(os.sched_getaffinity(0))
+        ]
         assert all(s.poll() is None for s in spinners)
     assert not any(_alive(pid) for pid in pids)
 
@@ -52,9 +54,16 @@ def test_nothing_spins_for_a_job_that_leaves_cores_free():
         assert spinners == []
 
 
-@pytest.mark.parametrize(("v2", "v1", "limited"), [
-    ("max 100000\n", None, False), ("200000 100000\n", None, True),
-    (None, "-1\n", False), (None, "150000\n", True), (None, None, False)])
+@pytest.mark.parametrize(
+    ("v2", "v1", "limited"),
+    [
+        ("max 100000\n", None, False),
+        ("200000 100000\n", None, True),
+        (None, "-1\n", False),
+        (None, "150000\n", True),
+        (None, None, False),
+    ],
+)
 def test_no_spinners_under_a_cpu_quota(tmp_path, monkeypatch, v2, v1, limited):
     files = (tmp_path / "cpu.max", tmp_path / "cpu.cfs_quota_us")
     for path, text in zip(files, (v2, v1), strict=True):
@@ -78,8 +87,7 @@ with keep_cpus_awake(threads=max(2, len(os.sched_getaffinity(0)))) as spinners:
 
 @needs_sched_idle
 def test_spinners_end_when_their_parent_is_killed():
-    parent = subprocess.Popen([sys.executable, "-c", _PARENT], stdout=subprocess.PIPE,
-                              text=True)
+    parent = subprocess.Popen([sys.executable, "-c", _PARENT], stdout=subprocess.PIPE, text=True)
     pids = [int(p) for p in parent.stdout.readline().split()]
     assert pids and all(_alive(pid) for pid in pids)
     parent.kill()
@@ -104,8 +112,13 @@ BASE = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_
 
 
 def _spin_count(order: str, count: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", _SPIN_COUNT, order, count], env=BASE,
-                          capture_output=True, text=True, check=True)
+    return subprocess.run(
+        [sys.executable, "-c", _SPIN_COUNT, order, count],
+        env=BASE,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
 
 
 def test_the_spin_count_is_set_only_when_asked_and_before_torch_loads():
@@ -145,8 +158,13 @@ def test_freed_buffers_are_reused_without_page_faults():
     mmap, every buffer faults its pages in again; inside the block, fewer than one buffer's
     pages fault. In a fresh process: in this one, earlier tests leave free heap memory
     that would serve the buffers either way."""
-    out = subprocess.run([sys.executable, "-c", _FAULTS_OF_50_BUFFERS], capture_output=True,
-                         text=True, check=True, cwd=Path(__file__).parents[1]).stdout
+    out = subprocess.run(
+        [sys.executable, "-c", _FAULTS_OF_50_BUFFERS],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).parents[1],
+    ).stdout
     by_mmap, reused = map(int, out.split())
     assert by_mmap > 25 * 1024
     assert reused < 1024

@@ -39,8 +39,17 @@ def random_factors(color_model: int, seed: int = 0):
 
 def write(path, color_model=0, dtype="float32", seed=0, **options):
     factors = options.pop("factors", None) or random_factors(color_model, seed)
-    write_dfmf(path, np.radians(VIEWS_DEG), np.radians(LIGHTS_DEG), WIDTH, HEIGHT,
-               factors=factors, color_model=color_model, dtype=dtype, **options)
+    write_dfmf(
+        path,
+        np.radians(VIEWS_DEG),
+        np.radians(LIGHTS_DEG),
+        WIDTH,
+        HEIGHT,
+        factors=factors,
+        color_model=color_model,
+        dtype=dtype,
+        **options,
+    )
     return factors
 
 
@@ -57,9 +66,14 @@ def expected_images(factors, dtype, color_model):
     else:
         y = np.exp(c0) - 1e-5
         u_chroma, v_chroma = c1 * y + 1e-5, c2 * y + 1e-5
-        rgb = np.stack([y + 1.13983 * v_chroma,
-                        y - 0.39465 * u_chroma - 0.5806 * v_chroma,
-                        y + 2.03211 * u_chroma], axis=-1)
+        rgb = np.stack(
+            [
+                y + 1.13983 * v_chroma,
+                y - 0.39465 * u_chroma - 0.5806 * v_chroma,
+                y + 2.03211 * u_chroma,
+            ],
+            axis=-1,
+        )
         rgb = np.clip(rgb, 0.0, 1.0)
     # Column y * width + x with y from the bottom: image row r is file row height - 1 - r.
     return rgb.reshape(ROWS, HEIGHT, WIDTH, 3)[:, ::-1]
@@ -94,8 +108,16 @@ def test_directions_are_the_files_view_major(tmp_path):
 def test_values_written_by_the_writer_read_back(tmp_path, color_model):
     rng = np.random.default_rng(1)
     values = rng.uniform(0.05, 0.95, (ROWS, HEIGHT, WIDTH, 3))
-    write_dfmf(tmp_path / "v.btf", np.radians(VIEWS_DEG), np.radians(LIGHTS_DEG), WIDTH, HEIGHT,
-               values=values, color_model=color_model, dtype="float64")
+    write_dfmf(
+        tmp_path / "v.btf",
+        np.radians(VIEWS_DEG),
+        np.radians(LIGHTS_DEG),
+        WIDTH,
+        HEIGHT,
+        values=values,
+        color_model=color_model,
+        dtype="float64",
+    )
     np.testing.assert_allclose(decode_dfmf(read_dfmf(tmp_path / "v.btf")), values, atol=1e-6)
 
 
@@ -125,9 +147,17 @@ def test_the_cosine_is_multiplied_in_when_the_file_says_it_is_not_in_the_data(tm
 def test_every_header_version_parses(tmp_path, version):
     rotations = np.arange(18, dtype=np.float32).reshape(2, 3, 3)
     names = ("R", "G", "B") if version <= 3 else ("red", "green", "blue")
-    factors = write(tmp_path / "m.btf", version=version, xml="<btf a='1'/>", channel_names=names,
-                    rotations=rotations, measurement_setup="dome II", light_source="LED",
-                    ppmm=12.5, rgb_scale=(0.5, 1.0, 2.0))
+    factors = write(
+        tmp_path / "m.btf",
+        version=version,
+        xml="<btf a='1'/>",
+        channel_names=names,
+        rotations=rotations,
+        measurement_setup="dome II",
+        light_source="LED",
+        ppmm=12.5,
+        rgb_scale=(0.5, 1.0, 2.0),
+    )
     dfmf = read_dfmf(tmp_path / "m.btf")
     assert dfmf.version == version
     assert dfmf.xml == ("<btf a='1'/>" if version > 2 else "")
@@ -164,12 +194,22 @@ def test_pysmtb_reads_the_same_factors_and_header(tmp_path, dtype):
     """pysmtb's read_ubo_btf_dfmf parses the writer's file the same way (it reads only
     files with the "R" mark; it reads n x 3 floats of rotations, so write none)."""
     iio = pytest.importorskip("pysmtb.btf")
-    factors = write(tmp_path / "m.btf", color_model=11, dtype=dtype, cosine_in_data=False,
-                    xml="<x/>", channel_names=("Y", "U", "V"))
+    factors = write(
+        tmp_path / "m.btf",
+        color_model=11,
+        dtype=dtype,
+        cosine_in_data=False,
+        xml="<x/>",
+        channel_names=("Y", "U", "V"),
+    )
     meta, data = iio.read_ubo_btf_dfmf(str(tmp_path / "m.btf"))
     dfmf = read_dfmf(tmp_path / "m.btf")
     assert (meta.num_views, meta.num_lights, meta.width, meta.height) == (
-        N_VIEWS, N_LIGHTS, WIDTH, HEIGHT)
+        N_VIEWS,
+        N_LIGHTS,
+        WIDTH,
+        HEIGHT,
+    )
     assert (meta.color_model, bool(meta.cosine_in_data), meta.xml) == (11, False, b"<x/>")
     assert meta.channel_names == [b"Y", b"U", b"V"]
     assert list(dfmf.channel_names) == ["Y", "U", "V"]
@@ -180,8 +220,12 @@ def test_pysmtb_reads_the_same_factors_and_header(tmp_path, dtype):
             np.testing.assert_array_equal(mine, given.astype(dtype))
     # Their factors through the formula give our decoding.
     theirs = [(None, data.U[c], data.SxV[c]) for c in range(3)]
-    np.testing.assert_allclose(decode_dfmf(dfmf, include_cosine=False),
-                               expected_images(theirs, dtype, 11), rtol=2e-6, atol=2e-6)
+    np.testing.assert_allclose(
+        decode_dfmf(dfmf, include_cosine=False),
+        expected_images(theirs, dtype, 11),
+        rtol=2e-6,
+        atol=2e-6,
+    )
 
 
 # --- bad files ----------------------------------------------------------------------------
@@ -266,9 +310,16 @@ def test_a_file_of_two_channels_is_not_decoded(tmp_path):
 
 
 def _load_config(tmp_path, root, *overrides):
-    return compose_config("experiment=smoke", f"paths.runs={tmp_path / 'runs'}",
-                          "dataset=ubo2014", f"dataset.root={root}", "dataset.views=null",
-                          "dataset.crop=[0,1,3,3]", "btf.crop.size=3", *overrides)
+    return compose_config(
+        "experiment=smoke",
+        f"paths.runs={tmp_path / 'runs'}",
+        "dataset=ubo2014",
+        f"dataset.root={root}",
+        "dataset.views=null",
+        "dataset.crop=[0,1,3,3]",
+        "btf.crop.size=3",
+        *overrides,
+    )
 
 
 def test_the_load_stage_decodes_the_crop_with_the_files_directions(tmp_path):
@@ -280,11 +331,15 @@ def test_the_load_stage_decodes_the_crop_with_the_files_directions(tmp_path):
     ctx = Context.from_config(cfg)
     loaded = stages.load(ctx)
     rows = np.array([0, 2, 4, 6, 8, 10])
-    np.testing.assert_allclose(loaded.array("images"),
-                               expected_images(factors, "float16", 11)[rows, 0:3, 1:4],
-                               rtol=2e-6, atol=2e-6)
-    np.testing.assert_array_equal(loaded.array("directions"),
-                                  read_dfmf(tmp_path / "m.btf").directions()[rows])
+    np.testing.assert_allclose(
+        loaded.array("images"),
+        expected_images(factors, "float16", 11)[rows, 0:3, 1:4],
+        rtol=2e-6,
+        atol=2e-6,
+    )
+    np.testing.assert_array_equal(
+        loaded.array("directions"), read_dfmf(tmp_path / "m.btf").directions()[rows]
+    )
     cropped = stages.crop(ctx, loaded)
     assert cropped.array("abrdf").shape == (9, 6, 3)
     assert stages.load(Context.from_config(cfg)).key == loaded.key  # a rerun is a hit

@@ -19,8 +19,9 @@ log = logging.getLogger(__name__)
 class ArmsSweeper(BasicSweeper):
     """Hydra's basic sweeper with arms, the command line replacing what it names."""
 
-    def __init__(self, max_batch_size: int | None, params: dict | None = None,
-                 arms: list | None = None) -> None:
+    def __init__(
+        self, max_batch_size: int | None, params: dict | None = None, arms: list | None = None
+    ) -> None:
         super().__init__(max_batch_size=max_batch_size, params=params)
         self.arms = [dict(arm) for arm in arms] if arms else None
 
@@ -29,7 +30,7 @@ class ArmsSweeper(BasicSweeper):
         ``params`` with ``arguments``)."""
         jobs = expand(self.arms, self.params, list(arguments), announce=log.info)
         size = self.max_batch_size or max(len(jobs), 1)
-        self.overrides = [jobs[i:i + size] for i in range(0, len(jobs), size)]
+        self.overrides = [jobs[i : i + size] for i in range(0, len(jobs), size)]
         sweep_dir = Path(self.config.hydra.sweep.dir)
         sweep_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
@@ -54,8 +55,9 @@ class ArmsSweeper(BasicSweeper):
 
         loader = self.hydra_context.config_loader
         for number, overrides in enumerate(batch):
-            cfg = loader.load_sweep_config(master_config=self.config,
-                                           sweep_overrides=list(overrides))
+            cfg = loader.load_sweep_config(
+                master_config=self.config, sweep_overrides=list(overrides)
+            )
             job = OmegaConf.masked_copy(cfg, [key for key in cfg if key != "hydra"])
             method = method_of(job)
             try:
@@ -64,5 +66,8 @@ class ArmsSweeper(BasicSweeper):
             except ConfigError as error:
                 if debugging():
                     raise
-                refuse(ConfigError(f"job #{number} ({' '.join(overrides)}): {error}; no "
-                                   f"job of the sweep ran"))
+                refuse(
+                    ConfigError(
+                        f"job #{number} ({' '.join(overrides)}): {error}; no job of the sweep ran"
+                    )
+                )

@@ -32,7 +32,18 @@ BRDF_MAP = Method(
     headline=("rmse_missing", "rmse_missing_noprior", "rmse_missing_as", "rmse_measured"),
     reports=("pipeline.brdf_map.report",),
     # method.*: the EM's settings (defaults in MicrofacetEMSettings) and what the YAML adds.
-    schemas=(("schema", "brdf_map", schema(
-        MicrofacetEMSettings, "BrdfMapSchema", name="brdf_map", spec="", baselines={},
-        figures={})),),
+    schemas=(
+        (
+            "schema",
+            "brdf_map",
+            schema(
+                MicrofacetEMSettings,
+                "BrdfMapSchema",
+                name="brdf_map",
+                spec="",
+                baselines={},
+                figures={},
+            ),
+        ),
+    ),
 )

@@ -38,15 +38,17 @@ def _source(runs: pd.DataFrame) -> pd.Series:
     root = param(runs, "dataset.root").map(lambda r: r.rstrip("/").split("/")[-1])
     name = param(runs, "dataset.name", "?")
     kind = param(runs, "dataset.synthetic.kind", "")
-    source = np.where(root != "None", name + ":" + root,
-                      np.where(kind != "", name + " (" + kind + ")", name))
+    source = np.where(
+        root != "None", name + ":" + root, np.where(kind != "", name + " (" + kind + ")", name)
+    )
     return pd.Series(source, index=runs.index)
 
 
 def _setup(runs: pd.DataFrame) -> pd.Series:
     cutoff = param(runs, "dataset.missing_above_deg")
     return _source(runs) + np.where(
-        cutoff != "None", ", missing above " + cutoff + "°", ", complete")
+        cutoff != "None", ", missing above " + cutoff + "°", ", complete"
+    )
 
 
 def _labelled(runs: pd.DataFrame) -> pd.DataFrame:
@@ -63,8 +65,9 @@ def _labelled(runs: pd.DataFrame) -> pd.DataFrame:
 
 
 def _metric(runs: pd.DataFrame, name: str) -> pd.Series:
-    return pd.to_numeric(runs.get(f"metrics.{name}", pd.Series(np.nan, index=runs.index)),
-                         errors="coerce")
+    return pd.to_numeric(
+        runs.get(f"metrics.{name}", pd.Series(np.nan, index=runs.index)), errors="coerce"
+    )
 
 
 def table_rmse(runs: pd.DataFrame) -> pd.DataFrame:
@@ -79,8 +82,7 @@ def table_rmse(runs: pd.DataFrame) -> pd.DataFrame:
         row = {}
         for label, suffix in MODELS:
             for where in ("measured", "missing"):
-                values = pd.to_numeric(group.get(f"metrics.rmse_{where}{suffix}"),
-                                       errors="coerce")
+                values = pd.to_numeric(group.get(f"metrics.rmse_{where}{suffix}"), errors="coerce")
                 values = values.dropna() if values is not None else pd.Series(dtype=float)
                 if not values.empty:
                     std = f" ± {values.std():.4f}" if len(values) > 1 else ""
@@ -127,7 +129,7 @@ def prior_study_table(runs: pd.DataFrame, metric: str = "rmse_missing") -> pd.Da
     runs = study_runs(runs, metric)
     if runs.empty:
         return pd.DataFrame()
-    counted = "n_missing" + metric[len("rmse_missing"):]  # samples behind the metric
+    counted = "n_missing" + metric[len("rmse_missing") :]  # samples behind the metric
     runs = runs.assign(
         value=_metric(runs, metric),
         noprior=_metric(runs, f"{metric}_noprior"),
@@ -151,9 +153,15 @@ def prior_study_table(runs: pd.DataFrame, metric: str = "rmse_missing") -> pd.Da
     table = pd.DataFrame.from_dict(rows, orient="index")
     table.index = pd.MultiIndex.from_tuples(table.index, names=["BRDF", "missing above (°)"])
     strengths = sorted(c for c in runs["w_u"].unique())
-    order = ["samples"] + [_w_label(w) for w in strengths] + [
-        c for c in ("no prior", "Ashikhmin-Shirley", "best w_u > 0", "change vs no prior (%)")
-        if c in table]
+    order = (
+        ["samples"]
+        + [_w_label(w) for w in strengths]
+        + [
+            c
+            for c in ("no prior", "Ashikhmin-Shirley", "best w_u > 0", "change vs no prior (%)")
+            if c in table
+        ]
+    )
     return table[order]
 
 
@@ -199,43 +207,62 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
     out = Path(out)
     runs = runs_of(runs, ["brdf_map"])
     if runs.empty or "metrics.rmse_measured" not in runs:
-        return ["## Method B (MAP BRDF)\n\nNo finished `method=brdf_map` run found: "
-                "`python -m pipeline experiment=brdf_map`.\n"]
+        return [
+            "## Method B (MAP BRDF)\n\nNo finished `method=brdf_map` run found: "
+            "`python -m pipeline experiment=brdf_map`.\n"
+        ]
     runs = with_recipe(runs[runs["metrics.rmse_measured"].notna()])
-    sections = [write_table(
-        table_rmse(runs).reset_index(), out, "brdf_map_rmse",
-        "Method B: RMSE of the reconstructed BRDF (MAP, without the prior, Ashikhmin-Shirley)",
-        "measured: on the samples the fit saw (light and view above the horizon); missing: "
-        "on the removed samples against the truth (the synthetic generator's BRDF, or the "
-        "removed measured values). n = runs pooled (seeds of one setup and w_u).")]
+    sections = [
+        write_table(
+            table_rmse(runs).reset_index(),
+            out,
+            "brdf_map_rmse",
+            "Method B: RMSE of the reconstructed BRDF (MAP, without the prior, Ashikhmin-Shirley)",
+            "measured: on the samples the fit saw (light and view above the horizon); missing: "
+            "on the removed samples against the truth (the synthetic generator's BRDF, or the "
+            "removed measured values). n = runs pooled (seeds of one setup and w_u).",
+        )
+    ]
     for metric, where in STUDY_METRICS:
         table = prior_study_table(runs, metric)
         if table.empty:
             continue
         counts = study_runs(runs, metric).groupby(["source", "cutoff", "w_u"]).size()
-        pooled = f"{counts.min()}" if counts.min() == counts.max() else (
-            f"{counts.min()}-{counts.max()}")
-        extra = "" if metric == "rmse_missing" else (
-            f" The split is at θh = {NEAR_MIRROR_DEG:g}° (the half vector's polar angle): "
-            "near the mirror direction, the missing samples are the mirror pairs with light "
-            "and view both beyond the cutoff: few samples (the 'samples' column) with large "
-            "values and errors; their share of the squared error on all missing samples is "
-            "samples x RMSE² against the other part's.")
+        pooled = (
+            f"{counts.min()}"
+            if counts.min() == counts.max()
+            else (f"{counts.min()}-{counts.max()}")
+        )
+        extra = (
+            ""
+            if metric == "rmse_missing"
+            else (
+                f" The split is at θh = {NEAR_MIRROR_DEG:g}° (the half vector's polar angle): "
+                "near the mirror direction, the missing samples are the mirror pairs with light "
+                "and view both beyond the cutoff: few samples (the 'samples' column) with large "
+                "values and errors; their share of the squared error on all missing samples is "
+                "samples x RMSE² against the other part's."
+            )
+        )
         table = table.round(4).astype({"samples": "Int64"})
         if "change vs no prior (%)" in table:
             table["change vs no prior (%)"] = table["change vs no prior (%)"].round(1) + 0.0
-        sections.append(write_table(
-            table.reset_index(), out, f"brdf_prior_study_{metric}",
-            f"Method B prior study: RMSE on {where}",
-            "Rows: the BRDF and the light/view polar angle above which its samples are "
-            "missing (the UTIA grid measures 0, 15, ..., 75°: 60 removes the 75° rings, "
-            "15 leaves 0 and 15° only). Columns: the MAP fit at each prior strength w_u "
-            "(w_u = 0 is the no-prior fit, the 'no prior' column computed as the baseline), "
-            "then Ashikhmin-Shirley; best w_u > 0 and its change are chosen against the "
-            "truth (an oracle, for reading the table, not a tuning rule). "
-            f"Runs pooled per cell: {pooled}." + extra))
+        sections.append(
+            write_table(
+                table.reset_index(),
+                out,
+                f"brdf_prior_study_{metric}",
+                f"Method B prior study: RMSE on {where}",
+                "Rows: the BRDF and the light/view polar angle above which its samples are "
+                "missing (the UTIA grid measures 0, 15, ..., 75°: 60 removes the 75° rings, "
+                "15 leaves 0 and 15° only). Columns: the MAP fit at each prior strength w_u "
+                "(w_u = 0 is the no-prior fit, the 'no prior' column computed as the baseline), "
+                "then Ashikhmin-Shirley; best w_u > 0 and its change are chosen against the "
+                "truth (an oracle, for reading the table, not a tuning rule). "
+                f"Runs pooled per cell: {pooled}." + extra,
+            )
+        )
     if not study_runs(runs).empty:
         plot = plot_prior_study(runs, out / "brdf_prior_study.png")
-        sections.append(f"![Method B prior study: missing-region RMSE against w_u]"
-                        f"({plot.name})\n")
+        sections.append(f"![Method B prior study: missing-region RMSE against w_u]({plot.name})\n")
     return sections

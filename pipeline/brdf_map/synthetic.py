@@ -217,7 +217,7 @@ def _separable_g_harmonics(theta: np.ndarray, alpha2: float) -> tuple[np.ndarray
     """
     h, solid_angle, theta_h, phi_h = _fine_hemisphere()
     cos_t = np.cos(theta_h)
-    radial = np.exp(-np.tan(theta_h) ** 2 / alpha2) / (np.pi * alpha2 * cos_t**4)
+    radial = np.exp(-(np.tan(theta_h) ** 2) / alpha2) / (np.pi * alpha2 * cos_t**4)
     weights = np.stack([radial, radial * np.cos(2.0 * phi_h)], axis=-1) * solid_angle[:, None]
     k = np.stack([np.sin(theta), np.zeros_like(theta), np.cos(theta)], axis=-1)
     out = np.empty((theta.size, 2))

@@ -53,9 +53,11 @@ def resolve_backend(name: str, device: torch.device) -> str:
         return "autograd"
     if kernels.available():
         return "fused"
-    log.warning("train.backend=auto: the fused decoder step's C++ kernels did not build on "
-                "this machine, so training uses the autograd backend (set "
-                "train.backend=fused to use the fused step with plain torch ops instead)")
+    log.warning(
+        "train.backend=auto: the fused decoder step's C++ kernels did not build on "
+        "this machine, so training uses the autograd backend (set "
+        "train.backend=fused to use the fused step with plain torch ops instead)"
+    )
     return "autograd"
 
 
@@ -63,8 +65,14 @@ class AutogradStep:
     """The plain PyTorch step (see the module's docstring) on ``workers`` intra-op threads
     (CPU). ``features``: (N, 4) stereographic direction features on the training device."""
 
-    def __init__(self, encoder: Encoder, decoder: Decoder, features: torch.Tensor,
-                 precision: str = "float32", workers: int = 1):
+    def __init__(
+        self,
+        encoder: Encoder,
+        decoder: Decoder,
+        features: torch.Tensor,
+        precision: str = "float32",
+        workers: int = 1,
+    ):
         self.encoder, self.decoder, self.features = encoder, decoder, features
         self.workers = workers
         if precision == "bfloat16":
@@ -78,8 +86,9 @@ class AutogradStep:
         b, q = batch.directions.shape
         latents = self.encoder.forward_layers(batch.inputs)  # plain layers: the reference
         with self._autocast:
-            predicted = self.decoder(latents.repeat_interleave(q, 0),
-                                     self.features[batch.directions.reshape(-1)])
+            predicted = self.decoder(
+                latents.repeat_interleave(q, 0), self.features[batch.directions.reshape(-1)]
+            )
         # float32 loss (autocast leaves bfloat16 outputs): the same mean as the fused step's.
         loss = F.mse_loss(predicted.float(), batch.targets.reshape(b * q, -1))
         loss.backward()
@@ -95,13 +104,24 @@ class FusedStep:
     ``workers``, each op single-threaded. ``chunk``: queries per chunk (None: the
     precision's default; on CUDA :data:`CUDA_CHUNK`)."""
 
-    def __init__(self, encoder: Encoder, decoder: Decoder, features: torch.Tensor,
-                 precision: str = "float32", workers: int = 1, chunk: int | None = None):
+    def __init__(
+        self,
+        encoder: Encoder,
+        decoder: Decoder,
+        features: torch.Tensor,
+        precision: str = "float32",
+        workers: int = 1,
+        chunk: int | None = None,
+    ):
         self.encoder, self.workers = encoder, workers
         self.on_cpu = features.device.type == "cpu"
-        self.decoder_step = DecoderStep(decoder, features, workers=workers,
-                                        chunk=chunk if self.on_cpu else CUDA_CHUNK,
-                                        precision=precision)
+        self.decoder_step = DecoderStep(
+            decoder,
+            features,
+            workers=workers,
+            chunk=chunk if self.on_cpu else CUDA_CHUNK,
+            precision=precision,
+        )
 
     def __call__(self, batch: StepBatch) -> float:
         if self.on_cpu:
@@ -120,8 +140,15 @@ class FusedStep:
         self.decoder_step.close()
 
 
-def make_step(backend: str, encoder: Encoder, decoder: Decoder, features: torch.Tensor,
-              precision: str, workers: int, chunk: int | None) -> AutogradStep | FusedStep:
+def make_step(
+    backend: str,
+    encoder: Encoder,
+    decoder: Decoder,
+    features: torch.Tensor,
+    precision: str,
+    workers: int,
+    chunk: int | None,
+) -> AutogradStep | FusedStep:
     """The step of a resolved ``backend`` (``fused`` or ``autograd``)."""
     if backend == "fused":
         return FusedStep(encoder, decoder, features, precision, workers, chunk)

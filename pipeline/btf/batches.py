@@ -62,8 +62,9 @@ class Sampling:
     @property
     def in_order(self) -> bool:
         """Every direction of the ABRDFs, in their stored order: no gather needed."""
-        return self.all_queries and bool(np.array_equal(self.train_dirs,
-                                                        np.arange(self.n_directions)))
+        return self.all_queries and bool(
+            np.array_equal(self.train_dirs, np.arange(self.n_directions))
+        )
 
 
 class HostBatches:
@@ -80,8 +81,16 @@ class HostBatches:
     device : where the batch's tensors go.
     """
 
-    def __init__(self, abrdf, sources, source_of_texel, norm: Normalization,
-                 sampling: Sampling, rng: np.random.Generator, device: torch.device):
+    def __init__(
+        self,
+        abrdf,
+        sources,
+        source_of_texel,
+        norm: Normalization,
+        sampling: Sampling,
+        rng: np.random.Generator,
+        device: torch.device,
+    ):
         self.abrdf, self.sources, self.source_of_texel = abrdf, sources, source_of_texel
         self.norm, self.sampling, self.rng, self.device = norm, sampling, rng, device
         self.order = np.arange(abrdf.shape[0])
@@ -103,12 +112,16 @@ class HostBatches:
             target = self.norm.target(values if s.in_order else values[:, s.train_dirs])
             directions = self._all_dirs
         else:
-            queries = s.train_dirs[self.rng.integers(0, len(s.train_dirs),
-                                                     size=(s.batch_size, s.queries))]
+            queries = s.train_dirs[
+                self.rng.integers(0, len(s.train_dirs), size=(s.batch_size, s.queries))
+            ]
             target = self.norm.target(np.take_along_axis(values, queries[:, :, None], 1))
             directions = torch.from_numpy(queries).to(self.device)
-        return StepBatch(torch.from_numpy(inputs).permute(0, 2, 1).to(self.device),
-                         directions, torch.from_numpy(target).to(self.device))
+        return StepBatch(
+            torch.from_numpy(inputs).permute(0, 2, 1).to(self.device),
+            directions,
+            torch.from_numpy(target).to(self.device),
+        )
 
 
 def resident_bytes(abrdf, sources, target_from_source: bool) -> int:
@@ -133,9 +146,17 @@ class DeviceBatches:
     device, and float rounding), gathered and normalized on ``device`` from raw ABRDFs
     copied there once. Same parameters, plus ``seed`` for the queries' generator."""
 
-    def __init__(self, abrdf, sources, source_of_texel, norm: Normalization,
-                 sampling: Sampling, rng: np.random.Generator, device: torch.device,
-                 seed: int):
+    def __init__(
+        self,
+        abrdf,
+        sources,
+        source_of_texel,
+        norm: Normalization,
+        sampling: Sampling,
+        rng: np.random.Generator,
+        device: torch.device,
+        seed: int,
+    ):
         self.sampling, self.rng, self.device = sampling, rng, device
         self.m = abrdf.shape[0]
         self.sources = _upload(sources, device)
@@ -167,8 +188,13 @@ class DeviceBatches:
             values = self.values[rows]
             values = values if s.in_order else values[:, self.train_dirs]
         else:
-            picks = torch.randint(0, len(self.train_dirs), (s.batch_size, s.queries),
-                                  device=self.device, generator=self.generator)
+            picks = torch.randint(
+                0,
+                len(self.train_dirs),
+                (s.batch_size, s.queries),
+                device=self.device,
+                generator=self.generator,
+            )
             directions = self.train_dirs[picks]
             values = self.values[rows[:, None], directions]
         return StepBatch(inputs.permute(0, 2, 1), directions, values / self.alpha)

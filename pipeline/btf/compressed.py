@@ -308,8 +308,7 @@ def _contents(
     if method in PER_TEXEL:
         if latent_of_texel is not None:
             raise ValueError(
-                f"model={method} stores no list (texel t has latent t): pass "
-                "latent_of_texel=None"
+                f"model={method} stores no list (texel t has latent t): pass latent_of_texel=None"
             )
         if n_latents != m:
             raise ValueError(

@@ -26,15 +26,24 @@ def curve_points(runs: pd.DataFrame) -> pd.DataFrame:
     client = MlflowClient()
     rows = []
     for _, run in runs[runs["metrics.curve_rmse"].notna()].iterrows():
-        seconds = {m.step: m.value for m in client.get_metric_history(run.run_id,
-                                                                      "curve_seconds")}
+        seconds = {m.step: m.value for m in client.get_metric_history(run.run_id, "curve_seconds")}
         epochs = run.get("params.train.epochs", "?")
         for m in client.get_metric_history(run.run_id, "curve_rmse"):
-            rows.append({"dataset": run["dataset"], "model": run["model"], "order": run["order"],
-                         "length": run["epochs"],  # numeric, for sorting: "100" < "24"
-                         "base_model": run["base_model"], "epochs": epochs,
-                         "seed": run["seed"], "run_id": run.run_id, "step": m.step,
-                         "seconds": seconds.get(m.step), "rmse": m.value})
+            rows.append(
+                {
+                    "dataset": run["dataset"],
+                    "model": run["model"],
+                    "order": run["order"],
+                    "length": run["epochs"],  # numeric, for sorting: "100" < "24"
+                    "base_model": run["base_model"],
+                    "epochs": epochs,
+                    "seed": run["seed"],
+                    "run_id": run.run_id,
+                    "step": m.step,
+                    "seconds": seconds.get(m.step),
+                    "rmse": m.value,
+                }
+            )
     points = pd.DataFrame(rows).sort_values(["dataset", "order", "length", "run_id", "step"])
     return points.drop(columns=["order", "length"])
 
@@ -48,9 +57,11 @@ def curves_section(runs: pd.DataFrame, out: Path, tolerance: float = 0.05) -> st
     if points.empty:
         return ""
     write_file(out / "training_curves.csv", points.to_csv(index=False))
-    lines = ["## Training: RMSE versus time\n",
-             "Points: `training_curves.csv`. RMSE of a fixed subsample of texels at every "
-             "training direction; time = training seconds (measuring excluded).\n"]
+    lines = [
+        "## Training: RMSE versus time\n",
+        "Points: `training_curves.csv`. RMSE of a fixed subsample of texels at every "
+        "training direction; time = training seconds (measuring excluded).\n",
+    ]
     for i, (dataset, group) in enumerate(points.groupby("dataset")):
         fig = Figure(figsize=(6, 4))
         ax = fig.subplots()
@@ -66,8 +77,13 @@ def curves_section(runs: pd.DataFrame, out: Path, tolerance: float = 0.05) -> st
                 continue
             longest = runs_of_model[lengths == lengths.max()]
             end = longest.iloc[-1]
-            ax.axhline(end["rmse"] * (1 + tolerance), color=colours[end["run_id"]], ls=":",
-                       lw=1, label=f"{base}: {end['epochs']}-epoch end + {tolerance:.0%}")
+            ax.axhline(
+                end["rmse"] * (1 + tolerance),
+                color=colours[end["run_id"]],
+                ls=":",
+                lw=1,
+                label=f"{base}: {end['epochs']}-epoch end + {tolerance:.0%}",
+            )
         ax.set_xlabel("training time [min]")
         ax.set_ylabel("RMSE (normalized)")
         ax.set_yscale("log")
@@ -79,7 +95,10 @@ def curves_section(runs: pd.DataFrame, out: Path, tolerance: float = 0.05) -> st
         save_figure(fig, out / name)
         last = runs_in_order.tail(1)
         summary = last[["model", "epochs", "seconds", "rmse"]].rename(
-            columns={"seconds": "training [s]", "rmse": "last curve RMSE"})
-        lines.append(f"### {dataset}\n\n![curves]({name})\n\n"
-                     f"{summary.to_markdown(index=False, floatfmt='.4g')}\n")
+            columns={"seconds": "training [s]", "rmse": "last curve RMSE"}
+        )
+        lines.append(
+            f"### {dataset}\n\n![curves]({name})\n\n"
+            f"{summary.to_markdown(index=False, floatfmt='.4g')}\n"
+        )
     return "\n".join(lines)

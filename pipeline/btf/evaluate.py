@@ -62,8 +62,9 @@ def round_to(values: np.ndarray, dtype: str) -> np.ndarray:
 
 
 @torch.no_grad()
-def as_stored(decoder: Decoder, latents: np.ndarray, weight_dtype: str
-              ) -> tuple[Decoder, np.ndarray]:
+def as_stored(
+    decoder: Decoder, latents: np.ndarray, weight_dtype: str
+) -> tuple[Decoder, np.ndarray]:
     """The model as its compressed file holds it: a copy of ``decoder`` whose parameters
     are rounded to ``weight_dtype``, and ``latents`` (R, latent) rounded to it, as float32;
     float32: the same decoder.

@@ -53,8 +53,7 @@ def pair_label(pair: np.ndarray) -> str:
     """
     theta_l, phi_l, theta_v, phi_v = np.asarray(pair, dtype=np.float64)
     phi_l, phi_v = np.mod(phi_l, 2 * np.pi), np.mod(phi_v, 2 * np.pi)
-    return (f"l=({_degrees(theta_l)},{_degrees(phi_l)}) "
-            f"v=({_degrees(theta_v)},{_degrees(phi_v)})")
+    return f"l=({_degrees(theta_l)},{_degrees(phi_l)}) v=({_degrees(theta_v)},{_degrees(phi_v)})"
 
 
 def _reconstruct(cache: StageCache, run: pd.Series, query: np.ndarray) -> np.ndarray | None:
@@ -62,8 +61,11 @@ def _reconstruct(cache: StageCache, run: pd.Series, query: np.ndarray) -> np.nda
     trained = cache.lookup("train", str(run.get("tags.cache.train")))
     if trained is None:
         return None
-    decoded = decode_all(load_decoder(trained.file("decoder.pt")), trained.array("latents", mmap=False),
-                         direction_features(query))
+    decoded = decode_all(
+        load_decoder(trained.file("decoder.pt")),
+        trained.array("latents", mmap=False),
+        direction_features(query),
+    )
     values = decoded[trained.array("latent_of_texel", mmap=False), 0]
     evaluated = cache.lookup("evaluate", str(run.get("tags.cache.evaluate")))
     if evaluated is not None and (evaluated.path / "texel_scale.npy").is_file():
@@ -103,8 +105,13 @@ def draw_fig7(runs: pd.DataFrame, pairs_degrees: list, out_dir: Path) -> list[Pa
         for query in queries:
             nearest = nearest_direction(directions, query)
             used = directions[nearest]
-            rows.append({"asked": np.degrees(query).tolist(), "used": np.degrees(used).tolist(),
-                         "column": nearest})
+            rows.append(
+                {
+                    "asked": np.degrees(query).tolist(),
+                    "used": np.degrees(used).tolist(),
+                    "column": nearest,
+                }
+            )
             reference = np.asarray(abrdf[:, nearest]).reshape(size, size, 3) / alpha
             label = f"reference\n{pair_label(used)}"
             if pair_label(used) != pair_label(query):
@@ -140,8 +147,11 @@ def _plot(panels, path: Path, title: str) -> Path:
             # Display: normalized linear values, gamma 2.2 like the UBO2003 JPEGs.
             axes[i, j].imshow(gamma_encode(np.clip(image, 0.0, 1.0)), interpolation="nearest")
             axes[i, j].set_title(label, fontsize=8)
-    fig.suptitle(f"Fig. 7: reference vs reconstruction ({title})\nat the measured pair "
-                 f"nearest each one asked for", fontsize=10)
+    fig.suptitle(
+        f"Fig. 7: reference vs reconstruction ({title})\nat the measured pair "
+        f"nearest each one asked for",
+        fontsize=10,
+    )
     fig.tight_layout()
     save_figure(fig, path)
     return path

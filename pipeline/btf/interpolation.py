@@ -64,8 +64,7 @@ def heldout_light_indices(cfg, lights: np.ndarray) -> np.ndarray:
         )
     rng = np.random.default_rng(cfg.btf.interpolation.seed)
     centre = int(np.argmin(lights[:, 0]))
-    return np.sort(rng.choice(np.delete(np.arange(len(lights)), centre), size=count,
-                              replace=False))
+    return np.sort(rng.choice(np.delete(np.arange(len(lights)), centre), size=count, replace=False))
 
 
 def training_directions(directions: np.ndarray, heldout: np.ndarray) -> np.ndarray:
@@ -138,7 +137,7 @@ class DirectionHull:
     def edge_theta(self, phi: np.ndarray, shrink: float = 1.0) -> np.ndarray:
         """θ of the polygon's edge at azimuth ``phi`` (any shape; its radius × ``shrink``)."""
         phi = np.asarray(phi, dtype=np.float64)
-        edge = (np.searchsorted(self._azimuths, np.mod(phi, 2 * np.pi), side="right") - 1)
+        edge = np.searchsorted(self._azimuths, np.mod(phi, 2 * np.pi), side="right") - 1
         edge = np.mod(edge, len(self._azimuths))
         facing = np.cos(phi) * self._normals[edge, 0] + np.sin(phi) * self._normals[edge, 1]
         return 2.0 * np.arctan(self._distances[edge] / facing * shrink)
@@ -243,8 +242,9 @@ class Barycentric:
             weights[~inside, 0] = 1.0
         if snap > 0:
             corner = weights > 1.0 - snap
-            weights = np.where(corner.any(axis=1, keepdims=True), corner.astype(np.float64),
-                               weights)
+            weights = np.where(
+                corner.any(axis=1, keepdims=True), corner.astype(np.float64), weights
+            )
         return ids, weights
 
 
@@ -389,8 +389,11 @@ def measure(
     if cfg.dataset.name == "synthetic" and int(cfg.btf.interpolation.offgrid) > 0:
         from pipeline.btf.synthetic import SyntheticBTF
 
-        queries = offgrid_directions(int(cfg.btf.interpolation.offgrid),
-                                     cfg.btf.interpolation.seed, offgrid_max_theta(directions))
+        queries = offgrid_directions(
+            int(cfg.btf.interpolation.offgrid),
+            cfg.btf.interpolation.seed,
+            offgrid_max_theta(directions),
+        )
         gen = cfg.dataset.synthetic
         truth = SyntheticBTF(size=gen.size, seed=gen.seed, material=gen.material).evaluate(queries)
         size = int(cfg.btf.crop.size)

@@ -91,8 +91,9 @@ class Verdict:
     alpha: float = 0.05  # the level of every interval above
 
 
-def blocked_verdict(table: pd.DataFrame, alpha: float = 0.05,
-                    target: float = PAPER_LARGEST_K_STEP) -> Verdict:
+def blocked_verdict(
+    table: pd.DataFrame, alpha: float = 0.05, target: float = PAPER_LARGEST_K_STEP
+) -> Verdict:
     """The tests and effects of k on a blocked table of RMSE.
 
     Parameters
@@ -105,8 +106,10 @@ def blocked_verdict(table: pd.DataFrame, alpha: float = 0.05,
     target : the relative difference (of the mean RMSE) for ``seeds_needed``.
     """
     if table.shape[0] < 2 or table.shape[1] < 2 or table.isna().to_numpy().any():
-        raise ValueError(f"need a complete table of >= 2 seeds x >= 2 k values, got "
-                         f"{table.shape} with {int(table.isna().to_numpy().sum())} missing")
+        raise ValueError(
+            f"need a complete table of >= 2 seeds x >= 2 k values, got "
+            f"{table.shape} with {int(table.isna().to_numpy().sum())} missing"
+        )
     ks = [int(k) for k in table.columns]
     if min(ks) <= 0 or len(set(ks)) != len(ks):
         raise ValueError(f"k values must be distinct positive integers, got {ks}")
@@ -139,19 +142,36 @@ def blocked_verdict(table: pd.DataFrame, alpha: float = 0.05,
     resid = yc - slope * xc
     se_slope = np.sqrt(np.sum(resid**2) / df_trend / sxx) if df_trend > 0 else np.nan
     t_trend = stats.t.ppf(1 - alpha / 2, df_trend) if df_trend > 0 else np.nan
-    p_trend = (2 * stats.t.sf(abs(slope / se_slope), df_trend)
-               if df_trend > 0 and se_slope > 0 else (0.0 if slope != 0 else 1.0))
+    p_trend = (
+        2 * stats.t.sf(abs(slope / se_slope), df_trend)
+        if df_trend > 0 and se_slope > 0
+        else (0.0 if slope != 0 else 1.0)
+    )
     steps = _steps(ks, k_means, var_err, s, df_err, alpha)
     t_err = stats.t.ppf(1 - alpha / 2, df_err)
     detectable = (t_err + stats.t.ppf(POWER, df_err)) * np.sqrt(2 * var_err / s)
-    return Verdict(ks, s, p_anova, float(p_rank), rank_test, rank_method, slope,
-                   (slope - t_trend * se_slope, slope + t_trend * se_slope), p_trend, steps,
-                   list(k_means), grand, detectable,
-                   seeds_needed(var_err, target * grand, n_k, alpha), alpha)
+    return Verdict(
+        ks,
+        s,
+        p_anova,
+        float(p_rank),
+        rank_test,
+        rank_method,
+        slope,
+        (slope - t_trend * se_slope, slope + t_trend * se_slope),
+        p_trend,
+        steps,
+        list(k_means),
+        grand,
+        detectable,
+        seeds_needed(var_err, target * grand, n_k, alpha),
+        alpha,
+    )
 
 
-def _steps(ks: list[int], k_means: np.ndarray, var_err: float, s: int, df_err: int,
-           alpha: float) -> list[Step]:
+def _steps(
+    ks: list[int], k_means: np.ndarray, var_err: float, s: int, df_err: int, alpha: float
+) -> list[Step]:
     """Adjacent steps: t tests on the ANOVA's residual variance, Holm p, Bonferroni CI."""
     m = len(ks) - 1
     diffs = np.diff(k_means)
@@ -163,10 +183,19 @@ def _steps(ks: list[int], k_means: np.ndarray, var_err: float, s: int, df_err: i
     p_holm = holm(p)
     half = stats.t.ppf(1 - alpha / 2, df_err) * se
     half_bonferroni = stats.t.ppf(1 - alpha / (2 * m), df_err) * se
-    return [Step(ks[i], ks[i + 1], float(d), float(k_means[i]), float(p[i]),
-                 float(p_holm[i]), (float(d - half), float(d + half)),
-                 (float(d - half_bonferroni), float(d + half_bonferroni)))
-            for i, d in enumerate(diffs)]
+    return [
+        Step(
+            ks[i],
+            ks[i + 1],
+            float(d),
+            float(k_means[i]),
+            float(p[i]),
+            float(p_holm[i]),
+            (float(d - half), float(d + half)),
+            (float(d - half_bonferroni), float(d + half_bonferroni)),
+        )
+        for i, d in enumerate(diffs)
+    ]
 
 
 def holm(p: np.ndarray) -> np.ndarray:
@@ -268,8 +297,9 @@ def _f_test(mean_square: float, var_err: float, df: int, df_err: int) -> float:
     return float(stats.f.sf(mean_square / var_err, df, df_err))
 
 
-def describe(v: Verdict, alpha: float = 0.05,
-             target: float = PAPER_LARGEST_K_STEP) -> dict[str, str]:
+def describe(
+    v: Verdict, alpha: float = 0.05, target: float = PAPER_LARGEST_K_STEP
+) -> dict[str, str]:
     """One table row: the tests, the effects with their intervals, and the verdict.
 
     A column per step, ``"500 → 1000 [95 % CI, Bonferroni]"``: the difference of means, its
@@ -282,22 +312,27 @@ def describe(v: Verdict, alpha: float = 0.05,
         "seeds (blocks)": str(v.seeds),
         "two-way ANOVA p (k | seed)": f"{v.p_anova:.3g}",
         f"{v.rank_test} p ({v.rank_method})": f"{v.p_rank:.3g}",
-        f"trend per doubling of k [{level} CI]": (f"{v.slope:+.5f} [{v.slope_ci[0]:+.5f}, "
-                                                  f"{v.slope_ci[1]:+.5f}], p={v.p_trend:.3g}"),
+        f"trend per doubling of k [{level} CI]": (
+            f"{v.slope:+.5f} [{v.slope_ci[0]:+.5f}, {v.slope_ci[1]:+.5f}], p={v.p_trend:.3g}"
+        ),
     }
     for step in v.steps:
         low, high = step.ci_bonferroni
         row[f"{step.k_from} → {step.k_to} [{level} CI, Bonferroni]"] = (
             f"{step.diff:+.5f} [{low:+.5f}, {high:+.5f}] ({100 * step.relative:+.1f} % of "
-            f"k = {step.k_from}); p={step.p:.3g}, Holm p={step.p_holm:.3g}")
+            f"k = {step.k_from}); p={step.p:.3g}, Holm p={step.p_holm:.3g}"
+        )
     if v.p_anova < alpha:
         best = v.ks[int(np.argmin(v.k_means))]
-        row["verdict"] = (f"k changes the RMSE beyond seed noise (two-way ANOVA p="
-                          f"{v.p_anova:.3g} < {alpha}); lowest mean at k = {best}")
+        row["verdict"] = (
+            f"k changes the RMSE beyond seed noise (two-way ANOVA p="
+            f"{v.p_anova:.3g} < {alpha}); lowest mean at k = {best}"
+        )
     else:
         row["verdict"] = (
             f"no evidence that k changes the RMSE (p={v.p_anova:.3g} >= {alpha}); these runs "
             f"detect a step of {v.detectable_step:.5f} ({v.detectable_step * 100 / v.mean_rmse:.1f}"
             f" % of the mean RMSE) with 80 % power; {v.seeds_needed} seeds would detect "
-            f"{100 * target:g} %")
+            f"{100 * target:g} %"
+        )
     return row

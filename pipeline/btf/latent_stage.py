@@ -20,8 +20,13 @@ from pipeline.core.stage import Context, plain_settings
 from pipeline.data.directions import direction_sets
 
 
-def train_stage(ctx: Context, cropped: Entry, prep: Entry, clusters: Entry | None = None,
-                reps: Entry | None = None) -> Entry:
+def train_stage(
+    ctx: Context,
+    cropped: Entry,
+    prep: Entry,
+    clusters: Entry | None = None,
+    reps: Entry | None = None,
+) -> Entry:
     """Fit the latent texture; write ``decoder.pt``, ``latents.npy`` (M, latent),
     ``latent_of_texel.npy`` (texel t has latent t), ``losses.json`` and ``curve.json``."""
     cfg = ctx.cfg
@@ -30,9 +35,10 @@ def train_stage(ctx: Context, cropped: Entry, prep: Entry, clusters: Entry | Non
     model = plain_settings(cfg.model)
     network = plain_settings(cfg.btf.network)
     settings = {
-        "model": model, "seed": cfg.seed, "heldout_lights": heldout.tolist(),
-        "network": {key: network[key] for key in ("latent", "hidden", "layers")
-                    if key in network},
+        "model": model,
+        "seed": cfg.seed,
+        "heldout_lights": heldout.tolist(),
+        "network": {key: network[key] for key in ("latent", "hidden", "layers") if key in network},
     }
 
     def compute(folder: Path) -> dict:
@@ -47,23 +53,42 @@ def train_stage(ctx: Context, cropped: Entry, prep: Entry, clusters: Entry | Non
         result = train_latent_texture(
             np.asarray(norm.target(abrdf), dtype=np.float32),
             direction_features(directions).astype(np.float32),
-            interpolation.training_directions(directions, heldout), (size, size),
-            latent=int(network["latent"]), levels=model["levels"],
-            hidden=int(network.get("hidden", 106)), layers=int(network.get("layers", 3)),
-            steps=model["steps"], batch_texels=model["batch_texels"],
-            queries_per_texel=model["queries_per_texel"], lr=model["lr"], seed=cfg.seed)
+            interpolation.training_directions(directions, heldout),
+            (size, size),
+            latent=int(network["latent"]),
+            levels=model["levels"],
+            hidden=int(network.get("hidden", 106)),
+            layers=int(network.get("layers", 3)),
+            steps=model["steps"],
+            batch_texels=model["batch_texels"],
+            queries_per_texel=model["queries_per_texel"],
+            lr=model["lr"],
+            seed=cfg.seed,
+        )
         module = result.module
         with torch.no_grad():
             latents = module.texel_latents(torch.arange(size * size)).numpy()
         torch.save(module.decoder.state_dict(), folder / "decoder.pt")
-        save_arrays(folder, latents=latents.astype(np.float32),
-                    latent_of_texel=np.arange(size * size, dtype=np.int32))
+        save_arrays(
+            folder,
+            latents=latents.astype(np.float32),
+            latent_of_texel=np.arange(size * size, dtype=np.int32),
+        )
         losses = [point["loss"] for point in result.curve]
         save_json(folder, "losses", losses)
         save_json(folder, "curve", [])  # no RMSE-versus-time curve (train.curve_every)
         queries = result.steps * model["batch_texels"] * model["queries_per_texel"]
-        return {"steps": result.steps, "seconds": result.seconds, "queries": queries,
-                "final_loss": losses[-1] if losses else float("nan")}
+        return {
+            "steps": result.steps,
+            "seconds": result.seconds,
+            "queries": queries,
+            "final_loss": losses[-1] if losses else float("nan"),
+        }
 
-    return ctx.run("train_latent_texture", settings,
-                   {"crop": cropped, "preprocess": prep}, compute, version="1")
+    return ctx.run(
+        "train_latent_texture",
+        settings,
+        {"crop": cropped, "preprocess": prep},
+        compute,
+        version="1",
+    )

@@ -208,8 +208,15 @@ class PlainWeave(Material):
         warp_index, weft_index = np.floor(x), np.floor(y)
         warp_centre = self.undulation * np.cos(np.pi * (y - 0.5) + np.pi * warp_index)
         weft_centre = -self.undulation * np.cos(np.pi * (x - 0.5) + np.pi * weft_index)
-        surfaces = woven_surfaces(x, y, warp_centre, weft_centre, self.thread_half_width,
-                                  self.thread_radius, floor=-self.undulation - self.thread_radius)
+        surfaces = woven_surfaces(
+            x,
+            y,
+            warp_centre,
+            weft_centre,
+            self.thread_half_width,
+            self.thread_radius,
+            floor=-self.undulation - self.thread_radius,
+        )
         labels = np.argmax(surfaces, axis=0)
         return Surface(
             labels=labels,
@@ -407,8 +414,15 @@ class Satin(Material):
         warp_centre = self.undulation * (1 - 2 * dip(from_binding))
         warp_centre += self.arch * (1 - np.cos(2 * np.pi * from_binding / 5)) / 2
         weft_centre = self.undulation * (2 * dip(x - np.mod(2 * weft_index, 5) - 0.5) - 1)
-        surfaces = woven_surfaces(x, y, warp_centre, weft_centre, self.thread_half_width,
-                                  self.thread_radius, floor=-self.undulation - self.thread_radius)
+        surfaces = woven_surfaces(
+            x,
+            y,
+            warp_centre,
+            weft_centre,
+            self.thread_half_width,
+            self.thread_radius,
+            floor=-self.undulation - self.thread_radius,
+        )
         labels = np.argmax(surfaces, axis=0)
         return Surface(
             labels=labels,

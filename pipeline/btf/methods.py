@@ -18,6 +18,7 @@ from pipeline.core.settings import schema
 if TYPE_CHECKING:
     from pipeline.core.stage import Context
 
+
 def run(ctx: Context) -> dict[str, float]:
     """The chain of the configured model, then its renders when ``btf.render.enabled``."""
     from pipeline.btf import runner
@@ -72,7 +73,9 @@ _SCHEMAS = (("schema", "train", schema(TrainSettings, "TrainSchema", lr=None)), 
 
 
 BTF = Method(
-    name="btf", paper="A", run=run,
+    name="btf",
+    paper="A",
+    run=run,
     description=(
         "**Method A: Neural BTF with clustering** (PAPERS.md A), the model in `model.name`: "
         "`neural_btf` (one latent per texel), `clustered` (one latent per k-means cluster) "
@@ -86,8 +89,11 @@ BTF = Method(
     ),
     headline=("rmse", "psnr_db", "rmse_ratio_to_mean_abrdf", "bytes_total"),
     reports=("pipeline.btf.report", "pipeline.btf.render.report"),  # Tables 1-2 ..., Fig. 8
-    figures=figures, prepare=prepare, run_name=run_name, unused=unused, schemas=_SCHEMAS,
+    figures=figures,
+    prepare=prepare,
+    run_name=run_name,
+    unused=unused,
+    schemas=_SCHEMAS,
     check=check,
-    settings=(("train", TrainSettings),
-              *(("model", model.config) for model in MODELS.values())),
+    settings=(("train", TrainSettings), *(("model", model.config) for model in MODELS.values())),
 )

@@ -119,9 +119,16 @@ def _batch_norm(module: nn.BatchNorm1d, x: torch.Tensor) -> torch.Tensor:
             factor = 1.0 / float(module.num_batches_tracked)
     use_batch = module.training or module.running_mean is None
     track = not module.training or module.track_running_stats
-    return F.batch_norm(x, module.running_mean if track else None,
-                        module.running_var if track else None, module.weight, module.bias,
-                        use_batch, factor, module.eps)
+    return F.batch_norm(
+        x,
+        module.running_mean if track else None,
+        module.running_var if track else None,
+        module.weight,
+        module.bias,
+        use_batch,
+        factor,
+        module.eps,
+    )
 
 
 class Decoder(nn.Module):
@@ -163,7 +170,10 @@ def load_decoder(path) -> Decoder:
     size (``btf.network.latent``) read from the first layer's inputs (latent + 4)."""
     state = torch.load(path, weights_only=True)
     weights = [key for key in state if key.endswith(".weight")]
-    decoder = Decoder(latent=state["net.0.weight"].shape[1] - 4,
-                      hidden=state["net.0.weight"].shape[0], layers=len(weights) - 1)
+    decoder = Decoder(
+        latent=state["net.0.weight"].shape[1] - 4,
+        hidden=state["net.0.weight"].shape[0],
+        layers=len(weights) - 1,
+    )
     decoder.load_state_dict(state)
     return decoder.eval()

@@ -30,8 +30,11 @@ class NeuralBTFConfig:
     latent per texel."""
 
     name: str = setting("neural_btf", help="the model (fixed by its config file)")
-    lr: float = setting(0.05, Real(0.0, closed=False),
-                        help="SGD learning rate when train.lr is null (the paper's 0.05)")
+    lr: float = setting(
+        0.05,
+        Real(0.0, closed=False),
+        help="SGD learning rate when train.lr is null (the paper's 0.05)",
+    )
 
 
 @dataclass
@@ -41,13 +44,21 @@ class ClusteredConfig:
 
     name: str = setting("clustered", help="the model (fixed by its config file)")
     k: int = setting(1000, Integer(1), help="k-means clusters: one latent each")
-    lr: float = setting(0.08, Real(0.0, closed=False),
-                        help="SGD learning rate when train.lr is null (the paper's 0.08)")
-    target: str = setting("texel", OneOf("texel", "representative"),
-                          help="train against each texel's own values or its cluster's median")
-    texel_scale: str = setting("none", OneOf("none", "lstsq", "luminance"),
-                               help="graininess fix: none, lstsq (per-texel factor) or "
-                                    "luminance (mean ratio)")
+    lr: float = setting(
+        0.08,
+        Real(0.0, closed=False),
+        help="SGD learning rate when train.lr is null (the paper's 0.08)",
+    )
+    target: str = setting(
+        "texel",
+        OneOf("texel", "representative"),
+        help="train against each texel's own values or its cluster's median",
+    )
+    texel_scale: str = setting(
+        "none",
+        OneOf("none", "lstsq", "luminance"),
+        help="graininess fix: none, lstsq (per-texel factor) or luminance (mean ratio)",
+    )
 
 
 @dataclass
@@ -57,11 +68,14 @@ class PCAConfig:
 
     name: str = setting("pca", help="the model (fixed by its config file)")
     n_components: int = setting(8, Integer(1), help="basis ABRDFs kept")
-    dtype: str = setting("float32", OneOf(*STORAGE_TYPES),
-                         help="stored type of mean, basis and coefficients")
+    dtype: str = setting(
+        "float32", OneOf(*STORAGE_TYPES), help="stored type of mean, basis and coefficients"
+    )
     match_clustered_k: int | None = setting(
-        None, Integer(1, optional=True),
-        help="an int k: choose n_components to fit the bytes of clustered k")
+        None,
+        Integer(1, optional=True),
+        help="an int k: choose n_components to fit the bytes of clustered k",
+    )
 
 
 @dataclass
@@ -72,13 +86,17 @@ class LatentTextureConfig:
     as for Neural BTF, so both land on the same byte budgets."""
 
     name: str = setting("latent_texture", help="the model (fixed by its config file)")
-    levels: int = setting(1, Integer(1), help="pyramid levels summed into a texel's latent "
-                                              "(folded into one latent per texel when stored)")
-    steps: int = setting(15000, Integer(1),
-                         help="Adam steps; the cosine schedule stretches with them")
+    levels: int = setting(
+        1,
+        Integer(1),
+        help="pyramid levels summed into a texel's latent "
+        "(folded into one latent per texel when stored)",
+    )
+    steps: int = setting(
+        15000, Integer(1), help="Adam steps; the cosine schedule stretches with them"
+    )
     batch_texels: int = setting(64, Integer(1), help="texels per step")
-    queries_per_texel: int = setting(64, Integer(1), help="training directions per texel "
-                                                          "and step")
+    queries_per_texel: int = setting(64, Integer(1), help="training directions per texel and step")
     lr: float = setting(0.01, Real(0.0, closed=False), help="peak Adam learning rate")
 
 
@@ -134,8 +152,10 @@ def _param(run: Mapping, key: str, default: str) -> str:
 
 
 def _clustered_types(run: Mapping) -> str:
-    types = (f"{_param(run, 'btf.sizes.weight_dtype', 'float32')}, "
-             f"list {_param(run, 'btf.sizes.list_dtype', 'int32')}")
+    types = (
+        f"{_param(run, 'btf.sizes.weight_dtype', 'float32')}, "
+        f"list {_param(run, 'btf.sizes.list_dtype', 'int32')}"
+    )
     if _param(run, "model.texel_scale", "none") != "none":
         types += f", +scale {_param(run, 'btf.sizes.extra_dtype', 'float32')}"
     return types
@@ -149,24 +169,56 @@ def _int_text(value) -> str:
 
 
 MODELS: dict[str, Model] = {
-    model.name: model for model in (
-        Model("neural_btf", NeuralBTFConfig, "Neural BTF", TRAIN, trains=True, clusters=False,
-              size=("params.btf.network.latent", "latent "),
-              column=lambda run: "Neural BTF", rank=0,
-              stored_types=lambda run: _param(run, "btf.sizes.weight_dtype", "float32")),
-        Model("clustered", ClusteredConfig, "clustered", TRAIN, trains=True, clusters=True,
-              size=("params.model.k", "k = "),
-              column=lambda run: "k = " + _int_text(run.get("params.model.k")), rank=2,
-              stored_types=_clustered_types),
-        Model("pca", PCAConfig, "PCA", None, trains=False, clusters=False,
-              size=("metrics.n_components", "c = "),
-              column=lambda run: "PCA c = " + _int_text(run.get("metrics.n_components")),
-              rank=3, stored_types=lambda run: _param(run, "model.dtype", "float32")),
-        Model("latent_texture", LatentTextureConfig, "latent texture",
-              "pipeline.btf.latent_stage:train_stage", trains=False, clusters=False,
-              size=("params.btf.network.latent", "latent "),
-              column=lambda run: "latent texture", rank=1,
-              stored_types=lambda run: _param(run, "btf.sizes.weight_dtype", "float32")),
+    model.name: model
+    for model in (
+        Model(
+            "neural_btf",
+            NeuralBTFConfig,
+            "Neural BTF",
+            TRAIN,
+            trains=True,
+            clusters=False,
+            size=("params.btf.network.latent", "latent "),
+            column=lambda run: "Neural BTF",
+            rank=0,
+            stored_types=lambda run: _param(run, "btf.sizes.weight_dtype", "float32"),
+        ),
+        Model(
+            "clustered",
+            ClusteredConfig,
+            "clustered",
+            TRAIN,
+            trains=True,
+            clusters=True,
+            size=("params.model.k", "k = "),
+            column=lambda run: "k = " + _int_text(run.get("params.model.k")),
+            rank=2,
+            stored_types=_clustered_types,
+        ),
+        Model(
+            "pca",
+            PCAConfig,
+            "PCA",
+            None,
+            trains=False,
+            clusters=False,
+            size=("metrics.n_components", "c = "),
+            column=lambda run: "PCA c = " + _int_text(run.get("metrics.n_components")),
+            rank=3,
+            stored_types=lambda run: _param(run, "model.dtype", "float32"),
+        ),
+        Model(
+            "latent_texture",
+            LatentTextureConfig,
+            "latent texture",
+            "pipeline.btf.latent_stage:train_stage",
+            trains=False,
+            clusters=False,
+            size=("params.btf.network.latent", "latent "),
+            column=lambda run: "latent texture",
+            rank=1,
+            stored_types=lambda run: _param(run, "btf.sizes.weight_dtype", "float32"),
+        ),
     )
 }
 
@@ -175,8 +227,9 @@ def model_of(cfg: DictConfig) -> Model:
     """The :class:`Model` the composed config's ``model.name`` names."""
     name = cfg.model.get("name") if cfg.get("model") is not None else None
     if name not in MODELS:
-        raise ConfigError(f"model.name={name!r} is not a model of method A: choose "
-                          f"model={'|'.join(MODELS)}")
+        raise ConfigError(
+            f"model.name={name!r} is not a model of method A: choose model={'|'.join(MODELS)}"
+        )
     return MODELS[name]
 
 

@@ -33,8 +33,11 @@ from pipeline.core.report import param, safe_stem, save_figure, write_file, writ
 BUDGETS_KB = (64, 128, 256, 512)  # KB = 1024 bytes, as Table 1's; tables.budgets_kb sets them
 N_LEVELS = 4  # RMSE levels of the bytes-to-reach table, per dataset
 # The size setting of each method: what a line varies (left out of its recipe comparison).
-AXES = {"pca": ["model.n_components", "model.match_clustered_k"],
-        "clustered": ["model.k"], "neural_btf": ["btf.network.latent"]}
+AXES = {
+    "pca": ["model.n_components", "model.match_clustered_k"],
+    "clustered": ["model.k"],
+    "neural_btf": ["btf.network.latent"],
+}
 # A Neural BTF run logged before its latent size was a setting had the paper's 8.
 DEFAULT_SIZE = {"neural_btf": 8}
 # Mean RMSEs closer than this are a tie, which the fewer bytes win (the front and the best
@@ -54,22 +57,28 @@ def arms(runs: pd.DataFrame) -> pd.DataFrame:
     settings, other than the size setting, in which its runs differ)."""
     runs = runs.copy()
     models = models_of(runs)
-    storage = [m.stored_types(run) if m else "?"
-               for m, (_, run) in zip(models, runs.iterrows(), strict=True)]
-    runs["arm"] = [f"{m.title if m else '?'} ({s})" for m, s in zip(models, storage,
-                                                                      strict=True)]
-    size = [_num(pd.Series([run.get(m.size[0], DEFAULT_SIZE.get(m.name)) if m else None]))
-            .iloc[0] for m, (_, run) in zip(models, runs.iterrows(), strict=True)]
+    storage = [
+        m.stored_types(run) if m else "?"
+        for m, (_, run) in zip(models, runs.iterrows(), strict=True)
+    ]
+    runs["arm"] = [f"{m.title if m else '?'} ({s})" for m, s in zip(models, storage, strict=True)]
+    size = [
+        _num(pd.Series([run.get(m.size[0], DEFAULT_SIZE.get(m.name)) if m else None])).iloc[0]
+        for m, (_, run) in zip(models, runs.iterrows(), strict=True)
+    ]
     runs["size"] = size
-    runs["setting"] = [(m.size[1] if m else "") + ("?" if pd.isna(v) else str(int(v)))
-                       for m, v in zip(models, size, strict=True)]
+    runs["setting"] = [
+        (m.size[1] if m else "") + ("?" if pd.isna(v) else str(int(v)))
+        for m, v in zip(models, size, strict=True)
+    ]
     runs["line"] = runs["arm"]
     names = pd.Series([m.name if m else None for m in models], index=runs.index)
     for name, ignore in AXES.items():
         rows = names == name
         if rows.any():
             runs.loc[rows, "line"] = runs.loc[rows, "arm"] + recipe_labels(
-                runs[rows], ["dataset", "arm"], ignore=ignore)
+                runs[rows], ["dataset", "arm"], ignore=ignore
+            )
     return runs
 
 
@@ -86,22 +95,31 @@ def points(runs: pd.DataFrame) -> pd.DataFrame:
         return pd.DataFrame()
     runs = arms(runs)
     baseline = runs.get("metrics.rmse_mean_abrdf", pd.Series(np.nan, index=runs.index))
-    runs = runs.assign(_baseline=_num(baseline),
-                       _heldout=_num(param(runs, "btf.interpolation.holdout_lights", "0")))
+    runs = runs.assign(
+        _baseline=_num(baseline),
+        _heldout=_num(param(runs, "btf.interpolation.holdout_lights", "0")),
+    )
     rows = []
     for (dataset, _), group in runs.groupby(["dataset", RECIPE_TAG], sort=False):
         first = group.iloc[0]
         rmse = _num(group["metrics.rmse"])
-        rows.append({
-            "dataset": dataset, "method": first["params.model.name"], "arm": first["arm"],
-            "line": first["line"], "setting": first["setting"], "size": first["size"],
-            "bytes": int(round(_num(group["metrics.bytes_total"]).mean())),
-            "rmse_mean": float(rmse.mean()),
-            "rmse_std": float(rmse.std(ddof=1)) if len(rmse) > 1 else np.nan,
-            "n": len(rmse), "seeds": ",".join(str(int(s)) for s in sorted(group["seed"])),
-            "rmse_mean_abrdf": float(group["_baseline"].mean()),
-            "heldout": bool((group["_heldout"].fillna(0) > 0).any()),
-        })
+        rows.append(
+            {
+                "dataset": dataset,
+                "method": first["params.model.name"],
+                "arm": first["arm"],
+                "line": first["line"],
+                "setting": first["setting"],
+                "size": first["size"],
+                "bytes": int(round(_num(group["metrics.bytes_total"]).mean())),
+                "rmse_mean": float(rmse.mean()),
+                "rmse_std": float(rmse.std(ddof=1)) if len(rmse) > 1 else np.nan,
+                "n": len(rmse),
+                "seeds": ",".join(str(int(s)) for s in sorted(group["seed"])),
+                "rmse_mean_abrdf": float(group["_baseline"].mean()),
+                "heldout": bool((group["_heldout"].fillna(0) > 0).any()),
+            }
+        )
     table = pd.DataFrame(rows)
     table["label"] = table["line"] + " " + table["setting"]
     return table.sort_values(["dataset", "line", "bytes"]).reset_index(drop=True)
@@ -124,13 +142,15 @@ def pareto_front(points_of_dataset: pd.DataFrame, tie: float = RMSE_TIE) -> pd.S
 def lowest(points_of_dataset: pd.DataFrame, tie: float = RMSE_TIE) -> pd.Series:
     """The point with the lowest mean RMSE, the one with the fewest bytes among those within
     ``tie`` of it (:data:`RMSE_TIE`)."""
-    near = points_of_dataset[points_of_dataset["rmse_mean"]
-                             <= points_of_dataset["rmse_mean"].min() + tie]
+    near = points_of_dataset[
+        points_of_dataset["rmse_mean"] <= points_of_dataset["rmse_mean"].min() + tie
+    ]
     return near.loc[near["bytes"].idxmin()]
 
 
-def welch_interval(a: pd.Series, b: pd.Series, alpha: float = 0.05
-                   ) -> tuple[float, float, float] | None:
+def welch_interval(
+    a: pd.Series, b: pd.Series, alpha: float = 0.05
+) -> tuple[float, float, float] | None:
     """Difference of means ``b - a`` of two points with its (1 - alpha) Welch interval, from
     rows with rmse_mean, rmse_std and n; None when a point has a single seed (no spread)."""
     from scipy import stats
@@ -147,8 +167,9 @@ def welch_interval(a: pd.Series, b: pd.Series, alpha: float = 0.05
     return difference, difference - half, difference + half
 
 
-def best_at_budgets(table: pd.DataFrame, budgets_kb=BUDGETS_KB, alpha: float = 0.05
-                    ) -> pd.DataFrame:
+def best_at_budgets(
+    table: pd.DataFrame, budgets_kb=BUDGETS_KB, alpha: float = 0.05
+) -> pd.DataFrame:
     """Per dataset and budget: the point with the lowest mean RMSE among those with at most
     the budget's bytes (:func:`lowest`: a tie goes to the fewer bytes), and the best point
     of every other method within the budget, with the difference of means, its Welch
@@ -162,32 +183,43 @@ def best_at_budgets(table: pd.DataFrame, budgets_kb=BUDGETS_KB, alpha: float = 0
             fits = group[group["bytes"] <= budget]
             if fits.empty:
                 smallest = group.loc[group["bytes"].idxmin()]
-                row["best"] = (f"nothing fits (smallest: {smallest['label']}, "
-                               f"{smallest['bytes']} B)")
+                row["best"] = f"nothing fits (smallest: {smallest['label']}, {smallest['bytes']} B)"
                 rows.append(row)
                 continue
             best = lowest(fits)
-            row.update({"best": best["label"], "method": best["method"],
-                        "bytes": int(best["bytes"]), "RMSE mean": best["rmse_mean"],
-                        "RMSE std": best["rmse_std"], "seeds": int(best["n"])})
+            row.update(
+                {
+                    "best": best["label"],
+                    "method": best["method"],
+                    "bytes": int(best["bytes"]),
+                    "RMSE mean": best["rmse_mean"],
+                    "RMSE std": best["rmse_std"],
+                    "seeds": int(best["n"]),
+                }
+            )
             others = fits[fits["method"] != best["method"]]
             if others.empty:
                 row["verdict"] = "no other method fits this budget"
                 rows.append(row)
                 continue
             other = lowest(others)
-            row.update({"best other method": other["label"], "its bytes": int(other["bytes"]),
-                        "its RMSE mean": other["rmse_mean"], "its RMSE std": other["rmse_std"],
-                        "its seeds": int(other["n"]),
-                        "difference": other["rmse_mean"] - best["rmse_mean"]})
+            row.update(
+                {
+                    "best other method": other["label"],
+                    "its bytes": int(other["bytes"]),
+                    "its RMSE mean": other["rmse_mean"],
+                    "its RMSE std": other["rmse_std"],
+                    "its seeds": int(other["n"]),
+                    "difference": other["rmse_mean"] - best["rmse_mean"],
+                }
+            )
             found = welch_interval(best, other, alpha)
             if found is None:
                 row["verdict"] = "untested: a point has 1 seed (run seed=0,1,2)"
             else:
                 _, low, high = found
                 row[f"{level} interval"] = f"[{low:.4g}, {high:.4g}]"
-                row["verdict"] = ("wins beyond seed noise" if low > 0
-                                  else "within seed noise")
+                row["verdict"] = "wins beyond seed noise" if low > 0 else "within seed noise"
             rows.append(row)
     table = pd.DataFrame(rows)
     floats = table.select_dtypes("float").columns
@@ -199,6 +231,7 @@ def winners(budget: pd.DataFrame) -> pd.DataFrame:
     """The budget table (:func:`best_at_budgets`) read across datasets: one row per budget,
     one column per dataset, each cell the best point with its mean RMSE, and how far the
     best point of another method is behind it with the verdict."""
+
     def cell(row) -> str:
         if pd.isna(row.get("method")):
             return "nothing fits"
@@ -235,9 +268,12 @@ def bytes_to_reach(table: pd.DataFrame, count: int = N_LEVELS) -> pd.DataFrame:
             row = {"dataset": dataset, "line": line}
             for level in levels:
                 reached = of_line[of_line["rmse_mean"] <= level]
-                row[f"RMSE ≤ {level:g}"] = ("–" if reached.empty else
-                                            f"{int(reached['bytes'].min())} "
-                                            f"({reached.loc[reached['bytes'].idxmin(), 'setting']})")
+                row[f"RMSE ≤ {level:g}"] = (
+                    "–"
+                    if reached.empty
+                    else f"{int(reached['bytes'].min())} "
+                    f"({reached.loc[reached['bytes'].idxmin(), 'setting']})"
+                )
             rows.append(row)
     return pd.DataFrame(rows)
 
@@ -253,13 +289,18 @@ def reach_sections(table: pd.DataFrame, out: Path) -> list[str]:
     for dataset, of_dataset in reach.groupby("dataset", sort=False):
         of_dataset = of_dataset.dropna(axis=1, how="all")  # the other datasets' levels
         if of_dataset.shape[1] > 2:
-            sections.append(write_table(
-                of_dataset, out, f"rate_distortion_reach_{safe_stem(dataset)}",
-                f"Bytes to reach an RMSE: {dataset}",
-                "The fewest stored bytes (and the setting) at which a line's mean RMSE is at "
-                "or below each level; levels spread geometrically between the dataset's "
-                "worst and best points. –: no point of the line reaches it. Means only: see "
-                "the error bars for the spread."))
+            sections.append(
+                write_table(
+                    of_dataset,
+                    out,
+                    f"rate_distortion_reach_{safe_stem(dataset)}",
+                    f"Bytes to reach an RMSE: {dataset}",
+                    "The fewest stored bytes (and the setting) at which a line's mean RMSE is at "
+                    "or below each level; levels spread geometrically between the dataset's "
+                    "worst and best points. –: no point of the line reaches it. Means only: see "
+                    "the error bars for the spread.",
+                )
+            )
     return sections
 
 
@@ -269,16 +310,33 @@ def plot(group: pd.DataFrame, dataset: str, path: Path, budgets_kb=BUDGETS_KB) -
     fig = Figure(figsize=(7.5, 4.8))
     ax = fig.subplots()
     for line, of_line in group.sort_values("bytes").groupby("line", sort=False):
-        ax.errorbar(of_line["bytes"], of_line["rmse_mean"], yerr=of_line["rmse_std"].fillna(0),
-                    marker="o", markersize=4, capsize=3, label=line)
+        ax.errorbar(
+            of_line["bytes"],
+            of_line["rmse_mean"],
+            yerr=of_line["rmse_std"].fillna(0),
+            marker="o",
+            markersize=4,
+            capsize=3,
+            label=line,
+        )
     front = group[pareto_front(group)].sort_values("bytes")
-    ax.plot(front["bytes"], front["rmse_mean"], linestyle="--", color="black", linewidth=0.8,
-            marker="o", markersize=11, markerfacecolor="none", label="Pareto front")
+    ax.plot(
+        front["bytes"],
+        front["rmse_mean"],
+        linestyle="--",
+        color="black",
+        linewidth=0.8,
+        marker="o",
+        markersize=11,
+        markerfacecolor="none",
+        label="Pareto front",
+    )
     for kb in budgets_kb:
         ax.axvline(kb * 1024, color="grey", linestyle=":", linewidth=0.8)
     ax.set_xscale("log")
-    ax.set_xlabel("stored bytes (bytes_total); dotted: budgets " +
-                  ", ".join(f"{kb} KB" for kb in budgets_kb))
+    ax.set_xlabel(
+        "stored bytes (bytes_total); dotted: budgets " + ", ".join(f"{kb} KB" for kb in budgets_kb)
+    )
     ax.set_ylabel("RMSE (eq. 10, normalized)")
     ax.set_title(dataset, fontsize=9)
     ax.legend(fontsize=6, loc="best")
@@ -298,53 +356,74 @@ def missing(table: pd.DataFrame) -> list[str]:
                 notes.append(f"{dataset}: {line} has 1 point (no curve)")
         single = group[group["n"] < 2]
         if not single.empty:
-            notes.append(f"{dataset}: {len(single)} of {len(group)} points have 1 seed "
-                         "(no seed spread; add seed=0,1,2)")
+            notes.append(
+                f"{dataset}: {len(single)} of {len(group)} points have 1 seed "
+                "(no seed spread; add seed=0,1,2)"
+            )
         if group["heldout"].any():
-            notes.append(f"{dataset}: some neural runs held lights out of training "
-                         "(btf.interpolation.holdout_lights): their RMSE is over the "
-                         "training directions, PCA's over all")
+            notes.append(
+                f"{dataset}: some neural runs held lights out of training "
+                "(btf.interpolation.holdout_lights): their RMSE is over the "
+                "training directions, PCA's over all"
+            )
     return notes
 
 
-def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05,
-            budgets_kb=BUDGETS_KB) -> str:
+def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05, budgets_kb=BUDGETS_KB) -> str:
     """Write ``rate_distortion_<dataset>.png``, ``rate_distortion_points.csv``,
     ``rate_distortion_budget.{md,csv,tex}``, ``rate_distortion_winners.{md,csv,tex}`` (with
     more than one dataset) and ``rate_distortion_reach_<dataset>.{md,csv,tex}`` into ``out``
     from labelled runs; return the Markdown section."""
     table = points(runs)
     if table.empty:
-        return ("## Rate-distortion\n\nNo run with `rmse` and `bytes_total`: "
-                "`python -m pipeline -m experiment=rate_distortion seed=0,1,2`.\n")
+        return (
+            "## Rate-distortion\n\nNo run with `rmse` and `bytes_total`: "
+            "`python -m pipeline -m experiment=rate_distortion seed=0,1,2`.\n"
+        )
     write_file(out / "rate_distortion_points.csv", table.to_csv(index=False))
-    parts = ["## Rate-distortion: RMSE against stored bytes\n",
-             "One point per recipe (its seeds pooled: mean ± std, the error bars), one line "
-             "per method and storage types (PCA over its components, clustered over k, Neural "
-             "BTF over its latent size), every model scored as stored. Circled and dashed: "
-             f"the Pareto front (mean RMSEs within {RMSE_TIE:g} are a tie, which the fewer "
-             "bytes win). Points: `rate_distortion_points.csv`.\n"]
+    parts = [
+        "## Rate-distortion: RMSE against stored bytes\n",
+        "One point per recipe (its seeds pooled: mean ± std, the error bars), one line "
+        "per method and storage types (PCA over its components, clustered over k, Neural "
+        "BTF over its latent size), every model scored as stored. Circled and dashed: "
+        f"the Pareto front (mean RMSEs within {RMSE_TIE:g} are a tie, which the fewer "
+        "bytes win). Points: `rate_distortion_points.csv`.\n",
+    ]
     for dataset, group in table.groupby("dataset", sort=False):
-        path = plot(group, dataset, out / f"rate_distortion_{safe_stem(dataset)}.png",
-                    budgets_kb)
+        path = plot(group, dataset, out / f"rate_distortion_{safe_stem(dataset)}.png", budgets_kb)
         parts.append(f"![{path.stem}]({path.name})\n")
     budget = best_at_budgets(table, budgets_kb, alpha)
-    parts.append(write_table(
-        budget, out, "rate_distortion_budget", "Best model at a byte budget",
-        f"best: the lowest mean RMSE among the points with at most the budget's bytes (KB = "
-        f"1024 B; within {RMSE_TIE:g} of it, the fewest bytes). best other method: the best "
-        f"point of another method within the budget; "
-        f"difference = its mean RMSE - the best's, with a {100 * (1 - alpha):g} % Welch "
-        f"interval over the seeds of both; 'wins beyond seed noise' when that interval "
-        f"excludes 0. Seeds: n of each point."))
+    parts.append(
+        write_table(
+            budget,
+            out,
+            "rate_distortion_budget",
+            "Best model at a byte budget",
+            f"best: the lowest mean RMSE among the points with at most the budget's bytes (KB = "
+            f"1024 B; within {RMSE_TIE:g} of it, the fewest bytes). best other method: the best "
+            f"point of another method within the budget; "
+            f"difference = its mean RMSE - the best's, with a {100 * (1 - alpha):g} % Welch "
+            f"interval over the seeds of both; 'wins beyond seed noise' when that interval "
+            f"excludes 0. Seeds: n of each point.",
+        )
+    )
     if table["dataset"].nunique() > 1:
-        parts.append(write_table(
-            winners(budget), out, "rate_distortion_winners", "Who wins at a budget, per dataset",
-            "Each cell: the best point within the budget and its mean RMSE; then the best "
-            "point of another method, how much higher its mean RMSE is, and the verdict of "
-            "the budget table (untested: a point has a single seed)."))
+        parts.append(
+            write_table(
+                winners(budget),
+                out,
+                "rate_distortion_winners",
+                "Who wins at a budget, per dataset",
+                "Each cell: the best point within the budget and its mean RMSE; then the best "
+                "point of another method, how much higher its mean RMSE is, and the verdict of "
+                "the budget table (untested: a point has a single seed).",
+            )
+        )
     parts += reach_sections(table, out)
     notes = missing(table)
-    parts.append("### Missing from the rate-distortion grid\n\n" + (
-        "\n".join(f"- {n}" for n in notes) if notes else "Nothing.") + "\n")
+    parts.append(
+        "### Missing from the rate-distortion grid\n\n"
+        + ("\n".join(f"- {n}" for n in notes) if notes else "Nothing.")
+        + "\n"
+    )
     return "\n".join(parts)

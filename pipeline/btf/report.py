@@ -36,94 +36,143 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
     found = []
     sizes = tables.table_sizes(runs)
     if not sizes.empty:
-        found.append(write_table(sizes, out, "table1_sizes", "Table 1: stored sizes in bytes",
-                                 "Bytes as stored, in the types of the 'stored as' column (read "
-                                 "from the written tensors). Ratio (exact) = original bytes / "
-                                 "total bytes. Ratio (paper) = original in MB / total in whole "
-                                 "KB, the paper's convention. Original = M x N x 3 float32."))
+        found.append(
+            write_table(
+                sizes,
+                out,
+                "table1_sizes",
+                "Table 1: stored sizes in bytes",
+                "Bytes as stored, in the types of the 'stored as' column (read "
+                "from the written tensors). Ratio (exact) = original bytes / "
+                "total bytes. Ratio (paper) = original in MB / total in whole "
+                "KB, the paper's convention. Original = M x N x 3 float32.",
+            )
+        )
     rmse = tables.with_truth_floor(tables.table_rmse(runs), runs)
-    found.append(write_table(rmse, out, "table2_rmse",
-                             "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
-                             "Over the directions each model was trained on: all N, unless "
-                             "lights were held out (btf.interpolation.holdout_lights; those "
-                             "directions are in the interpolation table). "
-                             "n = number of seeds. Clustered runs use each texel's own values "
-                             "as the training target unless marked (rep. target). data vs "
-                             "truth (built-in data only): the data's own RMSE against the "
-                             "generator's analytic truth (its 8-bit and JPEG rounding): what a "
-                             "model that recovered the truth exactly would score. Learning "
-                             f"rates: {tables.learning_rates(runs) or 'not logged'}. A "
-                             "column is one recipe; a label names what tells it apart from "
-                             "the other columns of its model (all the settings in which "
-                             "they differ: table2_columns.csv)."))
+    found.append(
+        write_table(
+            rmse,
+            out,
+            "table2_rmse",
+            "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
+            "Over the directions each model was trained on: all N, unless "
+            "lights were held out (btf.interpolation.holdout_lights; those "
+            "directions are in the interpolation table). "
+            "n = number of seeds. Clustered runs use each texel's own values "
+            "as the training target unless marked (rep. target). data vs "
+            "truth (built-in data only): the data's own RMSE against the "
+            "generator's analytic truth (its 8-bit and JPEG rounding): what a "
+            "model that recovered the truth exactly would score. Learning "
+            f"rates: {tables.learning_rates(runs) or 'not logged'}. A "
+            "column is one recipe; a label names what tells it apart from "
+            "the other columns of its model (all the settings in which "
+            "they differ: table2_columns.csv).",
+        )
+    )
     write_file(out / "table2_columns.csv", tables.column_recipes(runs).to_csv(index=False))
     grain = tables.table_graininess(runs)
     if not grain.empty:
-        found.append(write_table(
-            grain, out, "graininess",
-            "Graininess fix at equal bytes: clustered RMSE without / with a per-texel scale",
-            "The scale costs one btf.sizes.extra_dtype value per texel (Table 1's "
-            "'+ per-texel scale' rows); 'bytes' are without it, also for a model that "
-            "stores it. 'nearest in bytes': the model of the same recipe but k, without a "
-            "scale, whose total bytes are closest to the scaled model's, so that the scale "
-            "is compared with spending its bytes on the model itself (more clusters). "
-            "Every RMSE here is over all the crop's directions, as the scaled one is "
-            "measured: where lights were held out of training, Table 2's are over the "
-            "trained directions only and differ in the last digits."))
+        found.append(
+            write_table(
+                grain,
+                out,
+                "graininess",
+                "Graininess fix at equal bytes: clustered RMSE without / with a per-texel scale",
+                "The scale costs one btf.sizes.extra_dtype value per texel (Table 1's "
+                "'+ per-texel scale' rows); 'bytes' are without it, also for a model that "
+                "stores it. 'nearest in bytes': the model of the same recipe but k, without a "
+                "scale, whose total bytes are closest to the scaled model's, so that the scale "
+                "is compared with spending its bytes on the model itself (more clusters). "
+                "Every RMSE here is over all the crop's directions, as the scaled one is "
+                "measured: where lights were held out of training, Table 2's are over the "
+                "trained directions only and differ in the last digits.",
+            )
+        )
     failed = tables.failed_runs(runs)
     if not failed.empty:
-        found.append(write_table(
-            failed, out, "failed_runs",
-            "WARNING: runs that did not beat the trivial baseline",
-            "These models end within 10 % of the mean-ABRDF baseline (every texel "
-            "reconstructed as the mean ABRDF) or above it: their training failed, and their "
-            "RMSE in Table 2 measures no compression. Check train.* (lr, steps, schedule) "
-            "against the crop size."))
+        found.append(
+            write_table(
+                failed,
+                out,
+                "failed_runs",
+                "WARNING: runs that did not beat the trivial baseline",
+                "These models end within 10 % of the mean-ABRDF baseline (every texel "
+                "reconstructed as the mean ABRDF) or above it: their training failed, and their "
+                "RMSE in Table 2 measures no compression. Check train.* (lr, steps, schedule) "
+                "against the crop size.",
+            )
+        )
     interpolation = tables.table_interpolation(runs)
     if not interpolation.empty:
-        found.append(write_table(interpolation, out, "interpolation",
-                                 "Interpolation at directions never trained on (RMSE)",
-                                 "held-out: light directions removed from training, reference "
-                                 "= measured data. off-grid: random directions off the 81-grid, "
-                                 "reference = the synthetic generator's ground truth. Not a "
-                                 "blind test of the model: its encoder and the normalisation "
-                                 "saw each texel's values at the held-out directions, while "
-                                 "nearest and linear see only the training directions."))
+        found.append(
+            write_table(
+                interpolation,
+                out,
+                "interpolation",
+                "Interpolation at directions never trained on (RMSE)",
+                "held-out: light directions removed from training, reference "
+                "= measured data. off-grid: random directions off the 81-grid, "
+                "reference = the synthetic generator's ground truth. Not a "
+                "blind test of the model: its encoder and the normalisation "
+                "saw each texel's values at the held-out directions, while "
+                "nearest and linear see only the training directions.",
+            )
+        )
     verdict = tables.k_verdict(runs, alpha=float(settings.alpha))
     if not verdict.empty:
-        found.append(write_table(
-            verdict, out, "k_verdict", "Does k change the error?",
-            "Seeds are blocks (a seed shares its initialisation, batch order and k-means "
-            "seed across k): two-way ANOVA without interaction over the seeds run at every k, "
-            "Friedman's rank test (a sign test for two k; its exact permutation p where the "
-            "blocks are few, else the chi-square) as the check without normality, the trend of "
-            "RMSE per doubling of k within seeds, and each step's effect with its Bonferroni "
-            "interval, Holm-adjusted p and size relative to the smaller k's mean. Without "
-            "evidence: the step these runs detect with 80 % power and the seeds needed for a "
-            "4.4 % difference (the paper's largest). Runs pooled only "
-            "within one recipe (see the column labels)."))
+        found.append(
+            write_table(
+                verdict,
+                out,
+                "k_verdict",
+                "Does k change the error?",
+                "Seeds are blocks (a seed shares its initialisation, batch order and k-means "
+                "seed across k): two-way ANOVA without interaction over the seeds run at every k, "
+                "Friedman's rank test (a sign test for two k; its exact permutation p where the "
+                "blocks are few, else the chi-square) as the check without normality, the trend of "
+                "RMSE per doubling of k within seeds, and each step's effect with its Bonferroni "
+                "interval, Holm-adjusted p and size relative to the smaller k's mean. Without "
+                "evidence: the step these runs detect with 80 % power and the seeds needed for a "
+                "4.4 % difference (the paper's largest). Runs pooled only "
+                "within one recipe (see the column labels).",
+            )
+        )
     tolerance = float(settings.convergence_tolerance)
     convergence = tables.table_convergence(runs, tolerance)
     if not convergence.empty:
-        found.append(write_table(
-            convergence, out, "convergence",
-            "Converged? RMSE against the same model trained longer",
-            f"excess = RMSE / reference RMSE - 1, the reference being the longest run of the "
-            f"same model and seed; the goal is within {100 * tolerance:g} % of a run 4x as "
-            f"long (`tables.convergence_tolerance`)."))
+        found.append(
+            write_table(
+                convergence,
+                out,
+                "convergence",
+                "Converged? RMSE against the same model trained longer",
+                f"excess = RMSE / reference RMSE - 1, the reference being the longest run of the "
+                f"same model and seed; the goal is within {100 * tolerance:g} % of a run 4x as "
+                f"long (`tables.convergence_tolerance`).",
+            )
+        )
     missing = tables.missing_runs(runs, list(settings.paper_ks))
-    found.append("## Missing from the paper grid\n\n" + (
-        "\n".join(f"- {m}" for m in missing) if missing else "Nothing.") + "\n")
+    found.append(
+        "## Missing from the paper grid\n\n"
+        + ("\n".join(f"- {m}" for m in missing) if missing else "Nothing.")
+        + "\n"
+    )
     found.append(plot_rmse_vs_k(runs, out))
     found.append(curves_section(runs, out, tolerance))
     if settings.fig7.enabled:
         from pipeline.btf.fig7 import draw_fig7
 
         files = draw_fig7(runs, OmegaConf.to_container(settings.fig7.pairs), out)
-        found.append("## Fig. 7\n\n" + "\n\n".join(f"![{p.stem}]({p.name})" for p in files
-                                                   if p.suffix == ".png") + "\n")
-    found.append(rate_distortion.section(runs, out, alpha=float(settings.alpha),
-                                         budgets_kb=tuple(settings.budgets_kb)))
+        found.append(
+            "## Fig. 7\n\n"
+            + "\n\n".join(f"![{p.stem}]({p.name})" for p in files if p.suffix == ".png")
+            + "\n"
+        )
+    found.append(
+        rate_distortion.section(
+            runs, out, alpha=float(settings.alpha), budgets_kb=tuple(settings.budgets_kb)
+        )
+    )
     return found
 
 
@@ -137,14 +186,22 @@ def verdict(runs: pd.DataFrame, limit: int = 12) -> list[str]:
     lines = []
     for dataset, group in runs.groupby("dataset", sort=False):
         baseline = pd.to_numeric(group.get("metrics.rmse_mean_abrdf"), errors="coerce").mean()
-        lines.append(f"{dataset}: RMSE (mean-ABRDF baseline {baseline:.4f}) and stored bytes"
-                     if pd.notna(baseline) else f"{dataset}: RMSE and stored bytes")
+        lines.append(
+            f"{dataset}: RMSE (mean-ABRDF baseline {baseline:.4f}) and stored bytes"
+            if pd.notna(baseline)
+            else f"{dataset}: RMSE and stored bytes"
+        )
         models = list(group.sort_values(["order", "model"]).groupby("model", sort=False))
         rows = [_verdict_row(model, of_model, baseline) for model, of_model in models[:limit]]
         widths = [max(len(row[i]) for row in rows) for i in range(4)]
         for row in rows:
-            cells = [row[0].ljust(widths[0]), row[1].ljust(widths[1]),
-                     row[2].ljust(widths[2]), row[3].rjust(widths[3]), row[4]]
+            cells = [
+                row[0].ljust(widths[0]),
+                row[1].ljust(widths[1]),
+                row[2].ljust(widths[2]),
+                row[3].rjust(widths[3]),
+                row[4],
+            ]
             lines.append("  " + "  ".join(cells).rstrip())
         if len(models) > limit:
             lines.append(f"  … and {len(models) - limit} more models (see the tables)")
@@ -156,12 +213,16 @@ def _verdict_row(model: str, runs: pd.DataFrame, baseline: float) -> list[str]:
     rmse = pd.to_numeric(runs["metrics.rmse"], errors="coerce")
     spread = f" ± {rmse.std(ddof=1):.4f} (n={len(rmse)})" if len(rmse) > 1 else ""
     ratio = rmse.mean() / baseline if pd.notna(baseline) else np.nan
-    total = pd.to_numeric(runs.get("metrics.bytes_total", pd.Series(dtype=float)),
-                          errors="coerce").dropna()
-    return [model, f"{rmse.mean():.4f}{spread}",
-            f"= {ratio:.2f} x baseline" if pd.notna(ratio) else "",
-            f"{int(total.iloc[0]):,} B" if not total.empty else "",
-            "training failed (not below 0.9 x baseline)" if ratio >= FAILED else ""]
+    total = pd.to_numeric(
+        runs.get("metrics.bytes_total", pd.Series(dtype=float)), errors="coerce"
+    ).dropna()
+    return [
+        model,
+        f"{rmse.mean():.4f}{spread}",
+        f"= {ratio:.2f} x baseline" if pd.notna(ratio) else "",
+        f"{int(total.iloc[0]):,} B" if not total.empty else "",
+        "training failed (not below 0.9 x baseline)" if ratio >= FAILED else "",
+    ]
 
 
 def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path) -> list[Path]:
@@ -190,12 +251,19 @@ def plot_rmse_vs_k(runs: pd.DataFrame, out: Path) -> str:
         clustered = group[[m is not None and m.clusters for m in models_of(group)]]
         for name, runs_of_family in clustered.groupby("family"):
             stats = runs_of_family.groupby("k")["metrics.rmse"].agg(["mean", "std"])
-            ax.errorbar(stats.index, stats["mean"], yerr=stats["std"].fillna(0), marker="o",
-                        capsize=3, label=f"{dataset} {name}")
+            ax.errorbar(
+                stats.index,
+                stats["mean"],
+                yerr=stats["std"].fillna(0),
+                marker="o",
+                capsize=3,
+                label=f"{dataset} {name}",
+            )
         neural = group[group["model"].str.startswith("Neural BTF")]
         for name, runs_of_model in neural.groupby("model"):
-            ax.axhline(runs_of_model["metrics.rmse"].mean(), linestyle="--",
-                       label=f"{dataset} {name}")
+            ax.axhline(
+                runs_of_model["metrics.rmse"].mean(), linestyle="--", label=f"{dataset} {name}"
+            )
     if not ax.get_legend_handles_labels()[0]:
         return "## RMSE versus k\n\nNo clustered or Neural BTF run to draw.\n"
     ax.set_xlabel("k (clusters)")

@@ -33,7 +33,6 @@ from pipeline.data.directions import direction_sets
 log = logging.getLogger(__name__)
 
 
-
 # Method A's settings and what each may be, checked before any stage runs (train.* is
 # checked by TrainSettings itself).
 CONSTRAINTS = {
@@ -75,8 +74,11 @@ def _train_settings(cfg):
 
 # What only changes how fast training runs (up to the order of floating-point sums) is
 # not in the train stage's key: the roles TrainSettings declares.
-SPEED_ONLY = {key.removeprefix("train.") for key, role in roles(TrainSettings, "train").items()
-               if role == SPEED}
+SPEED_ONLY = {
+    key.removeprefix("train.")
+    for key, role in roles(TrainSettings, "train").items()
+    if role == SPEED
+}
 
 
 def train_stage(
@@ -160,8 +162,14 @@ def train_stage(
 
 def log_curve_point(point: dict) -> None:
     """One point of the RMSE-versus-time curve, as MLflow metrics keyed by step."""
-    mlflow.log_metrics({"curve_rmse": point["rmse"], "curve_seconds": point["seconds"],
-                        "curve_queries": point["queries"]}, step=point["step"])
+    mlflow.log_metrics(
+        {
+            "curve_rmse": point["rmse"],
+            "curve_seconds": point["seconds"],
+            "curve_queries": point["queries"],
+        },
+        step=point["step"],
+    )
 
 
 def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) -> Entry:
@@ -191,13 +199,20 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         directions = cropped.array("directions", mmap=False)
         norm = stages.normalization(prep)
         sizes_settings = cfg.btf.sizes
-        decoder, latents = as_stored(load_decoder(trained.file("decoder.pt")),
-                                     trained.array("latents", mmap=False),
-                                     sizes_settings.weight_dtype)
+        decoder, latents = as_stored(
+            load_decoder(trained.file("decoder.pt")),
+            trained.array("latents", mmap=False),
+            sizes_settings.weight_dtype,
+        )
         latent_of_texel = trained.array("latent_of_texel", mmap=False)
         recon = reconstruction_error(
-            decoder, latents, latent_of_texel, abrdf, norm.alpha,
-            direction_features(directions), texel_scale=texel_scale,
+            decoder,
+            latents,
+            latent_of_texel,
+            abrdf,
+            norm.alpha,
+            direction_features(directions),
+            texel_scale=texel_scale,
             scale_dtype=sizes_settings.extra_dtype,
         )
         m, n, _ = abrdf.shape
@@ -212,14 +227,27 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
             extra_dtype=cfg.btf.sizes.extra_dtype if texel_scale != "none" else None,
             latent_dim=latents.shape[1],
         )
-        metrics = {"rmse": recon.rmse, **sizes, "rmse_mean_abrdf": mean_abrdf_rmse(abrdf, norm.alpha)}
+        metrics = {
+            "rmse": recon.rmse,
+            **sizes,
+            "rmse_mean_abrdf": mean_abrdf_rmse(abrdf, norm.alpha),
+        }
         if recon.rmse_unscaled is not None:
             metrics["rmse_without_texel_scale"] = recon.rmse_unscaled
             metrics["rmse_with_texel_scale"] = recon.rmse_scaled
         heldout = np.asarray(trained.manifest["settings"]["heldout_lights"], dtype=int)
         metrics.update(
-            interpolation.measure(cfg, cropped, norm, decoder, latents, latent_of_texel,
-                                  recon.rmse_per_direction, heldout, recon.texel_scale)
+            interpolation.measure(
+                cfg,
+                cropped,
+                norm,
+                decoder,
+                latents,
+                latent_of_texel,
+                recon.rmse_per_direction,
+                heldout,
+                recon.texel_scale,
+            )
         )
         if "rmse_train_dirs" in metrics:
             # The headline is over the directions the model was trained on; the held-out
@@ -280,9 +308,12 @@ def run(ctx: Context) -> dict[str, float]:
     summary = trained.manifest["summary"]
     metrics.update(truth_metrics(ctx, cropped, prep))
     metrics.update(
-        train_steps=summary["steps"], train_seconds=summary["seconds"],
-        train_queries=summary["queries"], final_loss=summary["final_loss"],
-        n_texels=cropped.manifest["summary"]["M"], n_directions=cropped.manifest["summary"]["N"],
+        train_steps=summary["steps"],
+        train_seconds=summary["seconds"],
+        train_queries=summary["queries"],
+        final_loss=summary["final_loss"],
+        n_texels=cropped.manifest["summary"]["M"],
+        n_directions=cropped.manifest["summary"]["N"],
     )
     add_psnr(metrics)
     check_against_baseline(metrics)
@@ -334,9 +365,11 @@ def check_against_baseline(metrics: dict) -> None:
     metrics["rmse_ratio_to_mean_abrdf"] = ratio
     if ratio < NEAR_BASELINE:
         return
-    message = (f"training failed: RMSE {metrics['rmse']:.4g} is {ratio:.2f} x the mean-ABRDF "
-               f"baseline ({metrics['rmse_mean_abrdf']:.4g}); check train.* (lr, steps) "
-               f"against the crop size")
+    message = (
+        f"training failed: RMSE {metrics['rmse']:.4g} is {ratio:.2f} x the mean-ABRDF "
+        f"baseline ({metrics['rmse_mean_abrdf']:.4g}); check train.* (lr, steps) "
+        f"against the crop size"
+    )
     log.warning(message)
     if mlflow.active_run() is not None:
         mlflow.set_tag("training_failed", message)
@@ -354,29 +387,49 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     if pca.get("match_clustered_k"):
         # What clustered k stores with this run's network and storage settings.
         latent, sizes = int(ctx.cfg.btf.network.latent), ctx.cfg.btf.sizes
-        budget = storage_sizes(Decoder(latent=latent), int(pca.match_clustered_k), m, n,
-                               True, weight_dtype=sizes.weight_dtype,
-                               list_dtype=sizes.list_dtype, latent_dim=latent)["bytes_total"]
+        budget = storage_sizes(
+            Decoder(latent=latent),
+            int(pca.match_clustered_k),
+            m,
+            n,
+            True,
+            weight_dtype=sizes.weight_dtype,
+            list_dtype=sizes.list_dtype,
+            latent_dim=latent,
+        )["bytes_total"]
         n_components = components_for_budget(budget, m, n, pca.dtype)
     settings = {"n_components": n_components, "dtype": pca.dtype, "seed": ctx.cfg.seed}
 
     def compute(folder: Path) -> dict:
         norm = stages.normalization(prep)
-        model = fit_linear(norm.target(cropped.array("abrdf")), n_components, pca.dtype,
-                           seed=ctx.cfg.seed)
+        model = fit_linear(
+            norm.target(cropped.array("abrdf")), n_components, pca.dtype, seed=ctx.cfg.seed
+        )
         rmse, per_direction = linear_error(model, norm.target(cropped.array("abrdf")))
-        save_arrays(folder, mean=model.mean, basis=model.basis,
-                    coefficients=model.coefficients, rmse_per_direction=per_direction)
+        save_arrays(
+            folder,
+            mean=model.mean,
+            basis=model.basis,
+            coefficients=model.coefficients,
+            rmse_per_direction=per_direction,
+        )
         basis_bytes = model.basis.nbytes + model.mean.nbytes
         sizes = {
-            "bytes_decoder": basis_bytes, "bytes_latents": model.coefficients.nbytes,
-            "bytes_list": 0, "bytes_extra": 0, "bytes_original": m * n * 3 * 4,
+            "bytes_decoder": basis_bytes,
+            "bytes_latents": model.coefficients.nbytes,
+            "bytes_list": 0,
+            "bytes_extra": 0,
+            "bytes_original": m * n * 3 * 4,
         }
         sizes["bytes_total"] = basis_bytes + model.coefficients.nbytes
         assert sizes["bytes_total"] == pca_bytes(n_components, m, n, pca.dtype)
         sizes["compression_ratio"] = sizes["bytes_original"] / sizes["bytes_total"]
-        metrics = {"rmse": rmse, "n_components": n_components, **sizes,
-                   "rmse_mean_abrdf": mean_abrdf_rmse(cropped.array("abrdf"), norm.alpha)}
+        metrics = {
+            "rmse": rmse,
+            "n_components": n_components,
+            **sizes,
+            "rmse_mean_abrdf": mean_abrdf_rmse(cropped.array("abrdf"), norm.alpha),
+        }
         save_json(folder, "metrics", metrics)
         return {"rmse": rmse}
 
@@ -393,9 +446,12 @@ def run_linear(ctx: Context) -> dict[str, float]:
     prep = stages.preprocess(ctx, cropped)
     fitted = linear_stage(ctx, cropped, prep)
     exported = export_linear_stage(ctx, cropped, prep, fitted)
-    metrics = {**fitted.json("metrics"), "n_texels": cropped.manifest["summary"]["M"],
-               "n_directions": cropped.manifest["summary"]["N"],
-               **truth_metrics(ctx, cropped, prep)}
+    metrics = {
+        **fitted.json("metrics"),
+        "n_texels": cropped.manifest["summary"]["M"],
+        "n_directions": cropped.manifest["summary"]["N"],
+        **truth_metrics(ctx, cropped, prep),
+    }
     add_psnr(metrics)
     check_against_baseline(metrics)
     log_stored_as(exported.manifest["summary"]["stored_as"])

@@ -160,8 +160,13 @@ def _load_ubo2014(ctx: Context) -> Entry:
         images.flush()
         del images
         save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))
-        return {"n_images": n, "height": height, "width": width, "root": str(path),
-                **describe(read_dfmf(path))}
+        return {
+            "n_images": n,
+            "height": height,
+            "width": width,
+            "root": str(path),
+            **describe(read_dfmf(path)),
+        }
 
     return ctx.run("load", settings, {}, compute, version="3")
 
@@ -269,7 +274,9 @@ def representatives(ctx: Context, cropped: Entry, clusters: Entry) -> Entry:
         save_arrays(folder, representatives=medians)
         return {"k": k}
 
-    return ctx.run("representatives", {}, {"crop": cropped, "kmeans": clusters}, compute, version="1")
+    return ctx.run(
+        "representatives", {}, {"crop": cropped, "kmeans": clusters}, compute, version="1"
+    )
 
 
 # --------------------------------------------------------------------------- truth floor
@@ -280,8 +287,9 @@ def built_in(cfg: DictConfig) -> bool:
     return cfg.dataset.name == "synthetic" and cfg.dataset.root is None
 
 
-def data_truth_rmse(abrdf: np.ndarray, directions: np.ndarray, truth_of, alpha: float,
-                    chunk: int = 256) -> float:
+def data_truth_rmse(
+    abrdf: np.ndarray, directions: np.ndarray, truth_of, alpha: float, chunk: int = 256
+) -> float:
     """Eq. 10's RMSE of the data against the analytic truth: what a perfect model scores.
 
     Parameters
@@ -319,10 +327,15 @@ def truth_floor(ctx: Context, cropped: Entry, prep: Entry) -> Entry | None:
         return values.reshape(len(directions), -1, 3).transpose(1, 0, 2)
 
     def compute(folder: Path) -> dict:
-        rmse = data_truth_rmse(cropped.array("abrdf"), cropped.array("directions", mmap=False),
-                               truth_of, prep.json("alpha"))
+        rmse = data_truth_rmse(
+            cropped.array("abrdf"),
+            cropped.array("directions", mmap=False),
+            truth_of,
+            prep.json("alpha"),
+        )
         return {"rmse_data_vs_truth": rmse}
 
     settings = {"synthetic": generator_settings(gen), "crop": plain_settings(cfg.btf.crop)}
-    return ctx.run("truth_floor", settings, {"crop": cropped, "preprocess": prep}, compute,
-                   version="1")
+    return ctx.run(
+        "truth_floor", settings, {"crop": cropped, "preprocess": prep}, compute, version="1"
+    )

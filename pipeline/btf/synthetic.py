@@ -206,12 +206,15 @@ class SyntheticBTF:
         texels = np.asarray(texels, dtype=np.int64)
         directions = np.asarray(directions, dtype=np.float64)
         if directions.shape != (len(texels), 4):
-            raise ConfigError(f"directions must have shape ({len(texels)}, 4), got "
-                              f"{directions.shape}")
+            raise ConfigError(
+                f"directions must have shape ({len(texels)}, 4), got {directions.shape}"
+            )
         if texels.size and (texels.min() < 0 or texels.max() >= self.size**2):
             raise ConfigError(f"texel indices must lie in [0, {self.size**2})")
-        maps = {name: values[texels] if name == "albedo_over_pi" else values[..., texels]
-                for name, values in self._flat_maps.items()}
+        maps = {
+            name: values[texels] if name == "albedo_over_pi" else values[..., texels]
+            for name, values in self._flat_maps.items()
+        }
         return shade(directions, maps, self.preset, pairs=True)
 
     def _evaluate_chunk(self, directions: np.ndarray) -> np.ndarray:

@@ -103,10 +103,14 @@ def synthetic_directions(
         return grid_81(), grid_81()
     for name, count in counts.items():
         if count is None:
-            raise ConfigError(f"dataset.synthetic.directions=fibonacci needs "
-                              f"dataset.synthetic.{name} (an integer >= 3)")
-    return (fibonacci_hemisphere(n_lights, FIBONACCI_MAX_THETA_DEGREES),
-            fibonacci_hemisphere(n_views, FIBONACCI_MAX_THETA_DEGREES))
+            raise ConfigError(
+                f"dataset.synthetic.directions=fibonacci needs "
+                f"dataset.synthetic.{name} (an integer >= 3)"
+            )
+    return (
+        fibonacci_hemisphere(n_lights, FIBONACCI_MAX_THETA_DEGREES),
+        fibonacci_hemisphere(n_views, FIBONACCI_MAX_THETA_DEGREES),
+    )
 
 
 # --- writer in the real layouts ----------------------------------------------------------
@@ -225,8 +229,7 @@ def write_synthetic_btf(
         "views": None if view_list is None else [list(view) for view in view_list],
         "quality": int(quality),
         # Only when not the default: markers written before the setting existed match.
-        **generator_settings({"directions": directions, "n_lights": n_lights,
-                              "n_views": n_views}),
+        **generator_settings({"directions": directions, "n_lights": n_lights, "n_views": n_views}),
     }
     written = root / UBO2014_FILE_NAME if format == "ubo2014" else root
     if root.exists() and not (root.is_dir() and not any(root.iterdir())):
@@ -260,8 +263,9 @@ def write_synthetic_btf(
     return written
 
 
-def _write_view_folders(partial: Path, fabric: SyntheticBTF, view_list, format: str, ext: str,
-                        quality: int, name: str) -> None:
+def _write_view_folders(
+    partial: Path, fabric: SyntheticBTF, view_list, format: str, ext: str, quality: int, name: str
+) -> None:
     """The 81 lights of each view of ``view_list`` (degrees) as images in the UBO2003 or
     UTIA layout, one view folder at a time, under ``partial``."""
     lights = grid_81_degrees()
@@ -282,8 +286,7 @@ def _write_view_folders(partial: Path, fabric: SyntheticBTF, view_list, format: 
             else:
                 file_name = utia_file_name(theta_light, phi_light, *view, ext)
             # Not synced one by one: one os.sync covers the whole folder.
-            encode_btf_image(folder / file_name, images[light_index], format, quality,
-                             sync=False)
+            encode_btf_image(folder / file_name, images[light_index], format, quality, sync=False)
 
 
 def _write_ubo2014(path: Path, fabric: SyntheticBTF, lights: np.ndarray, views: np.ndarray):
@@ -307,5 +310,15 @@ def _write_ubo2014(path: Path, fabric: SyntheticBTF, lights: np.ndarray, views: 
         else:
             u, sv = matrix, np.eye(texels, dtype=np.float32)
         factors.append((np.ones(len(u.T), dtype=np.float32), u, sv))
-    write_dfmf(path, views, lights, fabric.size, fabric.size, factors=factors,
-               color_model=0, dtype="float32", cosine_in_data=True, sync=False)
+    write_dfmf(
+        path,
+        views,
+        lights,
+        fabric.size,
+        fabric.size,
+        factors=factors,
+        color_model=0,
+        dtype="float32",
+        cosine_in_data=True,
+        sync=False,
+    )

@@ -109,9 +109,9 @@ def texel_maps(
     weights = np.zeros((1 + len(_CHANNEL_DEGREES), labels.size))
     weights[0] = per_texel("shadow")
     weights[1:] = channel_weights(surface.fibre.reshape(-1, 2), per_texel("shadow_across"))
-    flat["occlusion_weights"] = (
-        preset.shadow_strength * depth.ravel() * weights
-    ).astype(np.float32)
+    flat["occlusion_weights"] = (preset.shadow_strength * depth.ravel() * weights).astype(
+        np.float32
+    )
     flat["albedo_over_pi"] = (albedo.reshape(-1, 3) / np.pi).astype(np.float32)
     along = per_texel("exponent_along")
     across = per_texel("exponent_across")
@@ -143,6 +143,7 @@ def shade(directions: np.ndarray, maps: dict, preset: Material, pairs: bool) -> 
     -------
     ndarray of shape (c, P, 3), or (c, 3) with ``pairs``; float32 in [0, 1]
     """
+
     def per_direction(values):  # (c,) -> broadcast against the texel axis
         return values if pairs else values[:, None]
 

@@ -57,8 +57,7 @@ WORDS = {
     "btf.sizes.extra_dtype": lambda v: f"scale {v}",
     "model.k": lambda v: f"k = {v}",
     "model.n_components": lambda v: f"c = {v}",
-    "model.match_clustered_k": lambda v: ("c set by hand" if v == "None"
-                                          else f"bytes of k = {v}"),
+    "model.match_clustered_k": lambda v: "c set by hand" if v == "None" else f"bytes of k = {v}",
     "btf.crop.size": lambda v: f"{v}² crop",
     "dataset.synthetic.size": lambda v: f"{v}² texture",
     "btf.interpolation.holdout_lights": _lights,
@@ -84,10 +83,15 @@ def distinguishing(settings: pd.DataFrame) -> list[str]:
     rank = {key: i for i, key in enumerate(WORDS)}
     chosen: list[str] = []
     while not chosen or len(settings[chosen].drop_duplicates()) < target:
-        best = max((c for c in varying if c not in chosen),
-                   key=lambda c: (len(settings[[*chosen, c]].drop_duplicates()),
-                                  not (settings[c] == ABSENT).any(),
-                                  -rank.get(c, len(rank)), -len(c)))
+        best = max(
+            (c for c in varying if c not in chosen),
+            key=lambda c: (
+                len(settings[[*chosen, c]].drop_duplicates()),
+                not (settings[c] == ABSENT).any(),
+                -rank.get(c, len(rank)),
+                -len(c),
+            ),
+        )
         chosen.append(best)
     return sorted(chosen, key=lambda c: (rank.get(c, len(rank)), c))
 
@@ -100,12 +104,12 @@ def in_words(values: pd.Series, absent: bool = False) -> str:
     worded = [WORDS[k](v) for k, v in logged.items() if k in WORDS]
     plain = [f"{k}={v}" for k, v in logged.items() if k not in WORDS]
     plain += [f"{k} not logged" for k in values.index[values == ABSENT]] if absent else []
-    return ((f" ({', '.join(worded)})" if worded else "")
-            + (f" [{', '.join(plain)}]" if plain else ""))
+    return (f" ({', '.join(worded)})" if worded else "") + (
+        f" [{', '.join(plain)}]" if plain else ""
+    )
 
 
-def recipe_labels(runs: pd.DataFrame, by: list[str], ignore=(), render: bool = False
-                  ) -> pd.Series:
+def recipe_labels(runs: pd.DataFrame, by: list[str], ignore=(), render: bool = False) -> pd.Series:
     """For each run, what tells its recipe apart from the other recipes with the same
     values in the columns ``by`` (say, dataset and model label), in words
     (:func:`in_words` of :func:`distinguishing`); ``""`` where the group has one recipe.
@@ -156,8 +160,9 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     """
     runs = with_recipe(runs, RENDER_RECIPE_TAG if render else RECIPE_TAG).copy()
     if runs.empty:
-        return runs.assign(dataset=[], model=[], base_model=[], family=[], k=[], seed=[],
-                           epochs=[], order=[])
+        return runs.assign(
+            dataset=[], model=[], base_model=[], family=[], k=[], seed=[], epochs=[], order=[]
+        )
     root = param(runs, "dataset.root")
     name = param(runs, "dataset.name", "?")
     leaf = root.map(lambda r: r.rstrip("/").split("/")[-1] if r not in ("", "None") else "")
@@ -170,15 +175,19 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     # smoke crop must never be averaged with a 48 x 48 one.
     crop = _num(param(runs, "btf.crop.size"))
     n_dirs = _num(runs.get("metrics.n_directions", pd.Series(np.nan, index=runs.index)))
-    shape = [f" {int(c)}²×{int(n)}" if pd.notna(c) and pd.notna(n) else ""
-             for c, n in zip(crop, n_dirs, strict=True)]
+    shape = [
+        f" {int(c)}²×{int(n)}" if pd.notna(c) and pd.notna(n) else ""
+        for c, n in zip(crop, n_dirs, strict=True)
+    ]
     runs["dataset"] = label + shape
     runs["k"] = _num(param(runs, "model.k"))
     runs["seed"] = _num(runs["params.seed"])
     models = models_of(runs)
     clusters = pd.Series([m is not None and m.clusters for m in models], index=runs.index)
-    label = pd.Series([m.column(run) if m else "?" for m, (_, run) in
-                       zip(models, runs.iterrows(), strict=True)], index=runs.index)
+    label = pd.Series(
+        [m.column(run) if m else "?" for m, (_, run) in zip(models, runs.iterrows(), strict=True)],
+        index=runs.index,
+    )
     # Only the clustered model has these settings: absent elsewhere, so at their defaults.
     scale = param(runs, "model.texel_scale", "none")
     label = np.where(scale != "none", label + " +scale", label)
@@ -191,23 +200,31 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     # longer convergence check) is another model, not another seed.
     # PCA trains nothing and logs no train.* (its "" is left out of the usual count).
     epochs = param(runs, "train.epochs", "").replace("None", "")
-    usual = epochs.where(epochs != "").groupby(runs["dataset"]).transform(
-        lambda e: e.mode().iloc[0] if e.notna().any() else "")
+    usual = (
+        epochs.where(epochs != "")
+        .groupby(runs["dataset"])
+        .transform(lambda e: e.mode().iloc[0] if e.notna().any() else "")
+    )
     runs["base_model"] = label
     runs["epochs"] = _num(epochs)
-    label = np.where((epochs != "") & (epochs != usual), label + " (" + epochs + " epochs)",
-                     label)
+    label = np.where((epochs != "") & (epochs != usual), label + " (" + epochs + " epochs)", label)
     runs["model"] = label
     # A clustered family (Table 2's k columns of one recipe but k), for the k verdict.
-    runs["family"] = np.where(clusters,
-                              runs["model"].str.replace(r"^k = \d+", "clustered", regex=True), "")
-    runs["family"] = runs["family"] + recipe_labels(runs, ["dataset", "family"],
-                                                    ignore=["model.k"], render=render)
+    runs["family"] = np.where(
+        clusters, runs["model"].str.replace(r"^k = \d+", "clustered", regex=True), ""
+    )
+    runs["family"] = runs["family"] + recipe_labels(
+        runs, ["dataset", "family"], ignore=["model.k"], render=render
+    )
     runs["model"] = runs["model"] + recipe_labels(runs, ["dataset", "model"], render=render)
-    sizes = [_num(pd.Series([run.get(m.size[0]) if m else None])).iloc[0]
-             for m, (_, run) in zip(models, runs.iterrows(), strict=True)]
-    runs["order"] = [1e9 * (m.rank if m else 9) + (0 if pd.isna(s) else s)
-                     for m, s in zip(models, sizes, strict=True)]
+    sizes = [
+        _num(pd.Series([run.get(m.size[0]) if m else None])).iloc[0]
+        for m, (_, run) in zip(models, runs.iterrows(), strict=True)
+    ]
+    runs["order"] = [
+        1e9 * (m.rank if m else 9) + (0 if pd.isna(s) else s)
+        for m, s in zip(models, sizes, strict=True)
+    ]
     return runs
 
 
@@ -224,10 +241,15 @@ def column_recipes(runs: pd.DataFrame) -> pd.DataFrame:
         varying = [c for c in of_group.columns if of_group[c].nunique() > 1]
         for model, of_model in group.groupby("model", sort=False):
             first = of_model.index[0]
-            rows.append({"dataset": dataset, "model": model,
-                         "recipe": of_model[RECIPE_TAG].iloc[0], "runs": len(of_model),
-                         "differs in": ", ".join(f"{k}={of_group.at[first, k]}"
-                                                 for k in varying)})
+            rows.append(
+                {
+                    "dataset": dataset,
+                    "model": model,
+                    "recipe": of_model[RECIPE_TAG].iloc[0],
+                    "runs": len(of_model),
+                    "differs in": ", ".join(f"{k}={of_group.at[first, k]}" for k in varying),
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -257,8 +279,11 @@ PARTS = ("decoder", "latents", "list", "extra")  # Table 1's parts (tags stored_
 def stored_as(run: pd.Series) -> str:
     """``"decoder float32, latents float32, list int32"``: the types a run's parts were
     written in (tags ``stored_as.*``, read from the stored tensors), "?" when not logged."""
-    parts = [f"{dict(SIZE_ROWS)[f'bytes_{p}']} {run[f'tags.stored_as.{p}']}" for p in PARTS
-             if pd.notna(run.get(f"tags.stored_as.{p}"))]
+    parts = [
+        f"{dict(SIZE_ROWS)[f'bytes_{p}']} {run[f'tags.stored_as.{p}']}"
+        for p in PARTS
+        if pd.notna(run.get(f"tags.stored_as.{p}"))
+    ]
     return ", ".join(parts) or "?"
 
 
@@ -291,33 +316,51 @@ def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
             continue
         first = group.iloc[0]
         parts = {name: int(first[f"metrics.{metric}"]) for metric, name in SIZE_ROWS}
-        rows.append(_size_row(dataset, model, parts, float(first["metrics.bytes_original"]),
-                              stored_as(first)))
-        if (first["params.model.name"] == "clustered" and parts["per-texel scale"] == 0
-                and pd.notna(first.get("metrics.rmse_with_texel_scale"))
-                and pd.notna(first.get("metrics.n_texels"))):
+        rows.append(
+            _size_row(
+                dataset, model, parts, float(first["metrics.bytes_original"]), stored_as(first)
+            )
+        )
+        if (
+            first["params.model.name"] == "clustered"
+            and parts["per-texel scale"] == 0
+            and pd.notna(first.get("metrics.rmse_with_texel_scale"))
+            and pd.notna(first.get("metrics.n_texels"))
+        ):
             extra = scale_bytes(first)
             scaled = {**parts, "per-texel scale": extra, "total": parts["total"] + extra}
             dtype = first.get("params.btf.sizes.extra_dtype", "float32")
-            rows.append(_size_row(dataset, f"{model} + per-texel scale", scaled,
-                                  float(first["metrics.bytes_original"]),
-                                  f"{stored_as(first)}, per-texel scale {dtype}"))
+            rows.append(
+                _size_row(
+                    dataset,
+                    f"{model} + per-texel scale",
+                    scaled,
+                    float(first["metrics.bytes_original"]),
+                    f"{stored_as(first)}, per-texel scale {dtype}",
+                )
+            )
     table = pd.DataFrame(rows)
     if table.empty:
         return table
     order = {m: i for i, m in enumerate(model_columns(runs))}
     table["_order"] = table["model"].map(
-        lambda m: order.get(m, order.get(m.removesuffix(" + per-texel scale"), 0) + 0.5))
+        lambda m: order.get(m, order.get(m.removesuffix(" + per-texel scale"), 0) + 0.5)
+    )
     table = table.sort_values(["dataset", "_order"]).drop(columns="_order")
     return table.reset_index(drop=True)
 
 
 def _size_row(dataset: str, model: str, parts: dict, original: float, stored: str) -> dict:
     total = parts["total"]
-    return {"dataset": dataset, "model": model, **{f"{k} [B]": v for k, v in parts.items()},
-            "original [B]": int(original), "stored as": stored,
-            "ratio (exact)": f"1:{original / total:.1f}",
-            "ratio (paper)": f"1:{round(original / 2**20) * 1024 / round(total / 1024):.0f}"}
+    return {
+        "dataset": dataset,
+        "model": model,
+        **{f"{k} [B]": v for k, v in parts.items()},
+        "original [B]": int(original),
+        "stored as": stored,
+        "ratio (exact)": f"1:{original / total:.1f}",
+        "ratio (paper)": f"1:{round(original / 2**20) * 1024 / round(total / 1024):.0f}",
+    }
 
 
 # What a scale changes: runs equal in every other recipe setting are one model with and
@@ -343,17 +386,20 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
     differs in the last digits. A model that stores its scale has it in ``bytes_total``;
     its "bytes" are those without it.
     """
-    clustered = runs[_clusters(runs)
-                     & runs.get("metrics.rmse_with_texel_scale", pd.Series(
-                         np.nan, index=runs.index)).notna()]
+    clustered = runs[
+        _clusters(runs)
+        & runs.get("metrics.rmse_with_texel_scale", pd.Series(np.nan, index=runs.index)).notna()
+    ]
     if clustered.empty or "metrics.bytes_total" not in runs:
         return pd.DataFrame()
     extra = _num(runs.get("metrics.bytes_extra", pd.Series(0, index=runs.index))).fillna(0)
     rest = run_settings(runs).drop(columns=SCALE_SETTINGS, errors="ignore")
-    recipe_but_scale = pd.Series(["\x1f".join(row) for row in rest.itertuples(index=False)],
-                                 index=runs.index)
+    recipe_but_scale = pd.Series(
+        ["\x1f".join(row) for row in rest.itertuples(index=False)], index=runs.index
+    )
     unscaled = runs[_clusters(runs) & (extra == 0)].assign(
-        _rest=recipe_but_scale, _rmse=all_directions_rmse(runs))
+        _rest=recipe_but_scale, _rmse=all_directions_rmse(runs)
+    )
     rows = []
     ordered = clustered.sort_values(["dataset", "order", "model"])
     for (dataset, model), group in ordered.groupby(["dataset", "model"], sort=False):
@@ -361,23 +407,27 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
         stored_extra = int(extra[first.name])
         without = int(first["metrics.bytes_total"]) - stored_extra
         with_scale = without + (stored_extra or scale_bytes(first))
-        row = {"dataset": dataset, "model": model,
-               "without scale, all dirs": mean_std(
-                   _num(group["metrics.rmse_without_texel_scale"])),
-               "bytes": without,
-               "with per-texel scale, all dirs": mean_std(
-                   _num(group["metrics.rmse_with_texel_scale"])),
-               "bytes with scale": with_scale}
-        others = unscaled[(unscaled["dataset"] == dataset)
-                          & (unscaled["_rest"] == recipe_but_scale[first.name])
-                          & (unscaled["k"] != first["k"])]
+        row = {
+            "dataset": dataset,
+            "model": model,
+            "without scale, all dirs": mean_std(_num(group["metrics.rmse_without_texel_scale"])),
+            "bytes": without,
+            "with per-texel scale, all dirs": mean_std(
+                _num(group["metrics.rmse_with_texel_scale"])
+            ),
+            "bytes with scale": with_scale,
+        }
+        others = unscaled[
+            (unscaled["dataset"] == dataset)
+            & (unscaled["_rest"] == recipe_but_scale[first.name])
+            & (unscaled["k"] != first["k"])
+        ]
         if not others.empty:
             sizes = others.groupby("model")["metrics.bytes_total"].first()
             nearest = (sizes - with_scale).abs().idxmin()
             row["nearest in bytes, no scale"] = nearest
             row["its bytes"] = int(sizes[nearest])
-            row["its RMSE, all dirs"] = mean_std(others.loc[others["model"] == nearest,
-                                                            "_rmse"])
+            row["its RMSE, all dirs"] = mean_std(others.loc[others["model"] == nearest, "_rmse"])
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -410,8 +460,10 @@ def with_truth_floor(table: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
     if column not in runs or runs[column].isna().all():
         return table
     floors = _num(runs[column]).groupby(runs["dataset"]).agg(["min", "max"])
-    cell = {d: "–" if pd.isna(lo) else f"{lo:.4f}" if hi - lo < 5e-5 else f"{lo:.4f}–{hi:.4f}"
-            for d, (lo, hi) in floors.iterrows()}
+    cell = {
+        d: "–" if pd.isna(lo) else f"{lo:.4f}" if hi - lo < 5e-5 else f"{lo:.4f}–{hi:.4f}"
+        for d, (lo, hi) in floors.iterrows()
+    }
     table = table.copy()
     table.insert(0, "data vs truth", [cell.get(d, "–") for d in table.index])
     return table
@@ -425,12 +477,17 @@ def failed_runs(runs: pd.DataFrame, near: float = 0.9) -> pd.DataFrame:
         return pd.DataFrame()
     ratio = _num(runs["metrics.rmse"]) / _num(runs["metrics.rmse_mean_abrdf"])
     failed = runs[ratio >= near]
-    return pd.DataFrame({
-        "dataset": failed["dataset"], "model": failed["model"], "seed": failed["seed"],
-        "RMSE": failed["metrics.rmse"].round(4),
-        "mean-ABRDF baseline": failed["metrics.rmse_mean_abrdf"].round(4),
-        "ratio": ratio[failed.index].round(2), "run": failed["run_id"],
-    }).reset_index(drop=True)
+    return pd.DataFrame(
+        {
+            "dataset": failed["dataset"],
+            "model": failed["model"],
+            "seed": failed["seed"],
+            "RMSE": failed["metrics.rmse"].round(4),
+            "mean-ABRDF baseline": failed["metrics.rmse_mean_abrdf"].round(4),
+            "ratio": ratio[failed.index].round(2),
+            "run": failed["run_id"],
+        }
+    ).reset_index(drop=True)
 
 
 def learning_rates(runs: pd.DataFrame) -> str:
@@ -441,9 +498,10 @@ def learning_rates(runs: pd.DataFrame) -> str:
     rate = train.where(~train.isin([None, "None"]) & train.notna(), model_lr)
     trains = pd.Series([m is not None and m.trains for m in models_of(runs)], index=runs.index)
     trained = runs.assign(rate=rate)[rate.notna() & ~rate.isin(["None"]) & trains]
-    parts = [f"{model}: {', '.join(sorted(map(str, group['rate'].unique())))}"
-             for model, group in trained.sort_values(["order", "model"]).groupby(
-                 "model", sort=False)]
+    parts = [
+        f"{model}: {', '.join(sorted(map(str, group['rate'].unique())))}"
+        for model, group in trained.sort_values(["order", "model"]).groupby("model", sort=False)
+    ]
     return "; ".join(parts)
 
 
@@ -473,13 +531,19 @@ def k_verdict(runs: pd.DataFrame, alpha: float = 0.05, target: float = 0.044) ->
     rows = []
     clustered = runs[_clusters(runs)]
     for (dataset, name), group in clustered.groupby(["dataset", "family"]):
-        table = group.pivot_table(index="seed", columns="k", values="metrics.rmse",
-                                  aggfunc="mean").dropna()
-        row = {"dataset": dataset, "model": name,
-               "k values": ", ".join(str(int(k)) for k in sorted(group["k"].unique()))}
+        table = group.pivot_table(
+            index="seed", columns="k", values="metrics.rmse", aggfunc="mean"
+        ).dropna()
+        row = {
+            "dataset": dataset,
+            "model": name,
+            "k values": ", ".join(str(int(k)) for k in sorted(group["k"].unique())),
+        }
         if table.shape[0] < 2 or table.shape[1] < 2:
-            row["verdict"] = ("not enough runs: need >= 2 seeds, each run at every one of "
-                              ">= 2 values of k (complete blocks)")
+            row["verdict"] = (
+                "not enough runs: need >= 2 seeds, each run at every one of "
+                ">= 2 values of k (complete blocks)"
+            )
         else:
             table.columns = [int(k) for k in table.columns]
             row.update(describe(blocked_verdict(table, alpha, target), alpha, target))
@@ -498,21 +562,29 @@ def table_convergence(runs: pd.DataFrame, tolerance: float = 0.05) -> pd.DataFra
         return pd.DataFrame()
     rows = []
     ordered = runs.sort_values(["dataset", "order", "base_model", "seed", "epochs"])
-    for (dataset, model, seed), group in ordered.groupby(["dataset", "base_model", "seed"],
-                                                         sort=False):
+    for (dataset, model, seed), group in ordered.groupby(
+        ["dataset", "base_model", "seed"], sort=False
+    ):
         rmse = _num(group["metrics.rmse"]).groupby(group["epochs"]).mean().dropna()
         if len(rmse) < 2:
             continue
         longest = rmse.index.max()
         for epochs, value in rmse.drop(longest).items():
             excess = value / rmse[longest] - 1
-            rows.append({"dataset": dataset, "model": model, "seed": int(seed),
-                         "epochs": int(epochs), "RMSE": f"{value:.4f}",
-                         "reference epochs": int(longest),
-                         "reference RMSE": f"{rmse[longest]:.4f}",
-                         "length ratio": f"{longest / epochs:g}",
-                         "excess": f"{100 * excess:+.1f} %",
-                         f"within {100 * tolerance:g} %": bool(abs(excess) <= tolerance)})
+            rows.append(
+                {
+                    "dataset": dataset,
+                    "model": model,
+                    "seed": int(seed),
+                    "epochs": int(epochs),
+                    "RMSE": f"{value:.4f}",
+                    "reference epochs": int(longest),
+                    "reference RMSE": f"{rmse[longest]:.4f}",
+                    "length ratio": f"{longest / epochs:g}",
+                    "excess": f"{100 * excess:+.1f} %",
+                    f"within {100 * tolerance:g} %": bool(abs(excess) <= tolerance),
+                }
+            )
     return pd.DataFrame(rows)
 
 

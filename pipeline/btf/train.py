@@ -64,11 +64,9 @@ class _Curve:
     direction, measured with the model as it would be stored (batch-norm in eval mode).
     Its time is training time only; measuring is excluded from it."""
 
-    def __init__(self, abrdf, sources, source_of_texel, norm, features, train_dirs, texels,
-                 seed):
+    def __init__(self, abrdf, sources, source_of_texel, norm, features, train_dirs, texels, seed):
         m = abrdf.shape[0]
-        rows = np.sort(np.random.default_rng(seed + 7919).choice(m, min(texels, m),
-                                                                  replace=False))
+        rows = np.sort(np.random.default_rng(seed + 7919).choice(m, min(texels, m), replace=False))
         self.inputs = norm.encoder_input(sources[source_of_texel[rows]])
         self.targets = torch.from_numpy(norm.target(abrdf[rows][:, train_dirs]))
         self.features = features[torch.from_numpy(np.asarray(train_dirs))]
@@ -82,13 +80,16 @@ class _Curve:
         x = torch.from_numpy(self.inputs).permute(0, 2, 1).to(device)
         latents = encoder(x)
         # 16 texels at a time: the whole subsample's hidden layer would not fit in cache.
-        pred = torch.cat([decoder.decode_grid(latents[i : i + 16], self.features).cpu()
-                          for i in range(0, len(latents), 16)])
+        pred = torch.cat(
+            [
+                decoder.decode_grid(latents[i : i + 16], self.features).cpu()
+                for i in range(0, len(latents), 16)
+            ]
+        )
         encoder.train()
         decoder.train()
         rmse = float(torch.sqrt(torch.mean(torch.square(pred - self.targets))))
-        point = {"step": step, "epoch": epoch, "seconds": seconds, "queries": queries,
-                 "rmse": rmse}
+        point = {"step": step, "epoch": epoch, "seconds": seconds, "queries": queries, "rmse": rmse}
         self.points.append(point)
         return point
 
@@ -147,8 +148,7 @@ def train(
     if settings.optimizer == "adam":
         optimizer = torch.optim.Adam(params, lr=settings.lr, fused=True)
     else:
-        optimizer = torch.optim.SGD(params, lr=settings.lr, momentum=settings.momentum,
-                                    fused=True)
+        optimizer = torch.optim.SGD(params, lr=settings.lr, momentum=settings.momentum, fused=True)
     features = torch.from_numpy(dir_features).to(device)
     train_dirs = np.asarray(train_dirs)
     all_queries = settings.queries_per_abrdf < 0 or settings.queries_per_abrdf >= len(train_dirs)
@@ -157,8 +157,9 @@ def train(
     steps_per_pass = m // b  # drop the last partial batch: batch-norm needs >= 2 samples
     # An epoch is one pass over the M texels, or epoch_texels texels whatever M is (so that
     # a smaller crop does not silently mean fewer steps and an earlier-decaying schedule).
-    steps_per_epoch = (steps_per_pass if settings.epoch_texels is None
-                       else max(1, settings.epoch_texels // b))
+    steps_per_epoch = (
+        steps_per_pass if settings.epoch_texels is None else max(1, settings.epoch_texels // b)
+    )
     total = steps_per_epoch * settings.epochs
     if settings.max_steps >= 0:
         total = min(total, settings.max_steps)
@@ -168,31 +169,44 @@ def train(
         # Decays over the whole run: a run twice as long decays twice as slowly, so that
         # doubling it is a convergence check (the half-life schedule cannot be one).
         schedule = torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: 0.5 * (1 + math.cos(math.pi * min(step / total, 1.0))))
+            optimizer, lambda step: 0.5 * (1 + math.cos(math.pi * min(step / total, 1.0)))
+        )
     elif settings.lr_half_life > 0:
         half_life_steps = settings.lr_half_life * steps_per_epoch
         schedule = torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: 0.5 ** (step / half_life_steps))
+            optimizer, lambda step: 0.5 ** (step / half_life_steps)
+        )
     else:
         schedule = None
-    if (settings.precision == "bfloat16" and device.type == "cpu"
-            and not torch.ops.mkldnn._is_mkldnn_bf16_supported()):
+    if (
+        settings.precision == "bfloat16"
+        and device.type == "cpu"
+        and not torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    ):
         # Without AVX512-BF16 or AMX, bfloat16 products run on emulated paths, many times
         # slower than float32 (docs/performance.md).
-        log.warning("train.precision=bfloat16 on a CPU without bfloat16 support (no "
-                    "AVX512-BF16 or AMX): expect training far slower than float32")
+        log.warning(
+            "train.precision=bfloat16 on a CPU without bfloat16 support (no "
+            "AVX512-BF16 or AMX): expect training far slower than float32"
+        )
     backend = resolve_backend(settings.backend, device)
     sampling = Sampling(b, q, all_queries, train_dirs, n, target_from_source)
     batches = _batches(abrdf, sources, source_of_texel, norm, sampling, rng, device, seed)
-    log.info("training on %s with the %s backend, %s, batches from the %s", device,
-             backend, settings.precision,
-             "device" if isinstance(batches, DeviceBatches) else "host")
-    step_fn = make_step(backend, encoder, decoder, features, settings.precision, workers,
-                        settings.chunk)
+    log.info(
+        "training on %s with the %s backend, %s, batches from the %s",
+        device,
+        backend,
+        settings.precision,
+        "device" if isinstance(batches, DeviceBatches) else "host",
+    )
+    step_fn = make_step(
+        backend, encoder, decoder, features, settings.precision, workers, settings.chunk
+    )
     curve = None
     if settings.curve_every > 0:
-        curve = _Curve(abrdf, sources, source_of_texel, norm, features, train_dirs,
-                       settings.curve_texels, seed)
+        curve = _Curve(
+            abrdf, sources, source_of_texel, norm, features, train_dirs, settings.curve_texels, seed
+        )
 
     losses: list[float] = []
     step = 0
@@ -207,8 +221,10 @@ def train(
             on_curve(point)
 
     try:
-        with (training_tuning(settings, workers, on_cpu=device.type == "cpu"),
-              tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar):
+        with (
+            training_tuning(settings, workers, on_cpu=device.type == "cpu"),
+            tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar,
+        ):
             if curve is not None:
                 measure(0)
             for epoch in range(-(-total // max(steps_per_pass, 1))):  # passes over M texels
@@ -246,11 +262,23 @@ def train(
     finally:
         step_fn.close()
         torch.set_num_threads(previous_threads)
-    log.info("trained %d steps (%d epochs) in %.1f s, %.3f M queries/s, last loss %.4g",
-             step, len(losses), seconds, step * b * q / max(seconds, 1e-9) / 1e6,
-             losses[-1] if losses else float("nan"))
-    return TrainResult(encoder.cpu(), decoder.cpu(), losses, step, seconds, step * b * q,
-                       curve.points if curve is not None else [])
+    log.info(
+        "trained %d steps (%d epochs) in %.1f s, %.3f M queries/s, last loss %.4g",
+        step,
+        len(losses),
+        seconds,
+        step * b * q / max(seconds, 1e-9) / 1e6,
+        losses[-1] if losses else float("nan"),
+    )
+    return TrainResult(
+        encoder.cpu(),
+        decoder.cpu(),
+        losses,
+        step,
+        seconds,
+        step * b * q,
+        curve.points if curve is not None else [],
+    )
 
 
 def _batches(abrdf, sources, source_of_texel, norm, sampling, rng, device, seed):
@@ -259,10 +287,12 @@ def _batches(abrdf, sources, source_of_texel, norm, sampling, rng, device, seed)
     nbytes = resident_bytes(abrdf, sources, sampling.target_from_source)
     if device.type == "cuda":
         if fits_on_device(nbytes, device):
-            return DeviceBatches(abrdf, sources, source_of_texel, norm, sampling, rng,
-                                 device, seed)
-        log.info("the training ABRDFs (%.0f MiB) do not fit in the device's free memory: "
-                 "each batch is copied from the host", nbytes / 2**20)
+            return DeviceBatches(abrdf, sources, source_of_texel, norm, sampling, rng, device, seed)
+        log.info(
+            "the training ABRDFs (%.0f MiB) do not fit in the device's free memory: "
+            "each batch is copied from the host",
+            nbytes / 2**20,
+        )
     return HostBatches(abrdf, sources, source_of_texel, norm, sampling, rng, device)
 
 

@@ -86,16 +86,20 @@ class TrainSettings:
         if self.epochs < 1:
             raise ConfigError(f"train.epochs={self.epochs} must be >= 1")
         if self.epoch_texels is not None and self.epoch_texels < self.batch_size:
-            raise ConfigError(f"train.epoch_texels={self.epoch_texels} must be null or >= "
-                              f"train.batch_size={self.batch_size}")
+            raise ConfigError(
+                f"train.epoch_texels={self.epoch_texels} must be null or >= "
+                f"train.batch_size={self.batch_size}"
+            )
         if self.batch_size < 2:
             # Batch-norm in training mode needs at least two samples.
             raise ConfigError(f"train.batch_size={self.batch_size} must be >= 2")
         if not self.lr > 0 or self.lr == float("inf"):  # also NaN
             raise ConfigError(f"train.lr={self.lr} must be a finite number > 0")
         if self.queries_per_abrdf != -1 and self.queries_per_abrdf < 1:
-            raise ConfigError(f"train.queries_per_abrdf={self.queries_per_abrdf} must be "
-                              f">= 1, or -1 for every training direction")
+            raise ConfigError(
+                f"train.queries_per_abrdf={self.queries_per_abrdf} must be "
+                f">= 1, or -1 for every training direction"
+            )
         if self.max_steps != -1 and self.max_steps < 1:
             raise ConfigError(f"train.max_steps={self.max_steps} must be >= 1, or -1 for none")
         if not 0 <= self.momentum < 1:  # also NaN
@@ -109,12 +113,14 @@ class TrainSettings:
         if self.curve_every < 0 or self.curve_texels < 1:
             raise ConfigError("train.curve_every must be >= 0 and train.curve_texels >= 1")
         if (self.chunk is not None and self.chunk < 1) or (
-                self.threads is not None and self.threads < 1):
+            self.threads is not None and self.threads < 1
+        ):
             raise ConfigError("train.chunk and train.threads must be >= 1")
         if self.precision not in PRECISIONS:
             raise ConfigError(f"train.precision={self.precision!r} must be float32 or bfloat16")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"train.device={self.device!r} must be auto, cpu or cuda")
         if self.backend not in BACKENDS:
-            raise ConfigError(f"train.backend={self.backend!r} must be one of "
-                              f"{', '.join(BACKENDS)}")
+            raise ConfigError(
+                f"train.backend={self.backend!r} must be one of {', '.join(BACKENDS)}"
+            )

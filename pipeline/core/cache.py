@@ -139,8 +139,9 @@ class Entry:
         except (OSError, ValueError) as err:
             raise DataError(_unreadable(path, err)) from err
 
-    def damage(self, hashes: bool = True, progress: Callable[[int], Any] | None = None
-               ) -> str | None:
+    def damage(
+        self, hashes: bool = True, progress: Callable[[int], Any] | None = None
+    ) -> str | None:
         """What is wrong with the entry's own files (naming the first bad one), or None.
 
         Every listed file must exist with its recorded size and, with ``hashes``, its
@@ -168,20 +169,24 @@ def _manifest_problem(manifest: Any) -> str | None:
         return "records no id"
     parents = manifest.get("parents")
     if not isinstance(parents, dict) or not all(
-            isinstance(p, dict) and isinstance(p.get("stage"), str) and isinstance(p.get("id"), str)
-            for p in parents.values()):
+        isinstance(p, dict) and isinstance(p.get("stage"), str) and isinstance(p.get("id"), str)
+        for p in parents.values()
+    ):
         return "records no parents (each one's stage and id)"
     files = manifest.get("files")
     if not isinstance(files, dict) or not all(
-            isinstance(r, dict) and isinstance(r.get("bytes"), int) and is_hashed(r)
-            for r in files.values()):
+        isinstance(r, dict) and isinstance(r.get("bytes"), int) and is_hashed(r)
+        for r in files.values()
+    ):
         return "records no size and sha256 of each file"
     return None
 
 
 def _unreadable(path: Path, err: BaseException) -> str:
-    return (f"cache file {path} cannot be read ({type(err).__name__}: {err}); the entry is "
-            f"damaged: remove it (python -m pipeline.cache verify fix=true) and run again")
+    return (
+        f"cache file {path} cannot be read ({type(err).__name__}: {err}); the entry is "
+        f"damaged: remove it (python -m pipeline.cache verify fix=true) and run again"
+    )
 
 
 def folder_bytes(folder: Path) -> int:
@@ -239,8 +244,13 @@ class StageCache:
             return None, f"{manifest} {problem}"
         return Entry(stage, key, path, hit=True, manifest=content), None
 
-    def check(self, stage: str, key: str, hashes: bool = True,
-              progress: Callable[[int], Any] | None = None) -> tuple[Entry | None, str | None]:
+    def check(
+        self,
+        stage: str,
+        key: str,
+        hashes: bool = True,
+        progress: Callable[[int], Any] | None = None,
+    ) -> tuple[Entry | None, str | None]:
         """The entry and what is wrong with it: ``(None, None)`` when there is none,
         ``(entry, None)`` when it can be used, ``(entry or None, problem)`` when not.
 
@@ -249,8 +259,11 @@ class StageCache:
         entry, problem = self.read(stage, key)
         if entry is None:
             return None, problem
-        problem = (entry.damage(hashes=False) or self.lineage_problem(entry)
-                   or (entry.damage(True, progress) if hashes else None))
+        problem = (
+            entry.damage(hashes=False)
+            or self.lineage_problem(entry)
+            or (entry.damage(True, progress) if hashes else None)
+        )
         return entry, problem
 
     def lineage_problem(self, entry: Entry) -> str | None:
@@ -272,8 +285,10 @@ class StageCache:
                 if parent is None:
                     return f"{child.path} was computed from {where}, which {problem or 'is gone'}"
                 if parent.manifest["id"] != recorded["id"]:
-                    return (f"{child.path} was computed from {where}, which has been computed "
-                            f"again since")
+                    return (
+                        f"{child.path} was computed from {where}, which has been computed "
+                        f"again since"
+                    )
                 problem = parent.damage(hashes=False)
                 if problem is not None:
                     return f"{child.path} was computed from {where}, which is damaged: {problem}"
@@ -334,8 +349,7 @@ class StageCache:
             if found is not None and problem is None:
                 return self._hand_out(_hit(found, start, ", after waiting for another job"))
             if problem is not None:
-                log.warning("cache entry %s cannot be used: %s; computing it again",
-                            final, problem)
+                log.warning("cache entry %s cannot be used: %s; computing it again", final, problem)
                 discard(final)
             entry = self._compute(stage, version, settings, inputs, compute, key, final, start)
             return self._hand_out(entry)
@@ -380,8 +394,9 @@ class StageCache:
                 }
                 # No fsync: the folder is published by its rename, and an entry a crash
                 # left short is found by the sizes and hashes of its manifest.
-                write_atomic(tmp / MANIFEST, json.dumps(manifest, indent=1), sync=False,
-                             hint=CACHE_HINT)
+                write_atomic(
+                    tmp / MANIFEST, json.dumps(manifest, indent=1), sync=False, hint=CACHE_HINT
+                )
             if not publish(tmp, final):
                 # Another job published the same key first: hand out its entry (its id).
                 entry, _ = self.read(stage, key)
@@ -462,7 +477,6 @@ def last_used(path: Path) -> float:
 def temporary_name(key: str) -> str:
     """The name of the folder an entry is computed in: its key and owner (pid@host)."""
     return f"{TEMPORARY}{key}-{uuid.uuid4().hex[:8]}-{os.getpid()}@{host_name()}"
-
 
 
 def _why_stale(folder: Path) -> str | None:

@@ -41,17 +41,26 @@ class _Yaml12Loader(yaml.SafeLoader):
 
 
 _Yaml12Loader.yaml_implicit_resolvers = {
-    first: [(tag, regexp) for tag, regexp in resolvers
-            if tag not in ("tag:yaml.org,2002:bool", "tag:yaml.org,2002:int",
-                           "tag:yaml.org,2002:float")]
-    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+    first: [
+        (tag, regexp)
+        for tag, regexp in resolvers
+        if tag not in ("tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+    ]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
 for _tag, _pattern, _first in (
-        ("bool", r"^(?:true|True|TRUE|false|False|FALSE)$", "tTfF"),
-        ("int", r"^[-+]?[0-9]+$", "-+0123456789"),
-        ("float", r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
-                  r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$", "-+0123456789.")):
-    _Yaml12Loader.add_implicit_resolver(f"tag:yaml.org,2002:{_tag}", re.compile(_pattern),
-                                        list(_first))
+    ("bool", r"^(?:true|True|TRUE|false|False|FALSE)$", "tTfF"),
+    ("int", r"^[-+]?[0-9]+$", "-+0123456789"),
+    (
+        "float",
+        r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+        r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$",
+        "-+0123456789.",
+    ),
+):
+    _Yaml12Loader.add_implicit_resolver(
+        f"tag:yaml.org,2002:{_tag}", re.compile(_pattern), list(_first)
+    )
 
 
 def read_value(text: str):
@@ -92,9 +101,11 @@ def read(argv: Sequence[str], keys: Mapping[str, tuple], command: str = "") -> d
             raise ConfigError(f"{key} needs a value: give {key}=VALUE")
         if not equals or key not in keys:
             of = f" of {command}" if command else ""
-            raise ConfigError(f"{argument!r} is not a setting{of}{closest(key, list(keys))}: "
-                              f"give key=value with a key among {', '.join(keys)} "
-                              f"(--help describes them)")
+            raise ConfigError(
+                f"{argument!r} is not a setting{of}{closest(key, list(keys))}: "
+                f"give key=value with a key among {', '.join(keys)} "
+                f"(--help describes them)"
+            )
         if key in given:
             raise ConfigError(f"{key} is given twice")
         try:
@@ -112,8 +123,7 @@ def read(argv: Sequence[str], keys: Mapping[str, tuple], command: str = "") -> d
     return {keys[key][0]: value for key, value in given.items()}
 
 
-def parse(argv: Sequence[str], keys: Mapping[str, tuple], settings_class: type,
-          command: str = ""):
+def parse(argv: Sequence[str], keys: Mapping[str, tuple], settings_class: type, command: str = ""):
     """``settings_class`` (a dataclass) from ``argv``: the defaults, overridden by
     :func:`read`'s values."""
     return settings_class(**read(argv, keys, command))
@@ -125,8 +135,10 @@ def command_of(argv: Sequence[str], commands: Sequence[str]) -> tuple[str, list[
     if not argv or "=" in argv[0]:
         raise ConfigError(f"no command: give one of {', '.join(commands)} first")
     if argv[0] not in commands:
-        raise ConfigError(f"unknown command {argv[0]!r}{closest(argv[0], commands)}; "
-                          f"commands: {', '.join(commands)}")
+        raise ConfigError(
+            f"unknown command {argv[0]!r}{closest(argv[0], commands)}; "
+            f"commands: {', '.join(commands)}"
+        )
     return argv[0], list(argv[1:])
 
 
@@ -135,11 +147,19 @@ def shown(value) -> str:
     ``[0,0,100,100]``)."""
     if isinstance(value, list | tuple):
         return "[" + ",".join(shown(item) for item in value) + "]"
-    return "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+    return (
+        "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+    )
 
 
-def usage(prog: str, keys: Mapping[str, tuple], defaults, summary: str,
-          synopsis: str = "[key=value ...]", notes: str = "") -> str:
+def usage(
+    prog: str,
+    keys: Mapping[str, tuple],
+    defaults,
+    summary: str,
+    synopsis: str = "[key=value ...]",
+    notes: str = "",
+) -> str:
     """The ``--help`` text: the usage line, ``summary``, each key with its default (read
     from ``defaults``, the settings dataclass's instance) and help, then ``notes``."""
     lines = [f"usage: {prog} {synopsis}", "", summary]
@@ -149,8 +169,9 @@ def usage(prog: str, keys: Mapping[str, tuple], defaults, summary: str,
     return "\n".join(lines + ([f"\n{notes}"] if notes else []))
 
 
-def parse_args(prog: str, parse: Callable[[list[str]], object], usage: str,
-               argv: Sequence[str] | None = None):
+def parse_args(
+    prog: str, parse: Callable[[list[str]], object], usage: str, argv: Sequence[str] | None = None
+):
     """``parse(argv)`` for a command line (``sys.argv[1:]`` by default): ``-h``/``--help``
     prints ``usage`` and exits 0; a :class:`ConfigError` prints one line, ``PROG: error:
     ...``, on stderr and exits 2 (as argparse does)."""
@@ -182,14 +203,14 @@ class Command:
 
     def usage(self) -> str:
         """The ``--help`` text (:func:`usage`)."""
-        return usage(self.prog, self.keys, self.settings(), self.summary, self.synopsis,
-                     self.notes)
+        return usage(self.prog, self.keys, self.settings(), self.summary, self.synopsis, self.notes)
 
     def parse(self, argv: Sequence[str]):
         """The settings from ``key=value`` arguments (:func:`parse`)."""
         return parse(argv, self.keys, self.settings, self.what)
 
-    def parse_args(self, argv: Sequence[str] | None = None,
-                   parser: Callable[[list[str]], object] | None = None):
+    def parse_args(
+        self, argv: Sequence[str] | None = None, parser: Callable[[list[str]], object] | None = None
+    ):
         """``parser`` (by default :meth:`parse`) for a command line (:func:`parse_args`)."""
         return parse_args(self.prog, parser or self.parse, self.usage(), argv)

@@ -22,13 +22,13 @@ CHUNK_BYTES = 64 << 20
 HASH_THREADS = min(8, os.cpu_count() or 1)
 
 
-def first_changed(folder: Path, records: Mapping[str, Mapping],
-                  progress: Callable[[int], Any] | None = None) -> str | None:
+def first_changed(
+    folder: Path, records: Mapping[str, Mapping], progress: Callable[[int], Any] | None = None
+) -> str | None:
     """What differs first between the files under ``folder`` and their ``records``
     (:func:`listed_files`; sizes are taken as checked), or None. ``progress(n)`` is called
     with the bytes of each file or chunk hashed."""
-    pieces = [piece for name, record in records.items()
-              for piece in _pieces(folder / name, record)]
+    pieces = [piece for name, record in records.items() for piece in _pieces(folder / name, record)]
     changed = _first_changed_piece(pieces, progress)
     if changed is None:
         return None
@@ -63,8 +63,10 @@ def _pieces(path: Path, record: Mapping) -> list[Piece]:
     """The pieces of a file that its record holds digests of (none when it holds none)."""
     if f"{HASH}_chunks" in record:
         size, chunk = int(record["bytes"]), int(record["chunk_bytes"])
-        return [(path, i * chunk, min(chunk, size - i * chunk), digest)
-                for i, digest in enumerate(record[f"{HASH}_chunks"])]
+        return [
+            (path, i * chunk, min(chunk, size - i * chunk), digest)
+            for i, digest in enumerate(record[f"{HASH}_chunks"])
+        ]
     if HASH in record:
         return [(path, 0, record.get("bytes"), record[HASH])]  # no size recorded: to the end
     return []
@@ -89,6 +91,7 @@ def range_digest(path: Path, offset: int = 0, length: int | None = None) -> str:
 
 def _digests(pieces: list[Piece]) -> Iterator[str]:
     """The digest of each piece, in order, computed by up to :data:`HASH_THREADS` threads."""
+
     def digest(piece: Piece) -> str:
         path, offset, length, _ = piece
         return range_digest(path, offset, length)
@@ -103,8 +106,9 @@ def _digests(pieces: list[Piece]) -> Iterator[str]:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _first_changed_piece(pieces: list[Piece], progress: Callable[[int], Any] | None = None
-                         ) -> Piece | None:
+def _first_changed_piece(
+    pieces: list[Piece], progress: Callable[[int], Any] | None = None
+) -> Piece | None:
     """The first piece whose digest differs from the expected one, or None."""
     digests = _digests(pieces)
     with contextlib.closing(digests):  # the threads stop at the first difference
@@ -124,9 +128,13 @@ def describe_files(folder: Path, skip: str = "manifest.json") -> dict[str, dict]
         name = path.relative_to(folder).as_posix()
         if path.is_file() and name != skip:
             sizes[name] = path.stat().st_size
-    pieces = {name: [(folder / name, offset, min(CHUNK_BYTES, size - offset), None)
-                     for offset in range(0, max(size, 1), CHUNK_BYTES)]
-              for name, size in sizes.items()}
+    pieces = {
+        name: [
+            (folder / name, offset, min(CHUNK_BYTES, size - offset), None)
+            for offset in range(0, max(size, 1), CHUNK_BYTES)
+        ]
+        for name, size in sizes.items()
+    }
     found = iter(list(_digests([piece for name in sizes for piece in pieces[name]])))
     files = {}
     for name, size in sizes.items():

@@ -77,7 +77,8 @@ def is_disk_full(error: BaseException, free: int | None = None) -> bool:
             return True
         cause = cause.__cause__ or cause.__context__
     errno_lost = isinstance(error, RuntimeError) or (
-        isinstance(error, OSError) and error.errno is None)
+        isinstance(error, OSError) and error.errno is None
+    )
     return errno_lost and free is not None and free < NEARLY_FULL_BYTES
 
 
@@ -97,8 +98,12 @@ class DiskFullError(DataError):
         self.path, self.free, self.needed, self.hint = path, free, needed, hint
 
 
-def no_space(path: str | os.PathLike, free: int | None = None, needed: int | None = None,
-             hint: str = "free some space or write elsewhere") -> DiskFullError:
+def no_space(
+    path: str | os.PathLike,
+    free: int | None = None,
+    needed: int | None = None,
+    hint: str = "free some space or write elsewhere",
+) -> DiskFullError:
     """The error for a write of ``path`` that the disk could not hold (``free``: measured
     now when None).
 
@@ -110,8 +115,9 @@ def no_space(path: str | os.PathLike, free: int | None = None, needed: int | Non
 
 
 @contextlib.contextmanager
-def disk_full_is_named(path: str | os.PathLike, hint: str = "free some space or write elsewhere"
-                       ) -> Iterator[None]:
+def disk_full_is_named(
+    path: str | os.PathLike, hint: str = "free some space or write elsewhere"
+) -> Iterator[None]:
     """Turn a full disk while the block writes ``path`` into :func:`no_space`'s
     :class:`DiskFullError` (other errors pass unchanged). The space it names is measured
     at once: a caller that removes what was written may raise a new one after."""
@@ -133,8 +139,13 @@ def temporary_sibling(path: str | os.PathLike) -> Path:
     return path.with_name(f".{path.stem}.{uuid.uuid4().hex[:8]}.tmp{path.suffix}")
 
 
-def write_atomic(path: str | os.PathLike, content: bytes | str | Callable[[Path], object], *,
-                 sync: bool = True, hint: str = "free some space or write elsewhere") -> Path:
+def write_atomic(
+    path: str | os.PathLike,
+    content: bytes | str | Callable[[Path], object],
+    *,
+    sync: bool = True,
+    hint: str = "free some space or write elsewhere",
+) -> Path:
     """Write a file so that ``path`` holds the old file or the whole new one, never a part.
 
     The content goes to a temporary file in the same folder (:func:`temporary_sibling`),
@@ -183,11 +194,13 @@ def write_atomic(path: str | os.PathLike, content: bytes | str | Callable[[Path]
     except BaseException as error:
         free = free_bytes(path.parent)  # before the temporary file gives its space back
         tmp.unlink(missing_ok=True)
-        if isinstance(error, Exception) and not isinstance(error, DataError) \
-                and is_disk_full(error, free):
+        if (
+            isinstance(error, Exception)
+            and not isinstance(error, DataError)
+            and is_disk_full(error, free)
+        ):
             # The space named is what is free once the temporary file is gone.
-            raise no_space(path, needed=None if callable(data) else len(data),
-                           hint=hint) from error
+            raise no_space(path, needed=None if callable(data) else len(data), hint=hint) from error
         raise
     return path
 
@@ -213,8 +226,9 @@ def reserved_memmap(path: str | os.PathLike, shape: tuple[int, ...], dtype) -> n
         del array
         path.unlink(missing_ok=True)
         if error.errno in _FULL_ERRNOS:
-            raise no_space(path, needed=size,
-                           hint="free some space or point paths.cache elsewhere") from None
+            raise no_space(
+                path, needed=size, hint="free some space or point paths.cache elsewhere"
+            ) from None
         raise
     finally:
         os.close(fd)

@@ -76,8 +76,9 @@ class Method:
         """``{"prefix.field": role}`` of :attr:`settings`."""
         from pipeline.core.settings import roles
 
-        return {key: role for prefix, cls in self.settings
-                for key, role in roles(cls, prefix).items()}
+        return {
+            key: role for prefix, cls in self.settings for key, role in roles(cls, prefix).items()
+        }
 
     def left_out(self, cfg: DictConfig) -> list[str]:
         """The settings :attr:`unused` names for this job (none without it)."""
@@ -101,14 +102,17 @@ def method_of(cfg: DictConfig) -> Method:
     """The :class:`Method` the composed config's ``method.spec`` names."""
     spec = cfg.method.get("spec")
     if not spec:
-        raise ConfigError(f"method {cfg.method.get('name')!r} has no 'spec' naming its "
-                          "Method object (conf/method/<name>.yaml: spec: <module>:<name>)")
+        raise ConfigError(
+            f"method {cfg.method.get('name')!r} has no 'spec' naming its "
+            "Method object (conf/method/<name>.yaml: spec: <module>:<name>)"
+        )
     method = resolve(spec)
     if not isinstance(method, Method):
         raise ConfigError(f"method.spec={spec!r} is a {type(method).__name__}, not a Method")
     if method.name != cfg.method.name:
-        raise ConfigError(f"method.spec={spec!r} is method {method.name!r}, but "
-                          f"method.name={cfg.method.name!r}")
+        raise ConfigError(
+            f"method.spec={spec!r} is method {method.name!r}, but method.name={cfg.method.name!r}"
+        )
     return method
 
 

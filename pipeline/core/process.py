@@ -57,8 +57,9 @@ def descendants(pid: int | None = None) -> list[int]:
     return found
 
 
-def stop_children(leftovers_in: Iterable[str | os.PathLike] = (),
-                  grace_s: float = CHILDREN_GRACE_S) -> list[int]:
+def stop_children(
+    leftovers_in: Iterable[str | os.PathLike] = (), grace_s: float = CHILDREN_GRACE_S
+) -> list[int]:
     """Send SIGTERM to this process's children (a sweep's workers), so that they end
     their runs FAILED and exit; SIGKILL what is left of them (and of their children)
     after ``grace_s``, then remove their temporary files under ``leftovers_in`` (see

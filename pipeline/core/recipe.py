@@ -48,9 +48,15 @@ def _patterns() -> dict[str, str]:
     than ``result`` (:func:`pipeline.core.settings.setting`), with its reason."""
     from pipeline.core.methods import registered
 
-    declared = {key: WHY[role] for method in registered()
-                for key, role in method.roles().items() if role != "result"}
+    declared = {
+        key: WHY[role]
+        for method in registered()
+        for key, role in method.roles().items()
+        if role != "result"
+    }
     return {**NOT_RECIPE, **declared}
+
+
 RENDER = "btf.render.*"
 RECIPE_TAG = "tags.recipe"
 RENDER_RECIPE_TAG = "tags.render_recipe"
@@ -60,8 +66,9 @@ ABSENT = "(absent)"  # a setting a run did not log: never equal to a logged valu
 def left_out(key: str, render: bool = False) -> bool:
     """Whether the flattened setting ``key`` is outside the recipe (``render``: the render
     recipe, which also holds ``btf.render.*``)."""
-    return any(fnmatchcase(key, pattern) for pattern in _patterns()
-               if not (render and pattern == RENDER))
+    return any(
+        fnmatchcase(key, pattern) for pattern in _patterns() if not (render and pattern == RENDER)
+    )
 
 
 def recipe_settings(params: Mapping[str, object], render: bool = False) -> dict[str, str]:
@@ -95,24 +102,33 @@ def with_recipe(runs: pd.DataFrame, tag: str = RECIPE_TAG) -> pd.DataFrame:
         return runs
     has = runs[tag].notna() if tag in runs else pd.Series(False, index=runs.index)
     if not has.all():
-        log.warning("%d of %d runs carry no %s tag (not logged by a job of this pipeline): "
-                    "left out of the tables", int((~has).sum()), len(runs),
-                    tag.removeprefix("tags."))
+        log.warning(
+            "%d of %d runs carry no %s tag (not logged by a job of this pipeline): "
+            "left out of the tables",
+            int((~has).sum()),
+            len(runs),
+            tag.removeprefix("tags."),
+        )
     return runs[has]
 
 
 def run_settings(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     """One row per run: its recipe settings from MLflow's ``params.*`` columns, as strings;
     :data:`ABSENT` where a run did not log a setting that another run has."""
-    names = [c[len("params."):] for c in runs.columns if c.startswith("params.")]
+    names = [c[len("params.") :] for c in runs.columns if c.startswith("params.")]
     kept = [n for n in names if not left_out(n, render)]
     settings = runs[[f"params.{n}" for n in kept]].astype(object)
     settings.columns = kept
     return settings.where(settings.notna(), ABSENT).astype(str)
 
 
-def recipe_suffixes(runs: pd.DataFrame, by: Sequence[str], ignore: Sequence[str] = (),
-                    render: bool = False, most: int = 3) -> pd.Series:
+def recipe_suffixes(
+    runs: pd.DataFrame,
+    by: Sequence[str],
+    ignore: Sequence[str] = (),
+    render: bool = False,
+    most: int = 3,
+) -> pd.Series:
     """For each run, ``" [key=value, ...]"`` naming the recipe settings in which it differs
     from the other runs with the same values in the columns ``by`` (say, dataset and model
     label); ``""`` where their recipes are equal. ``runs`` has MLflow's ``params.*``.

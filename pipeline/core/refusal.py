@@ -48,8 +48,7 @@ def first_values(overrides: Sequence[str]) -> list[str]:
     return lines
 
 
-def check_command_line(argv: Sequence[str], conf_dir: Path, config_name: str = "config"
-                       ) -> None:
+def check_command_line(argv: Sequence[str], conf_dir: Path, config_name: str = "config") -> None:
     """Compose ``argv``'s overrides as Hydra will; raise :class:`ConfigError` in one line
     naming the bad override (and the closest setting to a misspelt key)."""
     from hydra import compose, initialize_config_dir
@@ -69,19 +68,20 @@ def check_command_line(argv: Sequence[str], conf_dir: Path, config_name: str = "
             cfg = compose(config_name=config_name, overrides=lines, return_hydra_config=True)
             # A key added with + that no code reads (Hydra adds it without a word).
             job = OmegaConf.masked_copy(cfg, [key for key in cfg if key != "hydra"])
-            check_added_keys(job, lines, conf_dir,
-                             compose=lambda given: compose(config_name, given))
+            check_added_keys(
+                job, lines, conf_dir, compose=lambda given: compose(config_name, given)
+            )
     except (HydraException, OmegaConfBaseException) as error:
         raise ConfigError(explain(error, lines, conf_dir, config_name)) from None
     multirun = {"-m", "--multirun"} & set(argv) or str(cfg.hydra.mode) == "RunMode.MULTIRUN"
     sweeps = [line for line, given in zip(lines, overrides, strict=True) if line != given]
     if sweeps and not multirun:
-        raise ConfigError(f"{overrides[lines.index(sweeps[0])]} is a sweep: add -m (or give "
-                          f"one value)")
+        raise ConfigError(
+            f"{overrides[lines.index(sweeps[0])]} is a sweep: add -m (or give one value)"
+        )
 
 
-def explain(error: BaseException, lines: Sequence[str], conf_dir: Path,
-            config_name: str) -> str:
+def explain(error: BaseException, lines: Sequence[str], conf_dir: Path, config_name: str) -> str:
     """One line for Hydra's composition ``error`` of the overrides ``lines``."""
     text = f"{error} {error.__cause__ or ''}"
     key = _failed_key(text)
@@ -91,8 +91,9 @@ def explain(error: BaseException, lines: Sequence[str], conf_dir: Path,
         options = re.findall(r"^\s+(\S+)$", str(error), flags=re.M)
         choose = f" (choose from {', '.join(options)})" if options else ""
         return f"{name}: no such config{choose}"
-    if key and ("not in struct" in text or "Could not override" in text
-                or "Could not append" in text):
+    if key and (
+        "not in struct" in text or "Could not override" in text or "Could not append" in text
+    ):
         return f"{_given(lines, key)}: no such setting{_closest(key, lines, conf_dir, config_name)}"
     if key:
         return f"{_given(lines, key)}: {_first_line(error.__cause__ or error)}"
@@ -100,9 +101,12 @@ def explain(error: BaseException, lines: Sequence[str], conf_dir: Path,
 
 
 def _failed_key(text: str) -> str | None:
-    for pattern in (r"full_key: (\S+)", r"Could not override '([^']+)'",
-                    r"Could not append to config\. An item is already at '([^']+)'",
-                    r"[Kk]ey '([^']+)' (?:is )?not in struct"):
+    for pattern in (
+        r"full_key: (\S+)",
+        r"Could not override '([^']+)'",
+        r"Could not append to config\. An item is already at '([^']+)'",
+        r"[Kk]ey '([^']+)' (?:is )?not in struct",
+    ):
         found = re.search(pattern, text)
         if found:
             return found.group(1)

@@ -36,13 +36,16 @@ def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> 
 
     use_store(runs_dir)
     # The tables' own runs hold outputs, not results.
-    names_of = {e.experiment_id: e.name for e in mlflow.search_experiments()
-                if e.name != TABLES_EXPERIMENT}
+    names_of = {
+        e.experiment_id: e.name for e in mlflow.search_experiments() if e.name != TABLES_EXPERIMENT
+    }
     found = list(names_of.values())
     missing = [e for e in experiments or [] if e not in found]
     if missing:
-        raise ConfigError(f"tables.experiments: {missing} not in the store {runs_dir}; "
-                          f"its experiments: {found or 'none'}")
+        raise ConfigError(
+            f"tables.experiments: {missing} not in the store {runs_dir}; "
+            f"its experiments: {found or 'none'}"
+        )
     names = list(experiments or found)
     if not names:
         return pd.DataFrame()
@@ -51,8 +54,10 @@ def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> 
     )
     if runs.empty and filter_string:
         total = len(mlflow.search_runs(experiment_names=names, output_format="pandas"))
-        raise ConfigError(f"tables.filter={filter_string!r} matches none of the {total} runs "
-                          f"of {names} in {runs_dir}")
+        raise ConfigError(
+            f"tables.filter={filter_string!r} matches none of the {total} runs "
+            f"of {names} in {runs_dir}"
+        )
     if runs.empty:
         return runs
     runs = runs[runs["status"] == "FINISHED"]
@@ -94,8 +99,10 @@ def write_table(table: pd.DataFrame, out: Path, stem: str, title: str, note: str
     """
     index = table.index.name is not None
     write_file(out / f"{stem}.csv", table.to_csv(index=index))
-    write_file(out / f"{stem}.tex", table.to_latex(index=index, caption=title,
-                                                   label=f"tab:{stem}", na_rep="--"))
+    write_file(
+        out / f"{stem}.tex",
+        table.to_latex(index=index, caption=title, label=f"tab:{stem}", na_rep="--"),
+    )
     shown = table.astype(object).where(table.notna(), None)  # tabulate: None is missing
     markdown = f"## {title}\n\n{shown.to_markdown(index=index, missingval='–')}\n\n{note}\n"
     write_file(out / f"{stem}.md", markdown)
@@ -143,11 +150,16 @@ def summary_html(summary: str, folder: Path) -> str:
 
     body = re.sub(r"!\[([^\]]*)\]\(([^)\s]+\.png)\)", inline, summary)
     html = markdown.markdown(body, extensions=["tables"], output_format="html")
-    style = ("body{font-family:sans-serif;max-width:1400px;margin:1em}"
-             "table{border-collapse:collapse;font-size:13px}"
-             "td,th{border:1px solid #ccc;padding:2px 6px;white-space:nowrap}"
-             "img{max-width:100%}div.wide{overflow-x:auto}")
+    style = (
+        "body{font-family:sans-serif;max-width:1400px;margin:1em}"
+        "table{border-collapse:collapse;font-size:13px}"
+        "td,th{border:1px solid #ccc;padding:2px 6px;white-space:nowrap}"
+        "img{max-width:100%}div.wide{overflow-x:auto}"
+    )
     html = html.replace("<table>", '<div class="wide"><table>').replace(
-        "</table>", "</table></div>")
-    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><style>{style}</style>"
-            f"</head><body>{html}</body></html>")
+        "</table>", "</table></div>"
+    )
+    return (
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><style>{style}</style>"
+        f"</head><body>{html}</body></html>"
+    )

@@ -37,13 +37,18 @@ class Integer:
     def ok(self, value) -> bool:
         if value is None:
             return self.optional
-        return (isinstance(value, int) and not isinstance(value, bool)
-                and (self.low is None or value >= self.low)
-                and (self.high is None or value <= self.high))
+        return (
+            isinstance(value, int)
+            and not isinstance(value, bool)
+            and (self.low is None or value >= self.low)
+            and (self.high is None or value <= self.high)
+        )
 
     def __str__(self) -> str:
-        bounds = [f">= {self.low}" if self.low is not None else "",
-                  f"<= {self.high}" if self.high is not None else ""]
+        bounds = [
+            f">= {self.low}" if self.low is not None else "",
+            f"<= {self.high}" if self.high is not None else "",
+        ]
         text = " and ".join(b for b in bounds if b)
         return f"an integer {text}".rstrip() + (" or null" if self.optional else "")
 
@@ -96,14 +101,19 @@ class ListOf:
     at_least: int = 0
 
     def ok(self, value) -> bool:
-        return (isinstance(value, list | tuple)
-                and (self.length is None or len(value) == self.length)
-                and len(value) >= self.at_least
-                and all(self.item.ok(v) for v in value))
+        return (
+            isinstance(value, list | tuple)
+            and (self.length is None or len(value) == self.length)
+            and len(value) >= self.at_least
+            and all(self.item.ok(v) for v in value)
+        )
 
     def __str__(self) -> str:
-        count = f"{self.length} " if self.length is not None else (
-            f"at least {self.at_least} " if self.at_least else "")
+        count = (
+            f"{self.length} "
+            if self.length is not None
+            else (f"at least {self.at_least} " if self.at_least else "")
+        )
         return f"a list of {count}items, each {self.item}"
 
 
@@ -188,21 +198,33 @@ def schema(settings_class: type, class_name: str | None = None, **extra: object)
             value = extra.pop(f.name)
             fields.append((f.name, hints[f.name] | None, dataclasses.field(default=value)))
             continue
-        default = (dataclasses.field(default_factory=f.default_factory)
-                   if f.default is dataclasses.MISSING else dataclasses.field(default=f.default))
+        default = (
+            dataclasses.field(default_factory=f.default_factory)
+            if f.default is dataclasses.MISSING
+            else dataclasses.field(default=f.default)
+        )
         fields.append((f.name, hints[f.name], default))
     for key, value in extra.items():
         if isinstance(value, dict):
-            fields.append((key, dict[str, typing.Any],
-                           dataclasses.field(default_factory=lambda v=value: dict(v))))
+            fields.append(
+                (
+                    key,
+                    dict[str, typing.Any],
+                    dataclasses.field(default_factory=lambda v=value: dict(v)),
+                )
+            )
         else:
             fields.append((key, type(value) if value is not None else typing.Any, value))
     return dataclasses.make_dataclass(class_name or f"{settings_class.__name__}Schema", fields)
 
 
-def check_added_keys(cfg: DictConfig, overrides: list[str], conf_dir: Path,
-                     open_maps: tuple[str, ...] = ("tracking.tags",),
-                     compose=None) -> None:
+def check_added_keys(
+    cfg: DictConfig,
+    overrides: list[str],
+    conf_dir: Path,
+    open_maps: tuple[str, ...] = ("tracking.tags",),
+    compose=None,
+) -> None:
     """Refuse a setting added with ``+key=value`` (or ``++``) that the config does not have.
 
     Hydra refuses ``btf.crop.szie=32`` but adds ``+btf.crop.szie=32`` as a new key that no
@@ -232,8 +254,10 @@ def check_added_keys(cfg: DictConfig, overrides: list[str], conf_dir: Path,
         known = [k for k in _leaf_keys(cfg) if k != key]
         close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
         hint = f"; did you mean {close[0]}?" if close else ""
-        raise ConfigError(f"+{key}: no such setting{hint} (a + adds a new key that no code "
-                          f"reads; only {', '.join(open_maps)} take new keys)")
+        raise ConfigError(
+            f"+{key}: no such setting{hint} (a + adds a new key that no code "
+            f"reads; only {', '.join(open_maps)} take new keys)"
+        )
 
 
 _ABSENT = object()
@@ -254,21 +278,19 @@ def _leaf_keys(cfg: DictConfig, prefix: str = "") -> list[str]:
 # A setting's role, declared where the setting is (field metadata "role"): what its value
 # can change. Cache keys hold the RESULT settings of their stage, the recipe that tables
 # group runs by holds every RESULT setting, the logged parameters all that the model uses.
-RESULT = "result"      # can change a number in a table
-SPEED = "speed"        # changes how fast the same numbers are computed (up to float sums)
-LOG = "log"            # changes what is logged or drawn, not the model
+RESULT = "result"  # can change a number in a table
+SPEED = "speed"  # changes how fast the same numbers are computed (up to float sums)
+LOG = "log"  # changes what is logged or drawn, not the model
 ROLES = (RESULT, SPEED, LOG)
 
 
-def setting(default, constraint: Constraint | None = None, *, role: str = RESULT,
-            help: str = ""):
+def setting(default, constraint: Constraint | None = None, *, role: str = RESULT, help: str = ""):
     """A dataclass field with its role, its allowed values and one line of help."""
     if role not in ROLES:
         raise ValueError(f"role={role!r} must be one of {', '.join(ROLES)}")
     metadata = {"role": role, "constraint": constraint, "help": help}
     if isinstance(default, list | dict):
-        return dataclasses.field(default_factory=lambda: type(default)(default),
-                                 metadata=metadata)
+        return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
 
 
@@ -278,14 +300,18 @@ def roles(settings_class: type, prefix: str) -> dict[str, str]:
     found = {}
     for f in dataclasses.fields(settings_class):
         if "role" not in f.metadata:
-            raise TypeError(f"{settings_class.__name__}.{f.name} has no role: declare it "
-                            f"with pipeline.core.settings.setting(..., role=...)")
+            raise TypeError(
+                f"{settings_class.__name__}.{f.name} has no role: declare it "
+                f"with pipeline.core.settings.setting(..., role=...)"
+            )
         found[f"{prefix}.{f.name}"] = f.metadata["role"]
     return found
 
 
 def constraints(settings_class: type, prefix: str) -> dict[str, Constraint]:
     """``{"prefix.field": constraint}`` of the :func:`setting` fields that declare one."""
-    return {f"{prefix}.{f.name}": f.metadata["constraint"]
-            for f in dataclasses.fields(settings_class)
-            if f.metadata.get("constraint") is not None}
+    return {
+        f"{prefix}.{f.name}": f.metadata["constraint"]
+        for f in dataclasses.fields(settings_class)
+        if f.metadata.get("constraint") is not None
+    }

@@ -35,8 +35,9 @@ class Context:
         cache.remove_stale_temporaries()
         return cls(cfg, cache)
 
-    def run(self, stage: str, settings, inputs: dict[str, Entry], compute, *,
-            version: str) -> Entry:
+    def run(
+        self, stage: str, settings, inputs: dict[str, Entry], compute, *, version: str
+    ) -> Entry:
         """Run (or fetch) ``stage`` at code ``version`` with its own ``settings``."""
         if not isinstance(version, str) or not version:
             raise TypeError(f"stage {stage!r} needs a version string, got {version!r}")
@@ -72,5 +73,9 @@ def folder_fingerprint(root: Path) -> dict:
             count, size, newest = count + 1, size + st.st_size, max(newest, st.st_mtime_ns)
             names.append(name if relative == "." else f"{relative}/{name}")
     listing = "\n".join(sorted(names)).encode()
-    return {"files": count, "bytes": size, "mtime_ns": newest,
-            "names": hashlib.sha256(listing).hexdigest()[:16]}
+    return {
+        "files": count,
+        "bytes": size,
+        "mtime_ns": newest,
+        "names": hashlib.sha256(listing).hexdigest()[:16],
+    }

@@ -299,9 +299,11 @@ def _watch() -> None:
                 _thread.interrupt_main(_state.signum)
         if _state.deadline is not None and time.monotonic() >= _state.deadline:
             if _state.active:
-                _finish(f"stopped by {describe()}: the job did not stop within {GRACE_S:.0f} s "
-                        f"(the signal landed where it could not interrupt it); its run is "
-                        f"marked FAILED and the process ends")
+                _finish(
+                    f"stopped by {describe()}: the job did not stop within {GRACE_S:.0f} s "
+                    f"(the signal landed where it could not interrupt it); its run is "
+                    f"marked FAILED and the process ends"
+                )
             elif _state.jobs_ended:
                 _finish(f"stopped by {describe()} after the job's run had ended")
             else:

@@ -56,26 +56,35 @@ def _lines(mapping: Mapping[str, Any] | None) -> list[str]:
     return [f"{key}={value}" for key, value in (mapping or {}).items()]
 
 
-def expand(arms: Sequence[Mapping[str, Any]] | None, params: Mapping[str, Any] | None,
-           arguments: Sequence[str], announce=None) -> list[list[str]]:
+def expand(
+    arms: Sequence[Mapping[str, Any]] | None,
+    params: Mapping[str, Any] | None,
+    arguments: Sequence[str],
+    announce=None,
+) -> list[list[str]]:
     """The jobs (each a list of ``key=value`` overrides) of ``arms`` x ``params`` with the
     command line ``arguments`` replacing what they name (see the module docstring)."""
     given = {o.get_key_element(): o for o in _parse(arguments)}
     kept = []
     for arm in arms or [{}]:
         parsed = {o.get_key_element(): o for o in _parse(_lines(arm))}
-        if not any(_chooses_otherwise(given[key], o) for key, o in parsed.items()
-                   if key in given):
+        if not any(_chooses_otherwise(given[key], o) for key, o in parsed.items() if key in given):
             kept.append({key: o for key, o in parsed.items() if key not in given})
     if not kept:
         kept = [{}]
     if announce is not None and arms and len(kept) < len(arms):
-        chosen = [o.input_line for key, o in given.items()
-                  if "." not in key and not o.is_sweep_override()]
-        announce(f"{' '.join(chosen)} on the command line keeps "
-                 f"{0 if kept == [{}] else len(kept)} of the experiment's {len(arms)} arms")
-    axes = [o for key, o in {o.get_key_element(): o for o in _parse(_lines(params))}.items()
-            if key not in given]
+        chosen = [
+            o.input_line for key, o in given.items() if "." not in key and not o.is_sweep_override()
+        ]
+        announce(
+            f"{' '.join(chosen)} on the command line keeps "
+            f"{0 if kept == [{}] else len(kept)} of the experiment's {len(arms)} arms"
+        )
+    axes = [
+        o
+        for key, o in {o.get_key_element(): o for o in _parse(_lines(params))}.items()
+        if key not in given
+    ]
     jobs = []
     for arm in kept:
         lists = [_choices(o) for o in given.values()]

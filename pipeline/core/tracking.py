@@ -73,8 +73,10 @@ def tracking_uri(runs: str | os.PathLike, must_exist: bool = True) -> str:
     db = sqlite_path(uri)
     if must_exist and not db.is_file():
         relative = "" if Path(runs).is_absolute() else f" ({str(runs)!r} from {Path.cwd()})"
-        raise StoreError(f"no MLflow store at {db}{relative}: give the jobs' paths.runs, "
-                         f"as an absolute path or from the folder they ran in")
+        raise StoreError(
+            f"no MLflow store at {db}{relative}: give the jobs' paths.runs, "
+            f"as an absolute path or from the folder they ran in"
+        )
     return uri
 
 
@@ -96,8 +98,9 @@ def use_store(runs: str | os.PathLike, must_exist: bool = True) -> str:
     return uri
 
 
-def init_store(runs: str | os.PathLike, experiment: str, job: DictConfig | None = None,
-               note: str | None = None) -> str:
+def init_store(
+    runs: str | os.PathLike, experiment: str, job: DictConfig | None = None, note: str | None = None
+) -> str:
     """Create (or upgrade) the store and the experiment once; return the experiment id.
 
     The experiment gets a description (its note in the UI): ``note``, or one written from
@@ -162,8 +165,14 @@ def init_store(runs: str | os.PathLike, experiment: str, job: DictConfig | None 
 DESCRIBED_TAG = "pipeline.described"  # JSON: the methods and presets its note names
 
 
-def describe_experiment(client, experiment_id: str, name: str, tags: Mapping[str, str],
-                        job: DictConfig | None = None, note: str | None = None) -> None:
+def describe_experiment(
+    client,
+    experiment_id: str,
+    name: str,
+    tags: Mapping[str, str],
+    job: DictConfig | None = None,
+    note: str | None = None,
+) -> None:
     """Give the experiment a description (``mlflow.note.content``, shown above its runs):
     ``note`` as given, or written from a job's config (:func:`experiment_note`): what its
     methods compute, which metrics to read first, where a sweep leaves its tables.
@@ -187,10 +196,16 @@ def describe_experiment(client, experiment_id: str, name: str, tags: Mapping[str
     method = method_of(job)
     bold = re.match(r"\*\*(.+?)\*\*", method.description)
     preset = _experiment_preset(job)
-    new = {"methods": {**old["methods"], method.name: {
-               "title": bold.group(1).rstrip(".") if bold else method.name,
-               "headline": list(method.headline)}},
-           "presets": sorted(set(old["presets"]) | ({preset} if preset else set()))}
+    new = {
+        "methods": {
+            **old["methods"],
+            method.name: {
+                "title": bold.group(1).rstrip(".") if bold else method.name,
+                "headline": list(method.headline),
+            },
+        },
+        "presets": sorted(set(old["presets"]) | ({preset} if preset else set())),
+    }
     if new == old and NOTE_TAG in tags:
         return
     client.set_experiment_tag(experiment_id, NOTE_TAG, experiment_note(name, new))
@@ -202,16 +217,24 @@ def experiment_note(name: str, described: Mapping) -> str:
     ``described`` (``{"methods": {name: {"title", "headline"}}, "presets": [...]}``)."""
     methods = described["methods"]
     presets = ", ".join(f"`experiment={p}`" for p in described["presets"])
-    lines = [f"**Experiment `{name}`**: runs of "
-             + "; ".join(f"{m['title']} (`method={key}`)" for key, m in methods.items())
-             + (f", from {presets}" if presets else "") + "."]
-    lines += [f"Read first: {', '.join(f'`{h}`' for h in m['headline'])}"
-              + (f" ({m['title']})" if len(methods) > 1 else "") + "."
-              for m in methods.values()]
-    lines.append("A sweep's parent run (`sweep <time>`) says what the sweep found and holds "
-                 "its tables (`tables/summary.html`); each job is a child run. "
-                 f"`python -m pipeline.tables tables.experiments=[{name}]` rebuilds the "
-                 "tables from the finished runs.")
+    lines = [
+        f"**Experiment `{name}`**: runs of "
+        + "; ".join(f"{m['title']} (`method={key}`)" for key, m in methods.items())
+        + (f", from {presets}" if presets else "")
+        + "."
+    ]
+    lines += [
+        f"Read first: {', '.join(f'`{h}`' for h in m['headline'])}"
+        + (f" ({m['title']})" if len(methods) > 1 else "")
+        + "."
+        for m in methods.values()
+    ]
+    lines.append(
+        "A sweep's parent run (`sweep <time>`) says what the sweep found and holds "
+        "its tables (`tables/summary.html`); each job is a child run. "
+        f"`python -m pipeline.tables tables.experiments=[{name}]` rebuilds the "
+        "tables from the finished runs."
+    )
     return "\n\n".join(lines)
 
 
@@ -227,7 +250,7 @@ def _experiment_preset(job: DictConfig) -> str | None:
 def sqlite_path(uri: str) -> Path | None:
     """The database file of a ``sqlite:///`` tracking URI, else None."""
     prefix = "sqlite:///"
-    return Path(uri[len(prefix):].split("?", 1)[0]) if uri.startswith(prefix) else None
+    return Path(uri[len(prefix) :].split("?", 1)[0]) if uri.startswith(prefix) else None
 
 
 def _create_sqlite_store(db: Path) -> None:
@@ -257,8 +280,10 @@ def remove_partial_stores(runs: Path) -> list[Path]:
             path.unlink()
             removed.append(path)
     if removed:
-        log.info("removed %s: left by processes killed while they created the store",
-                 ", ".join(p.name for p in removed))
+        log.info(
+            "removed %s: left by processes killed while they created the store",
+            ", ".join(p.name for p in removed),
+        )
     return removed
 
 
@@ -272,8 +297,10 @@ def check_sqlite_store(db: Path) -> None:
     StoreError
         Naming ``db``, what is wrong and what to do.
     """
-    aside = ("move it aside (or point paths.runs, or MLFLOW_TRACKING_URI, elsewhere) and "
-             "a new store is created")
+    aside = (
+        "move it aside (or point paths.runs, or MLFLOW_TRACKING_URI, elsewhere) and "
+        "a new store is created"
+    )
     if db.stat().st_size == 0:
         raise StoreError(
             f"the MLflow store {db} is an empty file (0 bytes: a copy or a write cut short?); "
@@ -285,15 +312,21 @@ def check_sqlite_store(db: Path) -> None:
     try:
         # Not read-only: a journal left by a killed writer must be rolled back first.
         with contextlib.closing(sqlite3.connect(db, timeout=30)) as connection:
-            tables = {name for (name,) in connection.execute(
-                "SELECT name FROM sqlite_master WHERE type = 'table'")}
+            tables = {
+                name
+                for (name,) in connection.execute(
+                    "SELECT name FROM sqlite_master WHERE type = 'table'"
+                )
+            }
     except sqlite3.Error as error:
         raise StoreError(
             f"the MLflow store {db} cannot be read ({type(error).__name__}: {error}); {aside}"
         ) from error
     if not tables:
-        raise StoreError(f"the MLflow store {db} is a SQLite database without tables, "
-                         f"not an MLflow store; {aside}")
+        raise StoreError(
+            f"the MLflow store {db} is a SQLite database without tables, "
+            f"not an MLflow store; {aside}"
+        )
     if not MLFLOW_TABLES <= tables:
         listed = ", ".join(sorted(tables)[:8]) + (", ..." if len(tables) > 8 else "")
         raise StoreError(
@@ -311,9 +344,13 @@ def process_gone(run) -> bool:
     return not process_alive(int(tags["pid"]))
 
 
-def fail_dead_runs(client, experiment_ids: list[str] | None = None, *,
-                   ended_by: str = "its process was gone at a later start",
-                   also_pid: int | None = None) -> list[str]:
+def fail_dead_runs(
+    client,
+    experiment_ids: list[str] | None = None,
+    *,
+    ended_by: str = "its process was gone at a later start",
+    also_pid: int | None = None,
+) -> list[str]:
     """Mark FAILED the RUNNING runs whose process is gone from this machine (and, with
     ``also_pid``, those of that process: this one, as it stops); returns their ids. All
     experiments' runs unless ``experiment_ids`` says which. Other machines' are left."""
@@ -323,11 +360,13 @@ def fail_dead_runs(client, experiment_ids: list[str] | None = None, *,
         return []
     host = socket.gethostname()
     ended = []
-    for run in all_pages(client.search_runs, experiment_ids=experiment_ids,
-                          filter_string="attributes.status = 'RUNNING'"):
+    for run in all_pages(
+        client.search_runs,
+        experiment_ids=experiment_ids,
+        filter_string="attributes.status = 'RUNNING'",
+    ):
         tags = run.data.tags
-        own = also_pid is not None and tags.get("host") == host and tags.get("pid") == str(
-            also_pid)
+        own = also_pid is not None and tags.get("host") == host and tags.get("pid") == str(also_pid)
         if not (own or process_gone(run)):
             continue
         client.set_tag(run.info.run_id, ENDED_BY_TAG, ended_by)
@@ -335,8 +374,9 @@ def fail_dead_runs(client, experiment_ids: list[str] | None = None, *,
         if own:
             log.warning("marked run %s FAILED (%s)", run.info.run_id, ended_by)
         else:
-            log.warning("marked run %s FAILED: its process %s is gone", run.info.run_id,
-                        tags["pid"])
+            log.warning(
+                "marked run %s FAILED: its process %s is gone", run.info.run_id, tags["pid"]
+            )
         ended.append(run.info.run_id)
     return ended
 
@@ -357,8 +397,9 @@ def _fail_runs_when_stopped(uri: str) -> None:
     those of processes now gone (a sweep's killed workers, or its killed launcher)."""
     from mlflow.tracking import MlflowClient
 
-    fail_dead_runs(MlflowClient(uri), ended_by=f"stopped by {stopping.describe()}",
-                   also_pid=os.getpid())
+    fail_dead_runs(
+        MlflowClient(uri), ended_by=f"stopped by {stopping.describe()}", also_pid=os.getpid()
+    )
 
 
 _STOP_CLEANUPS: dict[str, int] = {}  # tracking URI -> its cleanup's token (one per store)
@@ -432,7 +473,9 @@ def _parent_run_id() -> str | None:
 
 @contextmanager
 def job_run(
-    cfg: DictConfig, run_name: str | None = None, description: str = "",
+    cfg: DictConfig,
+    run_name: str | None = None,
+    description: str = "",
     unused: Sequence[str] = (),
 ) -> Iterator[Any]:
     """Start the MLflow run of one job; it ends FAILED if the body raises.
@@ -547,8 +590,7 @@ class SweepParentRun(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from mlflow.tracking import MlflowClient
 
-        experiment_id = init_store(config.paths.runs, config.tracking.experiment,
-                                   job=config)
+        experiment_id = init_store(config.paths.runs, config.tracking.experiment, job=config)
         self.uri = tracking_uri(config.paths.runs)
         client = MlflowClient(self.uri)
         sweep_dir = Path(config.hydra.sweep.dir)

@@ -453,8 +453,12 @@ def decode_btf_image(
 
 
 def encode_btf_image(
-    path: str | PathLike, linear_rgb: np.ndarray, format: str = "ubo2003", quality: int = 95,
-    *, sync: bool = True,
+    path: str | PathLike,
+    linear_rgb: np.ndarray,
+    format: str = "ubo2003",
+    quality: int = 95,
+    *,
+    sync: bool = True,
 ) -> None:
     """Write one linear RGB image the way ``format`` stores it; the inverse of
     :func:`decode_btf_image` up to quantization.
@@ -486,8 +490,7 @@ def encode_btf_image(
     elif format == "utia":
         write_image_8bit(path, srgb_oetf(linear_rgb), sync=sync)
     else:
-        write_image_8bit(path, gamma_encode(linear_rgb, UBO2003_GAMMA), quality=quality,
-                         sync=sync)
+        write_image_8bit(path, gamma_encode(linear_rgb, UBO2003_GAMMA), quality=quality, sync=sync)
 
 
 def count_btf_images(

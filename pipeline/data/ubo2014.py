@@ -154,5 +154,10 @@ def load_ubo2014(
     dfmf = read_dfmf(path)
     rows = select_rows(dfmf, views, lights)
     images = decode_dfmf(dfmf, rows, crop, out=out, include_cosine=include_cosine)
-    return BTF(images=images, directions=dfmf.directions()[rows],
-               paths=[dfmf.path] * len(rows), view_folders=[], root=dfmf.path)
+    return BTF(
+        images=images,
+        directions=dfmf.directions()[rows],
+        paths=[dfmf.path] * len(rows),
+        view_folders=[],
+        root=dfmf.path,
+    )

@@ -34,8 +34,10 @@ from pipeline.data.ubo2014_write import write_dfmf
 
 PAPER_SHAPE = {"n_views": 151, "n_lights": 151, "size": 400}
 PROG = "python -m pipeline.data.ubo2014_bench"
-COMMANDS = {"info": "header facts, views and lights of the .btf file (file= required)",
-            "bench": "peak memory of loading a crop (of file=, or of a file it writes)"}
+COMMANDS = {
+    "info": "header facts, views and lights of the .btf file (file= required)",
+    "bench": "peak memory of loading a crop (of file=, or of a file it writes)",
+}
 
 
 @dataclass(frozen=True)
@@ -52,22 +54,30 @@ class UBO2014BenchSettings:
 
 # Each key of the command line: its field, what it may be, and what it sets.
 KEYS = {
-    "file": ("file", cli.Text(optional=True),
-             "a .btf (DFMF) file; bench without it writes one of the UBO2014 shape"),
+    "file": (
+        "file",
+        cli.Text(optional=True),
+        "a .btf (DFMF) file; bench without it writes one of the UBO2014 shape",
+    ),
     "crop": ("crop", ListOf(Integer(0), 4), "[row, col, height, width] texels loaded (bench)"),
-    "components": ("components", Integer(1), "components per channel of the written file "
-                                             "(bench)"),
+    "components": ("components", Integer(1), "components per channel of the written file (bench)"),
     "dtype": ("dtype", OneOf("float16", "float32"), "factors of the written file (bench)"),
-    "workdir": ("workdir", cli.Text(optional=True),
-                "where the written file and the decoded crop go (null: the temp dir; bench)"),
+    "workdir": (
+        "workdir",
+        cli.Text(optional=True),
+        "where the written file and the decoded crop go (null: the temp dir; bench)",
+    ),
 }
 
 
 COMMAND = cli.Command(
-    PROG, KEYS, UBO2014BenchSettings,
+    PROG,
+    KEYS,
+    UBO2014BenchSettings,
     "\n".join(f"  {name:<6} {text}" for name, text in COMMANDS.items())
     + "\n\nSettings and their defaults:",
-    synopsis=f"{{{','.join(COMMANDS)}}} [key=value ...]")
+    synopsis=f"{{{','.join(COMMANDS)}}} [key=value ...]",
+)
 
 
 def parse(argv: list[str]) -> UBO2014BenchSettings:
@@ -82,8 +92,10 @@ def parse(argv: list[str]) -> UBO2014BenchSettings:
         if others := sorted(set(given) - {"file"}):
             raise ConfigError(f"{', '.join(others)}: settings of bench, not of info")
     elif given.get("file") is not None and written:
-        raise ConfigError(f"{', '.join(written)}: settings of the file bench writes, but "
-                          f"file= names one to read: give one or the other")
+        raise ConfigError(
+            f"{', '.join(written)}: settings of the file bench writes, but "
+            f"file= names one to read: give one or the other"
+        )
     if "crop" in given:
         given["crop"] = tuple(given["crop"])
     return UBO2014BenchSettings(command, **given)
@@ -98,24 +110,42 @@ def hemisphere_angles(count: int, max_theta_deg: float = 75.0) -> np.ndarray:
     return np.stack([np.arccos(cos_theta), phi], axis=1)
 
 
-def write_paper_shaped(path: Path, components: int = 16, dtype: str = "float16",
-                       seed: int = 0, n_views: int = 151, n_lights: int = 151,
-                       size: int = 400) -> Path:
+def write_paper_shaped(
+    path: Path,
+    components: int = 16,
+    dtype: str = "float16",
+    seed: int = 0,
+    n_views: int = 151,
+    n_lights: int = 151,
+    size: int = 400,
+) -> Path:
     """A DFMF file of the UBO2014 shape with random factors (colour model 0, cosine flag
     set); only its shape and layout matter, not its values."""
     rng = np.random.default_rng(seed)
     rows, columns = n_views * n_lights, size * size
     factors = [
-        (np.ones(components), rng.standard_normal((rows, components)) / np.sqrt(components),
-         rng.standard_normal((columns, components)))
+        (
+            np.ones(components),
+            rng.standard_normal((rows, components)) / np.sqrt(components),
+            rng.standard_normal((columns, components)),
+        )
         for _ in range(3)
     ]
-    return write_dfmf(path, hemisphere_angles(n_views), hemisphere_angles(n_lights), size, size,
-                      factors=factors, dtype=dtype, sync=False)
+    return write_dfmf(
+        path,
+        hemisphere_angles(n_views),
+        hemisphere_angles(n_lights),
+        size,
+        size,
+        factors=factors,
+        dtype=dtype,
+        sync=False,
+    )
 
 
-def bench_crop_load(path: Path, workdir: Path, crop=(0, 0, 100, 100), views=None,
-                    lights=None) -> dict:
+def bench_crop_load(
+    path: Path, workdir: Path, crop=(0, 0, 100, 100), views=None, lights=None
+) -> dict:
     """Load ``crop`` of ``path`` into ``workdir/images.npy`` as the load stage does.
 
     Returns
@@ -168,11 +198,12 @@ def _bench(args: UBO2014BenchSettings) -> None:
             path = Path(workdir) / "paper_shaped.btf"
             write_paper_shaped(path, components=args.components, dtype=args.dtype)
         result = bench_crop_load(path, Path(workdir), crop=args.crop)
-    print(f"file {path}: {human(result['file_bytes'])} "
-          f"(factors {human(result['factor_bytes'])})")
+    print(f"file {path}: {human(result['file_bytes'])} (factors {human(result['factor_bytes'])})")
     print(f"crop {args.crop}: {result['n_images']} images, decoded {human(result['out_bytes'])}")
-    print(f"heap peak {human(result['heap_peak_bytes'])}, "
-          f"RSS peak {result['rss_peak_mb']:.0f} MiB, {result['seconds']:.1f} s")
+    print(
+        f"heap peak {human(result['heap_peak_bytes'])}, "
+        f"RSS peak {result['rss_peak_mb']:.0f} MiB, {result['seconds']:.1f} s"
+    )
 
 
 def main(argv: list[str] | None = None) -> None:

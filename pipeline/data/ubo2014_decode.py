@@ -70,8 +70,13 @@ def check_crop(crop, dfmf: DFMFFile) -> tuple[int, int, int, int]:
         row, col, height, width = (int(value) for value in crop)
     except (TypeError, ValueError):
         raise ConfigError(f"dataset.crop={crop!r} is not [row, col, height, width]") from None
-    if height < 1 or width < 1 or row < 0 or col < 0 or row + height > dfmf.height or (
-        col + width > dfmf.width
+    if (
+        height < 1
+        or width < 1
+        or row < 0
+        or col < 0
+        or row + height > dfmf.height
+        or (col + width > dfmf.width)
     ):
         raise ConfigError(
             f"dataset.crop={[row, col, height, width]} does not fit the texture of "
@@ -197,8 +202,9 @@ def decode_dfmf(
     step = max(1, block_bytes // (2 * 3 * 4 * height * width))
     for start in range(0, len(rows), step):
         stop = min(start + step, len(rows))
-        block = decode_block([u[start:stop] for u in direction_factors], texel_factors,
-                             dfmf.color_model, clip)
+        block = decode_block(
+            [u[start:stop] for u in direction_factors], texel_factors, dfmf.color_model, clip
+        )
         if cosine is not None:
             block *= cosine[start:stop, None, None]
         out[start:stop] = block.reshape(stop - start, height, width, 3)

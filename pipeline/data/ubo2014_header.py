@@ -166,9 +166,7 @@ def _parse(cur: _Cursor) -> DFMFFile:
     channels = []
     rows, columns = n_views * len(light_lists[0]), width * height
     for index, name in enumerate(channel_names):
-        scalar_size, k, n_rows, n_columns = cur.unpack(
-            CHANNEL_HEADER, f"channel {name!r}'s header"
-        )
+        scalar_size, k, n_rows, n_columns = cur.unpack(CHANNEL_HEADER, f"channel {name!r}'s header")
         if scalar_size not in SCALAR_DTYPES:
             raise DataError(
                 f"UBO2014 channel {name!r} has scalars of {scalar_size} bytes, "
@@ -194,13 +192,27 @@ def _parse(cur: _Cursor) -> DFMFFile:
             f"(expected {cur.tell()} bytes, actual {cur.size}): {path}"
         )
     return DFMFFile(
-        path=path, version=version, measurement_setup=_c_string(setup),
-        image_sensor=_c_string(sensor), light_source=_c_string(source), ppmm=float(ppmm),
-        rgb_scale=tuple(float(value) for value in rgb), cosine_in_data=cosine_in_data,
-        xml=xml, channel_names=channel_names, view_angles=view_angles,
-        light_angles=light_angles, width=width, height=height, has_rotations=has_rotations,
-        rotations=rotations, components=components, color_model=color_model,
-        color_mean=color_mean, color_transform=color_transform, channels=tuple(channels),
+        path=path,
+        version=version,
+        measurement_setup=_c_string(setup),
+        image_sensor=_c_string(sensor),
+        light_source=_c_string(source),
+        ppmm=float(ppmm),
+        rgb_scale=tuple(float(value) for value in rgb),
+        cosine_in_data=cosine_in_data,
+        xml=xml,
+        channel_names=channel_names,
+        view_angles=view_angles,
+        light_angles=light_angles,
+        width=width,
+        height=height,
+        has_rotations=has_rotations,
+        rotations=rotations,
+        components=components,
+        color_model=color_model,
+        color_mean=color_mean,
+        color_transform=color_transform,
+        channels=tuple(channels),
         size=cur.size,
     )
 
@@ -208,11 +220,17 @@ def _parse(cur: _Cursor) -> DFMFFile:
 def describe(dfmf: DFMFFile) -> dict:
     """The header's facts as plain values (for logs, a cache summary and ``info``)."""
     return {
-        "version": dfmf.version, "n_views": dfmf.n_views, "n_lights": dfmf.n_lights,
-        "width": dfmf.width, "height": dfmf.height, "color_model": dfmf.color_model,
-        "cosine_in_data": dfmf.cosine_in_data, "channels": list(dfmf.channel_names),
+        "version": dfmf.version,
+        "n_views": dfmf.n_views,
+        "n_lights": dfmf.n_lights,
+        "width": dfmf.width,
+        "height": dfmf.height,
+        "color_model": dfmf.color_model,
+        "cosine_in_data": dfmf.cosine_in_data,
+        "channels": list(dfmf.channel_names),
         "components": [channel.components for channel in dfmf.channels],
         "scalar_bytes": [channel.dtype.itemsize for channel in dfmf.channels],
-        "measurement_setup": dfmf.measurement_setup, "image_sensor": dfmf.image_sensor,
+        "measurement_setup": dfmf.measurement_setup,
+        "image_sensor": dfmf.image_sensor,
         "light_source": dfmf.light_source,
     }

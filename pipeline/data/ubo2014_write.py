@@ -63,8 +63,9 @@ def encode_values(values: np.ndarray, color_model: int) -> np.ndarray:
     if not (luminance > 0).all():
         raise ConfigError("colour model 11 stores log-luminance: every value needs luminance > 0")
     eps = float(DRR_EPS)
-    return np.stack([np.log(luminance + eps), (yuv[..., 1] - eps) / luminance,
-                     (yuv[..., 2] - eps) / luminance])
+    return np.stack(
+        [np.log(luminance + eps), (yuv[..., 1] - eps) / luminance, (yuv[..., 2] - eps) / luminance]
+    )
 
 
 def factorize(matrix: np.ndarray, components: int | None = None):
@@ -196,14 +197,25 @@ def write_dfmf(
         for name in channel_names:
             encoded = name.encode("utf-8")
             body += struct.pack("<I", len(encoded)) + encoded
-    header = FIXED_HEADER.pack(
-        FIXED_HEADER.size + len(body), version, measurement_setup.encode("latin-1"),
-        image_sensor.encode("latin-1"), light_source.encode("latin-1"), ppmm, *rgb_scale,
-    ) + body
+    header = (
+        FIXED_HEADER.pack(
+            FIXED_HEADER.size + len(body),
+            version,
+            measurement_setup.encode("latin-1"),
+            image_sensor.encode("latin-1"),
+            light_source.encode("latin-1"),
+            ppmm,
+            *rgb_scale,
+        )
+        + body
+    )
     directions = [struct.pack("<I", n_views)]
     for view, lights in zip(view_angles, light_angles, strict=True):
-        directions += [view.astype("<f4").tobytes(), struct.pack("<I", n_lights),
-                       lights.astype("<f4").tobytes()]
+        directions += [
+            view.astype("<f4").tobytes(),
+            struct.pack("<I", n_lights),
+            lights.astype("<f4").tobytes(),
+        ]
     size = struct.pack("<II", width, height)
     if with_rotations:
         rotations = np.zeros((0, 3, 3)) if rotations is None else np.asarray(rotations)
@@ -211,7 +223,8 @@ def write_dfmf(
     transform = np.eye(3) if color_transform is None else np.asarray(color_transform)
     colour = (
         struct.pack("<Ii", max(len(s) for s, _, _ in factors), color_model)
-        + np.asarray(color_mean, dtype="<f4").tobytes() + transform.astype("<f4").tobytes()
+        + np.asarray(color_mean, dtype="<f4").tobytes()
+        + transform.astype("<f4").tobytes()
     )
     scalar = _DTYPES[dtype]
 

@@ -84,8 +84,9 @@ def label_runs(runs: pd.DataFrame, method: str = "fourier") -> pd.DataFrame:
     ]
     # One setup pools (or replaces) runs of one recipe only: others are set apart by
     # the settings in which they differ, M and λ being the table's axes.
-    runs["setup"] = runs["setup"] + recipe_suffixes(runs, ["setup"],
-                                                    ignore=["method.M", "method.lam"])
+    runs["setup"] = runs["setup"] + recipe_suffixes(
+        runs, ["setup"], ignore=["method.M", "method.lam"]
+    )
     runs["M"] = pd.to_numeric(param(runs, "method.M"), errors="coerce")
     runs["lam"] = pd.to_numeric(param(runs, "method.lam"), errors="coerce")
     return runs

@@ -109,8 +109,9 @@ def _median_seconds(fn, repeats: int, device: str = "cpu") -> float:
     return float(np.median(times))
 
 
-def matmul_peak(size: int | None = None, repeats: int = 5, dtype=torch.float32,
-                device: str = "cpu") -> float:
+def matmul_peak(
+    size: int | None = None, repeats: int = 5, dtype=torch.float32, device: str = "cpu"
+) -> float:
     """GFLOP/s of a square matrix product (float32, or bfloat16 for the bfloat16 loops) on
     ``device``; ``size`` None: 2048 on the CPU, 8192 on CUDA (a GPU needs the larger to
     reach its peak)."""
@@ -134,12 +135,21 @@ def cpu_bfloat16_support() -> str:
 
 def _rates(queries_per_step: float, seconds_per_step: float) -> dict:
     rate = queries_per_step / seconds_per_step
-    return {"queries_per_s": rate, "gflops": rate * TRAIN_FLOPS_PER_QUERY / 1e9,
-            "steps_per_s": 1 / seconds_per_step}
+    return {
+        "queries_per_s": rate,
+        "gflops": rate * TRAIN_FLOPS_PER_QUERY / 1e9,
+        "steps_per_s": 1 / seconds_per_step,
+    }
 
 
-def interleaved(loops: dict, queries_per_step: dict, steps: int, bf16: bool,
-                rounds: int = 3, device: str = "cpu") -> dict:
+def interleaved(
+    loops: dict,
+    queries_per_step: dict,
+    steps: int,
+    bf16: bool,
+    rounds: int = 3,
+    device: str = "cpu",
+) -> dict:
     """Time the loops in turn, ``rounds`` times after one warm-up each, so that a machine
     that slows down or speeds up meanwhile affects all of them alike; medians per loop.
     The float32 matmul peak (and with ``bf16`` the bfloat16 one) is measured in every round
@@ -151,12 +161,14 @@ def interleaved(loops: dict, queries_per_step: dict, steps: int, bf16: bool,
     peaks = {"matmul_gflops": []} | ({"matmul_gflops_bf16": []} if bf16 else {})
     for _ in range(rounds):
         for key, rounds_of_key in peaks.items():
-            rounds_of_key.append(matmul_peak(dtype=torch.bfloat16 if "bf16" in key
-                                             else torch.float32, device=device))
+            rounds_of_key.append(
+                matmul_peak(dtype=torch.bfloat16 if "bf16" in key else torch.float32, device=device)
+            )
         for name, run in loops.items():
             times[name].append(run() / steps)
-    figures = {name: _rates(queries_per_step[name], float(np.median(t)))
-               for name, t in times.items()}
+    figures = {
+        name: _rates(queries_per_step[name], float(np.median(t))) for name, t in times.items()
+    }
     for key, rounds_of_key in peaks.items():
         figures |= {key: float(np.median(rounds_of_key)), f"{key}_rounds": rounds_of_key}
     return figures
@@ -191,19 +203,34 @@ def paper_run(runs: str, steps: int, threads: int, device: str = "cpu") -> dict:
     root = Path(runs) / "bench_paper"
     figures: dict = {}
     for variant in ("neural_btf", "k1000"):
-        command = [sys.executable, "-m", "pipeline", "experiment=paper", f"variant={variant}",
-                   f"train.max_steps={steps}", f"train.threads={threads}",
-                   f"train.device={device}",
-                   f"paths.runs={root}", "tracking.experiment=bench_paper"]
+        command = [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "experiment=paper",
+            f"variant={variant}",
+            f"train.max_steps={steps}",
+            f"train.threads={threads}",
+            f"train.device={device}",
+            f"paths.runs={root}",
+            "tracking.experiment=bench_paper",
+        ]
         start = time.perf_counter()
         subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
         wall = time.perf_counter() - start
         use_store(str(root))
-        run = mlflow.search_runs(experiment_names=["bench_paper"], output_format="list",
-                                 order_by=["attributes.start_time DESC"], max_results=1)[0]
+        run = mlflow.search_runs(
+            experiment_names=["bench_paper"],
+            output_format="list",
+            order_by=["attributes.start_time DESC"],
+            max_results=1,
+        )[0]
         metrics = run.data.metrics
-        row = {"wall_s": wall, "peak_rss_mb": metrics["memory/peak_rss_mb"],
-               "train_queries_per_s": metrics["train_queries"] / metrics["train_seconds"]}
+        row = {
+            "wall_s": wall,
+            "peak_rss_mb": metrics["memory/peak_rss_mb"],
+            "train_queries_per_s": metrics["train_queries"] / metrics["train_seconds"],
+        }
         for name, value in metrics.items():  # time/<stage>_seconds, memory/<stage>_peak_rss_mb
             group, _, stage_metric = name.partition("/")
             if group in ("time", "memory") and stage_metric != "peak_rss_mb":
@@ -225,9 +252,17 @@ def load_times(runs: str, size: int) -> dict:
 
     root = write_synthetic_btf(Path(runs) / "data" / f"bench_ubo2003_{size}", size=size, seed=0)
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=[
-            "experiment=smoke", "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null",
-            f"paths.runs={runs}", f"paths.cache={Path(runs) / 'bench_cache'}"])
+        cfg = compose(
+            "config",
+            overrides=[
+                "experiment=smoke",
+                "dataset=ubo2003",
+                f"dataset.root={root}",
+                "dataset.views=null",
+                f"paths.runs={runs}",
+                f"paths.cache={Path(runs) / 'bench_cache'}",
+            ],
+        )
     shutil.rmtree(cfg.paths.cache, ignore_errors=True)
     times = {"load_cold": _drop_page_cache()}
     for name in ("decode", "cached"):
@@ -255,9 +290,11 @@ def bfloat16_skip_reason() -> str | None:
     magnitude slower than float32's, which would stretch the bench to hours."""
     if torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported():
         return None
-    return ("oneDNN does not support bfloat16 on this CPU (torch.ops.mkldnn."
-            "_is_mkldnn_bf16_supported() is False; native bfloat16 instructions: "
-            f"{cpu_bfloat16_support()}): its bfloat16 products would take slow emulated paths")
+    return (
+        "oneDNN does not support bfloat16 on this CPU (torch.ops.mkldnn."
+        "_is_mkldnn_bf16_supported() is False; native bfloat16 instructions: "
+        f"{cpu_bfloat16_support()}): its bfloat16 products would take slow emulated paths"
+    )
 
 
 def tuning_in_effect(threads: int) -> dict:
@@ -268,9 +305,11 @@ def tuning_in_effect(threads: int) -> dict:
     from pipeline.btf.fast.tuning import can_keep_awake, glibc
 
     cpus = len(os.sched_getaffinity(0)) if can_keep_awake() else 0
-    return {"keep_awake_processes": cpus if cpus and threads >= max(2, cpus) else 0,
-            "omp_spin_count": TUNED["omp_spin_count"],
-            "reuse_freed_memory": glibc() is not None}
+    return {
+        "keep_awake_processes": cpus if cpus and threads >= max(2, cpus) else 0,
+        "omp_spin_count": TUNED["omp_spin_count"],
+        "reuse_freed_memory": glibc() is not None,
+    }
 
 
 def training_figures(steps: int, threads: int, channels, recipe, bf16: bool) -> dict:
@@ -278,21 +317,30 @@ def training_figures(steps: int, threads: int, channels, recipe, bf16: bool) -> 
     and the pipeline's loop at the paper's batch, default and tuned, run in child processes
     (:class:`~pipeline.btf.fast.bench_child.Isolated`); the recipe's loop and the fused
     decoder step in this one."""
-    paper = {"train_naive": Isolated("naive", steps, threads),
-             "train_default": Isolated("train", steps, threads),
-             "train_tuned": Isolated("train", steps, threads, tuned=True),
-             "train_autograd": Isolated("train", steps, threads, backend="autograd")}
+    paper = {
+        "train_naive": Isolated("naive", steps, threads),
+        "train_default": Isolated("train", steps, threads),
+        "train_tuned": Isolated("train", steps, threads, tuned=True),
+        "train_autograd": Isolated("train", steps, threads, backend="autograd"),
+    }
     if bf16:
-        paper |= {"train_default_bf16": Isolated("train", steps, threads, precision="bfloat16"),
-                  "train_tuned_bf16": Isolated("train", steps, threads, tuned=True,
-                                               precision="bfloat16")}
+        paper |= {
+            "train_default_bf16": Isolated("train", steps, threads, precision="bfloat16"),
+            "train_tuned_bf16": Isolated("train", steps, threads, tuned=True, precision="bfloat16"),
+        }
     children = paper | {"decoder_naive": Isolated("decoder_naive", steps, threads)}
     loops = children | {"decoder_fused": decoder_training(True, steps, threads)}
     if bf16:
         loops["decoder_fused_bf16"] = decoder_training(True, steps, threads, "bfloat16")
     loops["train_paper_recipe"] = pipeline_training(
-        recipe.batch_size, recipe.queries_per_abrdf, steps, channels, threads,
-        optimizer=recipe.optimizer, lr=recipe.lr)
+        recipe.batch_size,
+        recipe.queries_per_abrdf,
+        steps,
+        channels,
+        threads,
+        optimizer=recipe.optimizer,
+        lr=recipe.lr,
+    )
     queries = {name: 5 * N_PAPER for name in loops}
     queries["train_paper_recipe"] = recipe.batch_size * recipe.queries_per_abrdf
     try:
@@ -310,8 +358,10 @@ def _print_training(name: str, row: dict, peak: float, peak_bf16: float | None =
     if peak_bf16 is not None:
         row["share_of_bf16_peak"] = row["gflops"] / peak_bf16
         shares += f", {row['share_of_bf16_peak']:.0%} of the bfloat16 peak"
-    print(f"training {name}: {row['queries_per_s'] / 1e6:.3f} M queries/s, "
-          f"{row['gflops']:.1f} GFLOP/s = {shares}, {row['steps_per_s']:.1f} steps/s")
+    print(
+        f"training {name}: {row['queries_per_s'] / 1e6:.3f} M queries/s, "
+        f"{row['gflops']:.1f} GFLOP/s = {shares}, {row['steps_per_s']:.1f} steps/s"
+    )
 
 
 def _ratio(figures: dict, key: str, faster: str, slower: str, what: str) -> None:
@@ -327,58 +377,100 @@ def _print_paths(figures: dict, precision: str) -> None:
     peak_bf16 = figures["matmul_gflops_bf16"] if suffix else None
     default, tuned = f"train_default{suffix}", f"train_tuned{suffix}"
     figures[f"train_fused{suffix}"] = figures[default]
-    _print_training(f"pipeline loop, {precision}, default (5 x all N)", figures[default], peak,
-                    peak_bf16)
-    _ratio(figures, f"train_speedup{suffix}", default, "train_naive",
-           "speed-up over the naive loop")
-    _print_training(f"pipeline loop, {precision}, opt-in tuning (5 x all N)", figures[tuned],
-                    peak, peak_bf16)
-    _ratio(figures, f"tuning_speedup{suffix}", tuned, default,
-           "what the opt-in tuning buys (tuned / default)")
+    _print_training(
+        f"pipeline loop, {precision}, default (5 x all N)", figures[default], peak, peak_bf16
+    )
+    _ratio(
+        figures, f"train_speedup{suffix}", default, "train_naive", "speed-up over the naive loop"
+    )
+    _print_training(
+        f"pipeline loop, {precision}, opt-in tuning (5 x all N)", figures[tuned], peak, peak_bf16
+    )
+    _ratio(
+        figures,
+        f"tuning_speedup{suffix}",
+        tuned,
+        default,
+        "what the opt-in tuning buys (tuned / default)",
+    )
 
 
 def print_training(figures: dict, recipe, bf16_skipped: str | None) -> None:
     """The training figures' lines; adds the ratios (``train_speedup``,
     ``tuning_speedup``, ...) and ``train_fused`` (the default path's figures again)."""
     peak, threads, tuning = figures["matmul_gflops"], figures["threads"], figures["tuning"]
-    print(f"matmul peak: {peak:.1f} GFLOP/s (median of "
-          f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_rounds'])}, one per round "
-          f"of the training loops; {threads} threads, device {figures['device']}; the "
-          f"training figures below run on the CPU)")
+    print(
+        f"matmul peak: {peak:.1f} GFLOP/s (median of "
+        f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_rounds'])}, one per round "
+        f"of the training loops; {threads} threads, device {figures['device']}; the "
+        f"training figures below run on the CPU)"
+    )
     ops = "C++ kernels" if figures["kernels"] else "plain torch ops (the kernels did not build)"
     awake = tuning["keep_awake_processes"]
-    print(f"default path: fused step with {ops}, no machine tuning, libgomp's defaults; "
-          f"opt-in tuning: train.keep_awake=true ({awake or 'no'} spinning processes here), "
-          f"train.omp_spin_count={tuning['omp_spin_count']}, train.reuse_freed_memory=true"
-          f"{'' if tuning['reuse_freed_memory'] else ' (no effect: not glibc)'}")
+    print(
+        f"default path: fused step with {ops}, no machine tuning, libgomp's defaults; "
+        f"opt-in tuning: train.keep_awake=true ({awake or 'no'} spinning processes here), "
+        f"train.omp_spin_count={tuning['omp_spin_count']}, train.reuse_freed_memory=true"
+        f"{'' if tuning['reuse_freed_memory'] else ' (no effect: not glibc)'}"
+    )
     if set(os.environ) & set(OPENMP_SPIN_VARIABLES):
-        print(f"note: {'/'.join(OPENMP_SPIN_VARIABLES)} set in this environment: the loops "
-              "run in this process (decoder, recipe, matmul) run with it, the child processes "
-              "without")
+        print(
+            f"note: {'/'.join(OPENMP_SPIN_VARIABLES)} set in this environment: the loops "
+            "run in this process (decoder, recipe, matmul) run with it, the child processes "
+            "without"
+        )
     _print_training("naive autograd loop (5 x all N)", figures["train_naive"], peak)
     _print_paths(figures, "float32")
-    _print_training("pipeline loop, float32, train.backend=autograd (5 x all N)",
-                    figures["train_autograd"], peak)
-    _ratio(figures, "backend_speedup", "train_default", "train_autograd",
-           "the fused backend over the autograd backend, same run")
+    _print_training(
+        "pipeline loop, float32, train.backend=autograd (5 x all N)",
+        figures["train_autograd"],
+        peak,
+    )
+    _ratio(
+        figures,
+        "backend_speedup",
+        "train_default",
+        "train_autograd",
+        "the fused backend over the autograd backend, same run",
+    )
     if bf16_skipped is None:
-        print(f"bfloat16 matmul peak: {figures['matmul_gflops_bf16']:.1f} GFLOP/s (median of "
-              f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_bf16_rounds'])}); "
-              f"the CPU's bfloat16 instructions: {figures['cpu_bf16']}")
+        print(
+            f"bfloat16 matmul peak: {figures['matmul_gflops_bf16']:.1f} GFLOP/s (median of "
+            f"{', '.join(f'{p:.1f}' for p in figures['matmul_gflops_bf16_rounds'])}); "
+            f"the CPU's bfloat16 instructions: {figures['cpu_bf16']}"
+        )
         _print_paths(figures, "bfloat16")
     else:
         print(f"bfloat16 figures skipped: {bf16_skipped}")
     _print_training("decoder alone, autograd (5 x all N)", figures["decoder_naive"], peak)
     _print_training("decoder alone, fused step (5 x all N)", figures["decoder_fused"], peak)
-    _ratio(figures, "decoder_speedup", "decoder_fused", "decoder_naive",
-           "speed-up of the decoder's step")
+    _ratio(
+        figures,
+        "decoder_speedup",
+        "decoder_fused",
+        "decoder_naive",
+        "speed-up of the decoder's step",
+    )
     if bf16_skipped is None:
-        _print_training("decoder alone, fused step in bfloat16 (5 x all N)",
-                        figures["decoder_fused_bf16"], peak, figures["matmul_gflops_bf16"])
-        _ratio(figures, "decoder_speedup_bf16", "decoder_fused_bf16", "decoder_naive",
-               "speed-up of the decoder's step")
-    _print_training(f"pipeline loop, default, experiment=paper_cpu recipe ({recipe.batch_size} x "
-                    f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
+        _print_training(
+            "decoder alone, fused step in bfloat16 (5 x all N)",
+            figures["decoder_fused_bf16"],
+            peak,
+            figures["matmul_gflops_bf16"],
+        )
+        _ratio(
+            figures,
+            "decoder_speedup_bf16",
+            "decoder_fused_bf16",
+            "decoder_naive",
+            "speed-up of the decoder's step",
+        )
+    _print_training(
+        f"pipeline loop, default, experiment=paper_cpu recipe ({recipe.batch_size} x "
+        f"{recipe.queries_per_abrdf})",
+        figures["train_paper_recipe"],
+        peak,
+    )
 
 
 def cuda_figures(steps: int, channels, recipe) -> dict:
@@ -386,17 +478,26 @@ def cuda_figures(steps: int, channels, recipe) -> dict:
     paper's batch the autograd backend in float32 and in bfloat16 (autocast) and the fused
     step (torch ops, one chunk), and the autograd backend at ``experiment=paper_cpu``'s
     batch (``recipe``), against the GPU's matmul peaks."""
-    loops = {"train_autograd": pipeline_training(5, -1, steps, channels, 1,
-                                                 backend="autograd", device="cuda"),
-             "train_autograd_bf16": pipeline_training(5, -1, steps, channels, 1,
-                                                      precision="bfloat16",
-                                                      backend="autograd", device="cuda"),
-             "train_fused": pipeline_training(5, -1, steps, channels, 1, backend="fused",
-                                              device="cuda"),
-             "train_paper_recipe": pipeline_training(
-                 recipe.batch_size, recipe.queries_per_abrdf, steps, channels, 1,
-                 optimizer=recipe.optimizer, lr=recipe.lr, backend="autograd",
-                 device="cuda")}
+    loops = {
+        "train_autograd": pipeline_training(
+            5, -1, steps, channels, 1, backend="autograd", device="cuda"
+        ),
+        "train_autograd_bf16": pipeline_training(
+            5, -1, steps, channels, 1, precision="bfloat16", backend="autograd", device="cuda"
+        ),
+        "train_fused": pipeline_training(5, -1, steps, channels, 1, backend="fused", device="cuda"),
+        "train_paper_recipe": pipeline_training(
+            recipe.batch_size,
+            recipe.queries_per_abrdf,
+            steps,
+            channels,
+            1,
+            optimizer=recipe.optimizer,
+            lr=recipe.lr,
+            backend="autograd",
+            device="cuda",
+        ),
+    }
     queries = dict.fromkeys(loops, 5 * N_PAPER)
     queries["train_paper_recipe"] = recipe.batch_size * recipe.queries_per_abrdf
     return interleaved(loops, queries, steps, bf16=True, device="cuda")
@@ -405,23 +506,51 @@ def cuda_figures(steps: int, channels, recipe) -> dict:
 def print_cuda(figures: dict, recipe) -> None:
     """The GPU's training lines; adds ``backend_speedup`` and ``bf16_speedup``."""
     peak, peak_bf16 = figures["matmul_gflops"], figures["matmul_gflops_bf16"]
-    print(f"matmul peak on {figures['device']}: float32 {peak:.0f} GFLOP/s, bfloat16 "
-          f"{peak_bf16:.0f} GFLOP/s (medians of one per round of the training loops)")
-    _print_training("pipeline loop on the GPU, train.backend=autograd, float32 (5 x all N)",
-                    figures["train_autograd"], peak)
-    _print_training("pipeline loop on the GPU, train.backend=autograd, bfloat16 (5 x all N)",
-                    figures["train_autograd_bf16"], peak, peak_bf16)
-    _ratio(figures, "bf16_speedup", "train_autograd_bf16", "train_autograd",
-           "bfloat16 over float32, autograd backend")
-    _print_training("pipeline loop on the GPU, train.backend=fused, float32 (5 x all N)",
-                    figures["train_fused"], peak)
-    _ratio(figures, "backend_speedup", "train_fused", "train_autograd",
-           "the fused backend over the autograd backend, same run")
-    _print_training(f"pipeline loop on the GPU, experiment=paper_cpu recipe ({recipe.batch_size} x "
-                    f"{recipe.queries_per_abrdf})", figures["train_paper_recipe"], peak)
+    print(
+        f"matmul peak on {figures['device']}: float32 {peak:.0f} GFLOP/s, bfloat16 "
+        f"{peak_bf16:.0f} GFLOP/s (medians of one per round of the training loops)"
+    )
+    _print_training(
+        "pipeline loop on the GPU, train.backend=autograd, float32 (5 x all N)",
+        figures["train_autograd"],
+        peak,
+    )
+    _print_training(
+        "pipeline loop on the GPU, train.backend=autograd, bfloat16 (5 x all N)",
+        figures["train_autograd_bf16"],
+        peak,
+        peak_bf16,
+    )
+    _ratio(
+        figures,
+        "bf16_speedup",
+        "train_autograd_bf16",
+        "train_autograd",
+        "bfloat16 over float32, autograd backend",
+    )
+    _print_training(
+        "pipeline loop on the GPU, train.backend=fused, float32 (5 x all N)",
+        figures["train_fused"],
+        peak,
+    )
+    _ratio(
+        figures,
+        "backend_speedup",
+        "train_fused",
+        "train_autograd",
+        "the fused backend over the autograd backend, same run",
+    )
+    _print_training(
+        f"pipeline loop on the GPU, experiment=paper_cpu recipe ({recipe.batch_size} x "
+        f"{recipe.queries_per_abrdf})",
+        figures["train_paper_recipe"],
+        peak,
+    )
     paper_steps = recipe.epochs * (recipe.epoch_texels // recipe.batch_size)
-    print(f"  at this rate a paper_cpu model's {paper_steps} steps take "
-          f"{paper_steps / figures['train_paper_recipe']['steps_per_s']:.0f} s")
+    print(
+        f"  at this rate a paper_cpu model's {paper_steps} steps take "
+        f"{paper_steps / figures['train_paper_recipe']['steps_per_s']:.0f} s"
+    )
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -440,12 +569,15 @@ def run(settings: BenchSettings) -> dict:
         print(f"{PROG}: error: device=cuda but torch sees no CUDA device", file=sys.stderr)
         raise SystemExit(2)
     bf16_skipped = None if on_cuda else bfloat16_skip_reason()
-    figures: dict = {"device": f"cuda ({torch.cuda.get_device_name()})" if on_cuda
-                     else "cpu", "threads": threads,
-                     "machine": platform.processor() or platform.machine(),
-                     "torch": torch.__version__, "cpu_bf16": cpu_bfloat16_support(),
-                     "decoder_parameters": parameter_count(Decoder()),
-                     "encoder_channels": list(channels)}
+    figures: dict = {
+        "device": f"cuda ({torch.cuda.get_device_name()})" if on_cuda else "cpu",
+        "threads": threads,
+        "machine": platform.processor() or platform.machine(),
+        "torch": torch.__version__,
+        "cpu_bf16": cpu_bfloat16_support(),
+        "decoder_parameters": parameter_count(Decoder()),
+        "encoder_channels": list(channels),
+    }
     recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
     if on_cuda:
         figures |= cuda_figures(settings.steps, channels, recipe)
@@ -455,29 +587,43 @@ def run(settings: BenchSettings) -> dict:
         figures |= {"kernels": kernels.available(), "tuning": tuning_in_effect(threads)}
         if bf16_skipped is not None:
             figures["bf16_skipped"] = bf16_skipped
-        figures |= training_figures(settings.steps, threads, channels, recipe,
-                                    bf16_skipped is None)
+        figures |= training_figures(settings.steps, threads, channels, recipe, bf16_skipped is None)
         print_training(figures, recipe, bf16_skipped)
         other_figures(figures, channels)
     if settings.paper_run:
-        figures["paper_run"] = paper_run(settings.runs, settings.paper_run, threads,
-                                         settings.device)
+        figures["paper_run"] = paper_run(
+            settings.runs, settings.paper_run, threads, settings.device
+        )
         for variant, row in figures["paper_run"].items():
-            print(f"paper-size run, {variant} ({settings.paper_run} training steps on "
-                  f"{settings.device}): {row['wall_s']:.0f} s wall, peak RSS "
-                  f"{row['peak_rss_mb']:.0f} MiB, training {row['train_queries_per_s'] / 1e6:.3f}"
-                  " M queries/s")
-            for stage in ("load", "crop", "preprocess", "pca", "kmeans", "representatives",
-                          "train", "evaluate"):
+            print(
+                f"paper-size run, {variant} ({settings.paper_run} training steps on "
+                f"{settings.device}): {row['wall_s']:.0f} s wall, peak RSS "
+                f"{row['peak_rss_mb']:.0f} MiB, training {row['train_queries_per_s'] / 1e6:.3f}"
+                " M queries/s"
+            )
+            for stage in (
+                "load",
+                "crop",
+                "preprocess",
+                "pca",
+                "kmeans",
+                "representatives",
+                "train",
+                "evaluate",
+            ):
                 if f"{stage}_seconds" in row:
-                    print(f"  {stage:16s} {row[f'{stage}_seconds']:8.1f} s "
-                          f"{row[f'{stage}_peak_rss_mb']:8.0f} MiB")
+                    print(
+                        f"  {stage:16s} {row[f'{stage}_seconds']:8.1f} s "
+                        f"{row[f'{stage}_peak_rss_mb']:8.0f} MiB"
+                    )
     if settings.load_size:
         figures.update(load_times(settings.runs, settings.load_size))
         cold = "cold page cache" if figures["load_cold"] else "page cache NOT dropped"
-        print(f"load {figures['load_images']} JPEGs of {settings.load_size}^2: decode "
-              f"{figures['load_decode_s']:.1f} s ({cold}), from the stage cache "
-              f"{figures['load_cached_s']:.2f} s")
+        print(
+            f"load {figures['load_images']} JPEGs of {settings.load_size}^2: decode "
+            f"{figures['load_decode_s']:.1f} s ({cold}), from the stage cache "
+            f"{figures['load_cached_s']:.2f} s"
+        )
     if settings.mlflow:
         _record(settings.runs, figures)
     print(json.dumps(figures))
@@ -492,9 +638,11 @@ def other_figures(figures: dict, channels) -> None:
     figures["reconstruct_queries_per_s"] = 256 * N_PAPER / seconds
     figures["reconstruct_neural_btf_s"] = M_PAPER * N_PAPER / figures["reconstruct_queries_per_s"]
     figures["reconstruct_clustered_k2000_s"] = reconstruction_seconds(2000, repeats=1)
-    print(f"reconstruction: {figures['reconstruct_queries_per_s'] / 1e6:.3f} M queries/s; "
-          f"Neural BTF, all {M_PAPER} x {N_PAPER}: {figures['reconstruct_neural_btf_s']:.0f} s; "
-          f"clustered k = 2000 (decoded once): {figures['reconstruct_clustered_k2000_s']:.1f} s")
+    print(
+        f"reconstruction: {figures['reconstruct_queries_per_s'] / 1e6:.3f} M queries/s; "
+        f"Neural BTF, all {M_PAPER} x {N_PAPER}: {figures['reconstruct_neural_btf_s']:.0f} s; "
+        f"clustered k = 2000 (decoded once): {figures['reconstruct_clustered_k2000_s']:.1f} s"
+    )
 
 
 def _flatten(figures: dict, prefix: str = "") -> dict:

@@ -32,16 +32,35 @@ class Isolated:
     there and returns their seconds, like the callables of the loops the bench runs in its
     own process."""
 
-    def __init__(self, loop: str, steps: int, threads: int, tuned: bool = False,
-                 precision: str = "float32", backend: str = "fused"):
+    def __init__(
+        self,
+        loop: str,
+        steps: int,
+        threads: int,
+        tuned: bool = False,
+        precision: str = "float32",
+        backend: str = "fused",
+    ):
         env = {k: v for k, v in os.environ.items() if k not in OPENMP_SPIN_VARIABLES}
-        command = [sys.executable, "-m", "pipeline.btf.fast.bench_child", loop,
-                   "--steps", str(steps), "--threads", str(threads), "--precision", precision,
-                   "--backend", backend]
+        command = [
+            sys.executable,
+            "-m",
+            "pipeline.btf.fast.bench_child",
+            loop,
+            "--steps",
+            str(steps),
+            "--threads",
+            str(threads),
+            "--precision",
+            precision,
+            "--backend",
+            backend,
+        ]
         if tuned:
             command.append("--tuned")
-        self.process = subprocess.Popen(command, env=env, text=True, stdin=subprocess.PIPE,
-                                        stdout=subprocess.PIPE)
+        self.process = subprocess.Popen(
+            command, env=env, text=True, stdin=subprocess.PIPE, stdout=subprocess.PIPE
+        )
 
     def __call__(self) -> float:
         self.process.stdin.write("run\n")
@@ -82,9 +101,16 @@ def main(argv=None) -> None:
     elif args.loop == "decoder_naive":
         run = loops.decoder_training(False, args.steps, args.threads)
     else:
-        run = loops.pipeline_training(5, -1, args.steps, loops.paper_channels(), args.threads,
-                                      precision=args.precision, backend=args.backend,
-                                      tuning=TUNED if args.tuned else None)
+        run = loops.pipeline_training(
+            5,
+            -1,
+            args.steps,
+            loops.paper_channels(),
+            args.threads,
+            precision=args.precision,
+            backend=args.backend,
+            tuning=TUNED if args.tuned else None,
+        )
     for _ in sys.stdin:
         print(f"seconds {run()!r}", flush=True)
 

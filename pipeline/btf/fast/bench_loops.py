@@ -72,8 +72,7 @@ def decoder_training(fused: bool, steps: int, threads: int, precision: str = "fl
     features = torch.rand(N_PAPER, 4)
     targets = torch.rand(5, N_PAPER, 3)
     directions = torch.arange(N_PAPER).repeat(5, 1)
-    step = (DecoderStep(decoder, features, workers=threads, precision=precision)
-            if fused else None)
+    step = DecoderStep(decoder, features, workers=threads, precision=precision) if fused else None
 
     def one_step() -> None:
         optimizer.zero_grad(set_to_none=True)
@@ -82,8 +81,7 @@ def decoder_training(fused: bool, steps: int, threads: int, precision: str = "fl
             step.assign(step(Batch(latents.detach(), directions, targets)))
             torch.set_num_threads(threads)
         else:
-            pred = decoder(latents.repeat_interleave(N_PAPER, 0),
-                           features[directions.reshape(-1)])
+            pred = decoder(latents.repeat_interleave(N_PAPER, 0), features[directions.reshape(-1)])
             torch.nn.functional.mse_loss(pred, targets.reshape(-1, 3)).backward()
         optimizer.step()
 
@@ -97,10 +95,19 @@ def decoder_training(fused: bool, steps: int, threads: int, precision: str = "fl
     return run
 
 
-def pipeline_training(batch: int, queries: int, steps: int, channels, threads: int,
-                      precision: str = "float32", optimizer: str = "sgd", lr: float = 0.05,
-                      tuning: dict | None = None, backend: str = "fused",
-                      device: str = "cpu"):
+def pipeline_training(
+    batch: int,
+    queries: int,
+    steps: int,
+    channels,
+    threads: int,
+    precision: str = "float32",
+    optimizer: str = "sgd",
+    lr: float = 0.05,
+    tuning: dict | None = None,
+    backend: str = "fused",
+    device: str = "cpu",
+):
     """The project's training loop (``pipeline.btf.train.train``) on random ABRDFs: data
     handling, normalization, encoder, the ``backend``'s step (``train.backend``; by
     default the fused decoder step) and optimizer (by default the paper's plain SGD, as in
@@ -117,13 +124,31 @@ def pipeline_training(batch: int, queries: int, steps: int, channels, threads: i
     abrdf = rng.random((m, N_PAPER, 3), dtype=np.float32)
     norm = fit_normalization(abrdf)
     features = rng.random((N_PAPER, 4), dtype=np.float32) * 2 - 1
-    settings = TrainSettings(epochs=10**6, batch_size=batch, queries_per_abrdf=queries,
-                             max_steps=steps, optimizer=optimizer, lr=lr, threads=threads,
-                             device=device, precision=precision, backend=backend,
-                             **(tuning or {}))
+    settings = TrainSettings(
+        epochs=10**6,
+        batch_size=batch,
+        queries_per_abrdf=queries,
+        max_steps=steps,
+        optimizer=optimizer,
+        lr=lr,
+        threads=threads,
+        device=device,
+        precision=precision,
+        backend=backend,
+        **(tuning or {}),
+    )
 
     def run() -> float:
-        return train(abrdf, abrdf, np.arange(m), norm, features, np.arange(N_PAPER), settings,
-                     seed=0, encoder_channels=channels).seconds
+        return train(
+            abrdf,
+            abrdf,
+            np.arange(m),
+            norm,
+            features,
+            np.arange(N_PAPER),
+            settings,
+            seed=0,
+            encoder_channels=channels,
+        ).seconds
 
     return run

@@ -37,27 +37,42 @@ class BenchSettings:
 KEYS = {
     "steps": ("steps", Integer(1), "training steps per timing"),
     "threads": ("threads", Integer(1, optional=True), "CPU threads (null: all cores)"),
-    "device": ("device", OneOf("cpu", "cuda"),
-               "cpu: every figure, both training backends on the CPU; cuda: the training "
-               "loops at the paper's batch on the GPU, per backend and precision, and at "
-               "paper_cpu's batch (and paper_run, load_size when asked)"),
+    "device": (
+        "device",
+        OneOf("cpu", "cuda"),
+        "cpu: every figure, both training backends on the CPU; cuda: the training "
+        "loops at the paper's batch on the GPU, per backend and precision, and at "
+        "paper_cpu's batch (and paper_run, load_size when asked)",
+    ),
     "paths.runs": ("runs", cli.Text(), "the folder holding mlflow.db (and paper_run's outputs)"),
-    "mlflow": ("mlflow", OneOf(True, False),
-               "log the figures to MLflow (experiment bench under paths.runs)"),
-    "paper_run": ("paper_run", Integer(0),
-                  "also run paper-size jobs with this many training steps and report each "
-                  "stage's time and peak RSS (0: not run)"),
-    "load_size": ("load_size", Integer(0),
-                  "also time loading a 6561-file UBO2003 folder of this texture size "
-                  "(256 = the real datasets; 0: not run)"),
+    "mlflow": (
+        "mlflow",
+        OneOf(True, False),
+        "log the figures to MLflow (experiment bench under paths.runs)",
+    ),
+    "paper_run": (
+        "paper_run",
+        Integer(0),
+        "also run paper-size jobs with this many training steps and report each "
+        "stage's time and peak RSS (0: not run)",
+    ),
+    "load_size": (
+        "load_size",
+        Integer(0),
+        "also time loading a 6561-file UBO2003 folder of this texture size "
+        "(256 = the real datasets; 0: not run)",
+    ),
 }
 
 
 COMMAND = cli.Command(
-    PROG, KEYS, BenchSettings,
+    PROG,
+    KEYS,
+    BenchSettings,
     "Method A's training benchmark (pipeline/btf/fast/bench.py). Settings and their defaults:",
     what="the bench",
-    notes="Timings are medians of interleaved rounds: compare them as ratios within one run.")
+    notes="Timings are medians of interleaved rounds: compare them as ratios within one run.",
+)
 usage = COMMAND.usage
 parse = COMMAND.parse  # raises ConfigError naming a bad argument (and the closest key)
 parse_args = COMMAND.parse_args  # --help: usage, exit 0; a bad argument: its error, exit 2

@@ -46,9 +46,13 @@ CHUNK_BYTES = 2 << 20
 _CL = torch.channels_last
 
 
-def encode_for_training(convs: Sequence[nn.Conv1d], norms: Sequence[nn.BatchNorm1d],
-                        fc: nn.Linear, abrdf: torch.Tensor,
-                        chunk_bytes: int = CHUNK_BYTES) -> torch.Tensor:
+def encode_for_training(
+    convs: Sequence[nn.Conv1d],
+    norms: Sequence[nn.BatchNorm1d],
+    fc: nn.Linear,
+    abrdf: torch.Tensor,
+    chunk_bytes: int = CHUNK_BYTES,
+) -> torch.Tensor:
     """Latents of ``abrdf`` with the blocks ``convs[i] -> max-pool 3 -> ReLU -> norms[i]``
     and ``fc``, batch-norm in training mode (its running statistics updated), and a
     gradient for backward.
@@ -67,10 +71,12 @@ def encode_for_training(convs: Sequence[nn.Conv1d], norms: Sequence[nn.BatchNorm
     latents : tensor of shape (B, fc.out_features)
     """
     x = abrdf.permute(0, 2, 1).contiguous()  # (B, N, 3)
-    params = [t for conv, norm in zip(convs, norms, strict=True)
-              for t in (conv.weight, conv.bias, norm.weight, norm.bias)]
-    return _EncoderFunction.apply(x, list(norms), int(chunk_bytes), fc.weight, fc.bias,
-                                  *params)
+    params = [
+        t
+        for conv, norm in zip(convs, norms, strict=True)
+        for t in (conv.weight, conv.bias, norm.weight, norm.bias)
+    ]
+    return _EncoderFunction.apply(x, list(norms), int(chunk_bytes), fc.weight, fc.bias, *params)
 
 
 @dataclass
@@ -103,14 +109,14 @@ def _rows(t: torch.Tensor) -> torch.Tensor:
     return t.squeeze(2).permute(0, 2, 1)
 
 
-def _chunks(batch: int, length: int, channels: int, itemsize: int,
-            chunk_bytes: int) -> list[tuple[int, int]]:
+def _chunks(
+    batch: int, length: int, channels: int, itemsize: int, chunk_bytes: int
+) -> list[tuple[int, int]]:
     rows = max(1, chunk_bytes // (length * channels * itemsize))
     return [(s, min(s + rows, batch)) for s in range(0, batch, rows)]
 
 
-def _block_input(x: torch.Tensor, blocks: list[_Block], i: int, s: int,
-                 e: int) -> torch.Tensor:
+def _block_input(x: torch.Tensor, blocks: list[_Block], i: int, s: int, e: int) -> torch.Tensor:
     """The ABRDFs s..e of block ``i``'s input, (c, L, C_in): ``x`` itself for the first
     block, else the batch-norm output of the block below, recomputed from its ``r``."""
     if i == 0:
@@ -137,9 +143,15 @@ class _EncoderFunction(torch.autograd.Function):
         blocks: list[_Block] = []
         for i, norm in enumerate(norms):
             length = x.shape[1] if i == 0 else blocks[-1].r.shape[1]
-            block = _forward_block(lambda s, e, i=i: _block_input(x, blocks, i, s, e),
-                                   params[4 * i], params[4 * i + 1], norm.eps, length, batch,
-                                   chunk_bytes)
+            block = _forward_block(
+                lambda s, e, i=i: _block_input(x, blocks, i, s, e),
+                params[4 * i],
+                params[4 * i + 1],
+                norm.eps,
+                length,
+                batch,
+                chunk_bytes,
+            )
             gamma, beta = params[4 * i + 2 : 4 * i + 4]
             block.scale = gamma * block.invstd
             block.shift = beta - block.mean * block.scale
@@ -163,13 +175,15 @@ class _EncoderFunction(torch.autograd.Function):
         g_fc_weight = g_fc_weight.transpose(1, 2).reshape(fc_weight.shape)
         g = (grad_latents @ ctx.columns).view(batch, length, channels)
         g_rows = g.view(-1, channels)
-        sums = _norm_sums(blocks[-1], g_rows.sum(0),
-                          (g_rows * blocks[-1].r.view(-1, channels)).sum(0))
+        sums = _norm_sums(
+            blocks[-1], g_rows.sum(0), (g_rows * blocks[-1].r.view(-1, channels)).sum(0)
+        )
         grads: list = [None] * len(params)
         for i in range(len(blocks) - 1, -1, -1):
             need_input = i > 0 or ctx.needs_input_grad[0]
-            g, g_weight, g_bias, below_sums = _backward_block(x, blocks, params, i, g, sums,
-                                                              need_input)
+            g, g_weight, g_bias, below_sums = _backward_block(
+                x, blocks, params, i, g, sums, need_input
+            )
             grads[4 * i : 4 * i + 4] = [g_weight, g_bias, sums[1], sums[0]]
             sums = below_sums
         return (g, None, None, g_fc_weight, grad_latents.sum(0), *grads)
@@ -181,8 +195,9 @@ def _forward_block(input_of, weight, bias, eps, length, batch, chunk_bytes) -> _
     n = length // 3
     options = {"dtype": weight.dtype, "device": weight.device}
     r = torch.empty(batch, n, channels, **options)
-    indices = torch.empty(batch, channels, 1, n, dtype=torch.int64, device=weight.device,
-                          memory_format=_CL)
+    indices = torch.empty(
+        batch, channels, 1, n, dtype=torch.int64, device=weight.device, memory_format=_CL
+    )
     chunks = _chunks(batch, length, channels, weight.element_size(), chunk_bytes)
     kernel = weight.unsqueeze(2)
     mean = torch.zeros(channels, **options)
@@ -192,8 +207,15 @@ def _forward_block(input_of, weight, bias, eps, length, batch, chunk_bytes) -> _
         y = F.conv2d(_channels_last(input_of(s, e)), kernel, bias, padding=(0, 1))
         # Straight into r and the indices (both channels-last slices): no copies.
         torch.ops.aten.max_pool2d_with_indices.out(
-            y, [1, 3], [1, 3], [0, 0], [1, 1], False, out=_channels_last(r[s:e]),
-            indices=indices[s:e])
+            y,
+            [1, 3],
+            [1, 3],
+            [0, 0],
+            [1, 1],
+            False,
+            out=_channels_last(r[s:e]),
+            indices=indices[s:e],
+        )
         rows = r[s:e].clamp_min_(0).view(-1, channels)
         # Chan, Golub and LeVeque's update of (count, mean, squares) by this chunk's.
         k = rows.shape[0]
@@ -223,8 +245,9 @@ def _update_running_stats(norm: nn.BatchNorm1d, block: _Block) -> None:
     norm.running_var.mul_(1 - factor).add_(unbiased, alpha=factor)
 
 
-def _backward_block(x, blocks: list[_Block], params, i: int, g: torch.Tensor, sums,
-                    need_input: bool):
+def _backward_block(
+    x, blocks: list[_Block], params, i: int, g: torch.Tensor, sums, need_input: bool
+):
     """Block ``i``'s backward: ``g`` (B, n, C) is the gradient at its batch-norm's output
     and ``sums`` the per-channel sums of g and of g x-hat over the batch. Returns the
     gradient at the block's input (B, L, C_in) (None unless ``need_input``), the
@@ -247,15 +270,31 @@ def _backward_block(x, blocks: list[_Block], params, i: int, g: torch.Tensor, su
         r = block.r[s:e]
         g_r = torch.addcmul(offset, g[s:e], scale).addcmul_(r, slope)
         g_pooled = torch.ops.aten.threshold_backward(g_r, r, 0)  # the ReLU
-        template = torch.empty((e - s, channels, 1, block.length), memory_format=_CL,
-                               **options)
+        template = torch.empty((e - s, channels, 1, block.length), memory_format=_CL, **options)
         g_y = torch.ops.aten.max_pool2d_with_indices_backward(
-            _channels_last(g_pooled), template, [1, 3], [1, 3], [0, 0], [1, 1], False,
-            block.indices[s:e])
+            _channels_last(g_pooled),
+            template,
+            [1, 3],
+            [1, 3],
+            [0, 0],
+            [1, 1],
+            False,
+            block.indices[s:e],
+        )
         h = _block_input(x, blocks, i, s, e)
         g_h, g_w, g_b = torch.ops.aten.convolution_backward(
-            g_y, _channels_last(h).contiguous(memory_format=_CL), kernel, [channels], [1, 1],
-            [0, 1], [1, 1], False, [0, 0], 1, [need_input, True, True])
+            g_y,
+            _channels_last(h).contiguous(memory_format=_CL),
+            kernel,
+            [channels],
+            [1, 1],
+            [0, 1],
+            [1, 1],
+            False,
+            [0, 0],
+            1,
+            [need_input, True, True],
+        )
         g_weight += g_w
         g_bias += g_b
         if need_input:

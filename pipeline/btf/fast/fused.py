@@ -98,9 +98,15 @@ def _script(function):
 class DecoderStep:
     """Computes :class:`Gradients` of a :class:`Batch`; reuse one instance across steps."""
 
-    def __init__(self, decoder: Decoder, features: torch.Tensor, workers: int = 1,
-                 chunk: int | None = None, precision: str = "float32",
-                 fused_kernels: bool | None = None):
+    def __init__(
+        self,
+        decoder: Decoder,
+        features: torch.Tensor,
+        workers: int = 1,
+        chunk: int | None = None,
+        precision: str = "float32",
+        fused_kernels: bool | None = None,
+    ):
         """``fused_kernels``: use :mod:`pipeline.btf.fast.kernels` (None: where they build, on
         the CPU; False: torch ops only)."""
         if precision not in PRECISIONS:
@@ -118,9 +124,11 @@ class DecoderStep:
         if fused_kernels is None:
             fused_kernels = on_cpu and kernels.available()
         elif fused_kernels and not (on_cpu and kernels.available()):
-            raise ValueError("fused_kernels=True needs the C++ kernels (pipeline.btf.fast.kernels) "
-                             f"and a CPU device; features are on {features.device}, kernels "
-                             f"{'built' if kernels.available() else 'not built'}")
+            raise ValueError(
+                "fused_kernels=True needs the C++ kernels (pipeline.btf.fast.kernels) "
+                f"and a CPU device; features are on {features.device}, kernels "
+                f"{'built' if kernels.available() else 'not built'}"
+            )
         self.fused_kernels = bool(fused_kernels)
         self._chunks = _script(_chunks_fused if self.fused_kernels else _chunks)
 
@@ -138,8 +146,9 @@ class DecoderStep:
         # rows [d, e_i]: a query's direction features, then the one-hot e_i of its ABRDF i,
         # against [W1d, (W1z z_j + b1) for each ABRDF j]. Each ABRDF's latent part is one
         # weight column, so a chunk may span ABRDFs.
-        first = torch.cat([weights[0][:, n_latent:],
-                           torch.addmm(biases[0], z, weights[0][:, :n_latent].T).T], 1)
+        first = torch.cat(
+            [weights[0][:, n_latent:], torch.addmm(biases[0], z, weights[0][:, :n_latent].T).T], 1
+        )
         inputs = self._rows(batch.directions)
         low = [first.to(dtype)] + [w.to(dtype) for w in weights[1:]]
         low_biases = [bias.to(dtype) for bias in biases[1:]]
@@ -147,11 +156,21 @@ class DecoderStep:
         targets = batch.targets.reshape(rows, -1).contiguous()
         # oneDNN's fused bfloat16 layer has no primitive on CPUs without bfloat16 support
         # (AVX-512 BF16 or AMX; an AVX2-only CPU refuses it): plain products there.
-        onednn = (inputs.is_cpu and dtype == torch.bfloat16
-                  and torch.backends.mkldnn.is_available()
-                  and torch.ops.mkldnn._is_mkldnn_bf16_supported())
-        parts = self._run(split_rows(rows, self.workers, self.chunk), inputs, targets, low,
-                          low_biases, 2.0 / targets.numel(), onednn)
+        onednn = (
+            inputs.is_cpu
+            and dtype == torch.bfloat16
+            and torch.backends.mkldnn.is_available()
+            and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+        )
+        parts = self._run(
+            split_rows(rows, self.workers, self.chunk),
+            inputs,
+            targets,
+            low,
+            low_biases,
+            2.0 / targets.numel(),
+            onednn,
+        )
         g_w, g_b, loss = _sum(parts)
         # The one-hot columns' gradient is dL/d(W1z z_i + b1) per ABRDF i; W1z's, b1's and
         # z's gradients follow from it.
@@ -159,8 +178,12 @@ class DecoderStep:
         g_first = torch.empty_like(weights[0])
         g_first[:, n_latent:] = g_w[0][:, :n_direction]
         g_first[:, :n_latent] = hidden.T @ z
-        return Gradients([g_first] + g_w[1:], [hidden.sum(0)] + g_b,
-                         hidden @ weights[0][:, :n_latent], loss / targets.numel())
+        return Gradients(
+            [g_first] + g_w[1:],
+            [hidden.sum(0)] + g_b,
+            hidden @ weights[0][:, :n_latent],
+            loss / targets.numel(),
+        )
 
     def _rows(self, directions: torch.Tensor) -> torch.Tensor:
         """The first layer's (B q, n_direction + B) input rows [d, e_i] (see __call__); the
@@ -168,22 +191,25 @@ class DecoderStep:
         b, q = directions.shape
         n = self.features.shape[1]
         if self._inputs.shape != (b * q, n + b):
-            self._inputs = torch.zeros(b * q, n + b, dtype=self.features.dtype,
-                                       device=self.features.device)
+            self._inputs = torch.zeros(
+                b * q, n + b, dtype=self.features.dtype, device=self.features.device
+            )
             self._inputs.view(b, q, n + b)[:, :, n:] = torch.eye(
-                b, dtype=self.features.dtype, device=self.features.device)[:, None, :]
+                b, dtype=self.features.dtype, device=self.features.device
+            )[:, None, :]
         self._inputs[:, :n] = self.features.index_select(0, directions.reshape(-1))
         return self._inputs
 
     def _parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         layers = _layers(self.decoder)
-        return ([layer.weight.detach() for layer in layers],
-                [layer.bias.detach() for layer in layers])
+        return (
+            [layer.weight.detach() for layer in layers],
+            [layer.bias.detach() for layer in layers],
+        )
 
     def _run(self, items_of_worker: list[list], *shared) -> list[tuple]:
         """Worker 0's chunks on the calling thread, each other worker's on a pool thread."""
-        futures = [self._pool.submit(self._work, items, *shared)
-                   for items in items_of_worker[1:]]
+        futures = [self._pool.submit(self._work, items, *shared) for items in items_of_worker[1:]]
         threads = torch.get_num_threads()
         try:
             first = self._work(items_of_worker[0], *shared)
@@ -198,8 +224,7 @@ class DecoderStep:
 
     def assign(self, grads: Gradients) -> None:
         """Store ``grads`` as the decoder parameters' ``.grad`` (adding to what is there)."""
-        for layer, g_w, g_b in zip(_layers(self.decoder), grads.weights, grads.biases,
-                                   strict=True):
+        for layer, g_w, g_b in zip(_layers(self.decoder), grads.weights, grads.biases, strict=True):
             for param, grad in ((layer.weight, g_w), (layer.bias, g_b)):
                 if param.grad is None:
                     param.grad = grad
@@ -211,13 +236,21 @@ def split_rows(rows: int, workers: int, chunk: int) -> list[list[tuple[int, int]
     """Worker w takes the w-th of ``workers`` equal parts of the ``rows`` query rows, in
     chunks of at most ``chunk`` rows. Returns each worker's (first row, end row) items."""
     part = -(-rows // workers)
-    return [[(s, min(s + chunk, p + part, rows)) for s in range(p, min(p + part, rows), chunk)]
-            for p in range(0, part * workers, part)]
+    return [
+        [(s, min(s + chunk, p + part, rows)) for s in range(p, min(p + part, rows), chunk)]
+        for p in range(0, part * workers, part)
+    ]
 
 
-def _chunks(items: list[tuple[int, int]], inputs: torch.Tensor, targets: torch.Tensor,
-            weights: list[torch.Tensor], biases: list[torch.Tensor], scale: float,
-            onednn: bool):
+def _chunks(
+    items: list[tuple[int, int]],
+    inputs: torch.Tensor,
+    targets: torch.Tensor,
+    weights: list[torch.Tensor],
+    biases: list[torch.Tensor],
+    scale: float,
+    onednn: bool,
+):
     """The forward and backward of ``items`` ((first row, end row) chunks of ``inputs`` and
     ``targets``): the first layer a product over the rows [d, e_i] without a bias
     (:meth:`DecoderStep.__call__`), ``biases`` those of layers 2-4. Products, activations
@@ -246,9 +279,15 @@ def _chunks(items: list[tuple[int, int]], inputs: torch.Tensor, targets: torch.T
     return g_w, g_b, loss
 
 
-def _chunks_fused(items: list[tuple[int, int]], inputs: torch.Tensor, targets: torch.Tensor,
-                  weights: list[torch.Tensor], biases: list[torch.Tensor], scale: float,
-                  onednn: bool):
+def _chunks_fused(
+    items: list[tuple[int, int]],
+    inputs: torch.Tensor,
+    targets: torch.Tensor,
+    weights: list[torch.Tensor],
+    biases: list[torch.Tensor],
+    scale: float,
+    onednn: bool,
+):
     """:func:`_chunks` with the fused kernels of :mod:`pipeline.btf.fast.kernels`: the last
     layer's forward and backward with the residual and loss in one pass, and each ReLU's
     gradient with its bias gradient (layer 2) or the first layer's weight gradient (layer
@@ -261,14 +300,16 @@ def _chunks_fused(items: list[tuple[int, int]], inputs: torch.Tensor, targets: t
     g_b = [torch.zeros(b.shape, dtype=targets.dtype, device=targets.device) for b in biases]
     # The first layer's weight gradient, transposed: (inputs, hidden), so that the kernel
     # adds each input column's contribution to one contiguous row of vectors.
-    g_first = torch.zeros((weights[0].shape[1], weights[0].shape[0]), dtype=targets.dtype,
-                          device=targets.device)
+    g_first = torch.zeros(
+        (weights[0].shape[1], weights[0].shape[0]), dtype=targets.dtype, device=targets.device
+    )
     loss = torch.zeros((), dtype=torch.float64, device=targets.device)
     for item in items:
         start, stop = item
         a = _forward(inputs[start:stop], weights, biases, 3, onednn)
-        g = torch.ops.neural_btf.output_layer(a[3], weights[3], biases[2], targets[start:stop],
-                                              scale, g_w[3], g_b[2], g_b[1], loss)
+        g = torch.ops.neural_btf.output_layer(
+            a[3], weights[3], biases[2], targets[start:stop], scale, g_w[3], g_b[2], g_b[1], loss
+        )
         # g: the gradient at layer 3's output (before its ReLU); on through layers 3 and 2.
         _accumulate(g_w[2], g, a[2])
         g_2 = g @ weights[2]
@@ -280,8 +321,13 @@ def _chunks_fused(items: list[tuple[int, int]], inputs: torch.Tensor, targets: t
     return g_w, g_b, loss
 
 
-def _forward(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor],
-             layers: int, onednn: bool) -> list[torch.Tensor]:
+def _forward(
+    rows: torch.Tensor,
+    weights: list[torch.Tensor],
+    biases: list[torch.Tensor],
+    layers: int,
+    onednn: bool,
+) -> list[torch.Tensor]:
     """[rows, then the outputs of the first ``layers`` layers] (see :func:`_chunks`).
     ``onednn``: each layer and its ReLU is one oneDNN call (a separate bfloat16 ReLU pass
     costs a large share of the product's time: docs/performance.md), addmm elsewhere."""
@@ -291,11 +337,11 @@ def _forward(rows: torch.Tensor, weights: list[torch.Tensor], biases: list[torch
         if k > 0:
             bias = biases[k - 1]
         if onednn:
-            out = torch.ops.mkldnn._linear_pointwise(a[k], weights[k], bias,
-                                                     "relu" if k < 3 else "none", [], "")
+            out = torch.ops.mkldnn._linear_pointwise(
+                a[k], weights[k], bias, "relu" if k < 3 else "none", [], ""
+            )
         else:
-            out = a[k] @ weights[k].t() if bias is None else torch.addmm(
-                bias, a[k], weights[k].t())
+            out = a[k] @ weights[k].t() if bias is None else torch.addmm(bias, a[k], weights[k].t())
             if k < 3:
                 out = out.relu_()
         a.append(out)
@@ -320,5 +366,3 @@ def _sum(parts: list[tuple]) -> tuple[list[torch.Tensor], list[torch.Tensor], fl
             total += add
         loss += part_loss
     return g_w, g_b, loss
-
-

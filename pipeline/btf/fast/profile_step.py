@@ -46,8 +46,13 @@ N_PAPER = 6561
 PARTS = ("data", "encoder_forward", "decoder", "encoder_backward", "optimizer")
 DECODER_MACS = 12 * 106 + 2 * 106 * 106 + 106 * 3  # per query, the model's products
 # The recipe of conf/train/cpu.yaml before the faster step (the ``before`` setup).
-BEFORE_RECIPE = {"batch_size": 32, "queries_per_abrdf": 256, "epochs": 24,
-                 "epoch_texels": 10000, "reuse_freed_memory": False}
+BEFORE_RECIPE = {
+    "batch_size": 32,
+    "queries_per_abrdf": 256,
+    "epochs": 24,
+    "epoch_texels": 10000,
+    "reuse_freed_memory": False,
+}
 
 
 def cpu_recipe() -> dict:
@@ -112,22 +117,30 @@ KEYS = {
     "threads": ("threads", _OneOrMore(Integer(1)), "thread counts, each profiled in turn"),
     "steps": ("steps", Integer(1), "timed steps per child"),
     "rounds": ("rounds", Integer(1), "interleaved rounds (the figures are their medians)"),
-    "setups": ("setups", _OneOrMore(OneOf(*SETUPS)),
-               f"the setups, the first the baseline; of {', '.join(SETUPS)}"),
+    "setups": (
+        "setups",
+        _OneOrMore(OneOf(*SETUPS)),
+        f"the setups, the first the baseline; of {', '.join(SETUPS)}",
+    ),
 }
 
 
-COMMAND = cli.Command(PROG, KEYS, ProfileSettings,
-                      "Where a training step's time goes. Settings and their defaults:",
-                      what="the profiler")
+COMMAND = cli.Command(
+    PROG,
+    KEYS,
+    ProfileSettings,
+    "Where a training step's time goes. Settings and their defaults:",
+    what="the profiler",
+)
 
 
 def parse(argv: list[str]) -> ProfileSettings:
     """:class:`ProfileSettings` from ``key=value`` arguments (``threads`` and ``setups`` one
     value or a list); raises :class:`~pipeline.core.errors.ConfigError` naming a bad one."""
     settings = COMMAND.parse(argv)
-    return replace(settings, threads=tuple(_items(settings.threads)),
-                   setups=tuple(_items(settings.setups)))
+    return replace(
+        settings, threads=tuple(_items(settings.threads)), setups=tuple(_items(settings.setups))
+    )
 
 
 def steps_of(recipe: dict) -> int:
@@ -170,8 +183,9 @@ def matmul_peak(size: int = 2048, repeats: int = 5) -> float:
     return 2 * size**3 / float(np.median(times)) / 1e9
 
 
-def time_steps(recipe: dict, threads: int, steps: int, warmup: int = 5,
-               texels: int = 512, seed: int = 0) -> dict:
+def time_steps(
+    recipe: dict, threads: int, steps: int, warmup: int = 5, texels: int = 512, seed: int = 0
+) -> dict:
     """Mean milliseconds of each part of ``steps`` training steps of ``recipe`` on
     ``threads`` threads, after ``warmup`` steps, on random ABRDFs of ``texels`` texels,
     and the matmul peak measured at the end (``peak_gflops``)."""
@@ -189,8 +203,9 @@ def time_steps(recipe: dict, threads: int, steps: int, warmup: int = 5,
     torch.manual_seed(seed)
     encoder, decoder = Encoder(N_PAPER), Decoder()
     forward = encoder.forward if recipe["encoder"] == "training" else encoder.forward_layers
-    optimizer = torch.optim.Adam(list(encoder.parameters()) + list(decoder.parameters()),
-                                 lr=1e-4, fused=True)
+    optimizer = torch.optim.Adam(
+        list(encoder.parameters()) + list(decoder.parameters()), lr=1e-4, fused=True
+    )
     features = torch.from_numpy(rng.random((N_PAPER, 4), dtype=np.float32) * 2 - 1)
     step_fn = DecoderStep(decoder, features, workers=threads)
     totals = dict.fromkeys(PARTS, 0.0)
@@ -238,9 +253,11 @@ def time_steps(recipe: dict, threads: int, steps: int, warmup: int = 5,
     finally:
         step_fn.close()
     torch.set_num_threads(threads)
-    return ({part: 1e3 * totals[part] / steps for part in PARTS}
-            | {f"cpu_{part}": 1e3 * cpu_totals[part] / steps for part in PARTS}
-            | {"peak_gflops": matmul_peak()})
+    return (
+        {part: 1e3 * totals[part] / steps for part in PARTS}
+        | {f"cpu_{part}": 1e3 * cpu_totals[part] / steps for part in PARTS}
+        | {"peak_gflops": matmul_peak()}
+    )
 
 
 class _nothing:
@@ -254,8 +271,7 @@ class _nothing:
 def _child(spec: dict) -> dict:
     """One setup's timing in a fresh process (``--child SPEC``: not a setting, the word
     between this process and its children)."""
-    command = [sys.executable, "-m", "pipeline.btf.fast.profile_step", "--child",
-               json.dumps(spec)]
+    command = [sys.executable, "-m", "pipeline.btf.fast.profile_step", "--child", json.dumps(spec)]
     done = subprocess.run(command, capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"the profile of {spec['setup']} failed:\n{done.stderr[-2000:]}")
@@ -269,8 +285,9 @@ def profile(setups: list[str], threads: int, steps: int, rounds: int) -> dict:
     runs: dict[str, list[dict]] = {name: [] for name in setups}
     for _ in range(rounds):
         for name in setups:
-            runs[name].append(_child({"setup": name, "recipe": recipes[name],
-                                      "threads": threads, "steps": steps}))
+            runs[name].append(
+                _child({"setup": name, "recipe": recipes[name], "threads": threads, "steps": steps})
+            )
     result = {}
     for name, rows in runs.items():
         recipe = recipes[name]
@@ -289,10 +306,14 @@ def profile(setups: list[str], threads: int, steps: int, rounds: int) -> dict:
             "step": (enc_fwd + enc_bwd + dec) / ms["step"] / 1e6,
         }
         result[name] = {
-            "recipe": recipe, "ms": ms, "cpu_ms": cpu_ms, "gflops": gflops,
+            "recipe": recipe,
+            "ms": ms,
+            "cpu_ms": cpu_ms,
+            "gflops": gflops,
             "peak_gflops": peak,
             "share_of_peak": {k: v / peak for k, v in gflops.items()},
-            "steps": steps_of(recipe), "training_s": steps_of(recipe) * ms["step"] / 1e3,
+            "steps": steps_of(recipe),
+            "training_s": steps_of(recipe) * ms["step"] / 1e3,
         }
     first = result[setups[0]]
     for row in result.values():
@@ -304,27 +325,38 @@ def profile(setups: list[str], threads: int, steps: int, rounds: int) -> dict:
 
 def print_profile(threads: int, result: dict) -> None:
     names = list(result)
-    print(f"\n{threads} thread(s); float32 matmul peak "
-          + ", ".join(f"{result[n]['peak_gflops']:.0f}" for n in names)
-          + " GFLOP/s (medians in each setup's children)")
+    print(
+        f"\n{threads} thread(s); float32 matmul peak "
+        + ", ".join(f"{result[n]['peak_gflops']:.0f}" for n in names)
+        + " GFLOP/s (medians in each setup's children)"
+    )
     print(f"{'ms per step':<18}" + "".join(f"{n:>12}" for n in names))
     for part in (*PARTS, "step"):
         print(f"{part:<18}" + "".join(f"{result[n]['ms'][part]:12.2f}" for n in names))
     print(f"{'cpu ms, step':<18}" + "".join(f"{result[n]['cpu_ms']:12.2f}" for n in names))
     for what in ("encoder", "decoder", "step"):
-        print(f"{'% of peak, ' + what:<18}"
-              + "".join(f"{100 * result[n]['share_of_peak'][what]:11.0f}%" for n in names))
-    print(f"{'batch x queries':<18}" + "".join(
-        f"{result[n]['recipe']['batch_size']:>7} x{result[n]['recipe']['queries_per_abrdf']:>4}"
-        for n in names))
+        print(
+            f"{'% of peak, ' + what:<18}"
+            + "".join(f"{100 * result[n]['share_of_peak'][what]:11.0f}%" for n in names)
+        )
+    print(
+        f"{'batch x queries':<18}"
+        + "".join(
+            f"{result[n]['recipe']['batch_size']:>7} x{result[n]['recipe']['queries_per_abrdf']:>4}"
+            for n in names
+        )
+    )
     print(f"{'steps of a run':<18}" + "".join(f"{result[n]['steps']:12d}" for n in names))
     print(f"{'training, s':<18}" + "".join(f"{result[n]['training_s']:12.0f}" for n in names))
-    print(f"{names[0] + ' / setup':<18}"
-          + "".join(f"{result[n]['training_speedup']:11.2f}x" for n in names)
-          + "   (training time; per step: "
-          + ", ".join(f"{result[n]['step_speedup']:.2f}x" for n in names)
-          + "; CPU time per step: "
-          + ", ".join(f"{result[n]['cpu_step_speedup']:.2f}x" for n in names) + ")")
+    print(
+        f"{names[0] + ' / setup':<18}"
+        + "".join(f"{result[n]['training_speedup']:11.2f}x" for n in names)
+        + "   (training time; per step: "
+        + ", ".join(f"{result[n]['step_speedup']:.2f}x" for n in names)
+        + "; CPU time per step: "
+        + ", ".join(f"{result[n]['cpu_step_speedup']:.2f}x" for n in names)
+        + ")"
+    )
 
 
 def main(argv: list[str] | None = None) -> dict:

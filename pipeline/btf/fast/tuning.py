@@ -58,9 +58,13 @@ def set_omp_spin_count(count: int | None) -> None:
     if os.environ.get("GOMP_SPINCOUNT") == value:
         return
     if "torch" in sys.modules:
-        log.warning("train.omp_spin_count=%s has no effect: torch (and OpenMP) were loaded "
-                    "before the job started; set GOMP_SPINCOUNT=%s in the environment "
-                    "instead", value, value)
+        log.warning(
+            "train.omp_spin_count=%s has no effect: torch (and OpenMP) were loaded "
+            "before the job started; set GOMP_SPINCOUNT=%s in the environment "
+            "instead",
+            value,
+            value,
+        )
         return
     os.environ["GOMP_SPINCOUNT"] = value
 
@@ -83,8 +87,7 @@ def cpu_quota_set() -> bool:
 
 
 def can_keep_awake() -> bool:
-    return (hasattr(os, "SCHED_IDLE") and hasattr(os, "sched_getaffinity")
-            and not cpu_quota_set())
+    return hasattr(os, "SCHED_IDLE") and hasattr(os, "sched_getaffinity") and not cpu_quota_set()
 
 
 @contextmanager
@@ -100,10 +103,14 @@ def keep_cpus_awake(threads: int):
     cpus = sorted(os.sched_getaffinity(0)) if can_keep_awake() else []
     if threads >= max(2, len(cpus)):
         for cpu in cpus:
-            spinners.append(subprocess.Popen(
-                [sys.executable, "-S", "-c", _SPINNER, str(os.getpid()), str(cpu)],
-                stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                stderr=subprocess.DEVNULL))
+            spinners.append(
+                subprocess.Popen(
+                    [sys.executable, "-S", "-c", _SPINNER, str(os.getpid()), str(cpu)],
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
     try:
         for spinner in spinners:
             spinner.stdout.read()  # "spinning", then end of file
@@ -163,7 +170,8 @@ def reuse_freed_memory(trim_threshold: int = 256 << 20):
 def training_tuning(settings, threads: int, on_cpu: bool):
     """The tuning ``settings`` (a :class:`~pipeline.btf.train_settings.TrainSettings`) asks
     for, for the duration of training on ``threads`` threads."""
-    with (reuse_freed_memory() if settings.reuse_freed_memory and on_cpu else nullcontext(),
-          keep_cpus_awake(threads if settings.keep_awake and on_cpu else 0)):
+    with (
+        reuse_freed_memory() if settings.reuse_freed_memory and on_cpu else nullcontext(),
+        keep_cpus_awake(threads if settings.keep_awake and on_cpu else 0),
+    ):
         yield
-

@@ -55,9 +55,13 @@ KEYS = {
 }
 
 
-COMMAND = cli.Command(PROG, KEYS, RenderBenchSettings,
-                      "The cost of a Fig. 8 frame per material. Settings and their defaults:",
-                      what="the render benchmark")
+COMMAND = cli.Command(
+    PROG,
+    KEYS,
+    RenderBenchSettings,
+    "The cost of a Fig. 8 frame per material. Settings and their defaults:",
+    what="the render benchmark",
+)
 parse = COMMAND.parse  # raises ConfigError naming a bad argument (and the closest key)
 
 
@@ -80,16 +84,21 @@ def materials(crop: int, folder: Path, seed: int = 0) -> dict:
     rng = np.random.default_rng(seed)
     checker = (np.indices((crop, crop)).sum(0) % 2 * 0.6 + 0.2).astype(np.float32)
     torch.manual_seed(seed)
-    path = write_compressed(folder / "btf.safetensors", Decoder(),
-                            rng.standard_normal((crop * crop, LATENT_DIM)).astype(np.float32),
-                            1.0, crop_size=(crop, crop), method="neural_btf", dataset="bench")
+    path = write_compressed(
+        folder / "btf.safetensors",
+        Decoder(),
+        rng.standard_normal((crop * crop, LATENT_DIM)).astype(np.float32),
+        1.0,
+        crop_size=(crop, crop),
+        method="neural_btf",
+        dataset="bench",
+    )
     values = rng.random((crop * crop, 81 * 81, 3), dtype=np.float32)
     return {
         "lambertian": LambertianTexture(np.repeat(checker[..., None], 3, axis=2)),
         "measured": MeasuredMaterial(values, (crop, crop), btf_directions()),
         "neural": CompressedMaterial(load_compressed(path)),
-        "truth": AnalyticMaterial(SyntheticBTF(size=max(crop, 2), seed=seed), (0, 0),
-                                  (crop, crop)),
+        "truth": AnalyticMaterial(SyntheticBTF(size=max(crop, 2), seed=seed), (0, 0), (crop, crop)),
         "beyond grid": BeyondGridIndicator((crop, crop)),
     }
 
@@ -110,15 +119,19 @@ def main(argv: list[str] | None = None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         chosen = materials(args.crop, Path(tmp))
         print(f"{args.size}x{args.size}, {args.spp} spp, crop {args.crop}^2, one point light")
-        print(f"{'material':<11} {'seconds':>8} {'M rays/s':>9} {'M queries':>10} "
-              f"{'M queries/s':>12} {'x lambertian':>13}")
+        print(
+            f"{'material':<11} {'seconds':>8} {'M rays/s':>9} {'M queries':>10} "
+            f"{'M queries/s':>12} {'x lambertian':>13}"
+        )
         for name, material in chosen.items():
             _, stats = render_with_stats(scene, material, args.spp, seed=0)
             found[name] = stats
             ratio = stats.seconds / found["lambertian"].seconds
-            print(f"{name:<11} {stats.seconds:8.1f} {stats.rays_per_second / 1e6:9.2f} "
-                  f"{stats.material_queries / 1e6:10.2f} "
-                  f"{stats.material_queries / stats.seconds / 1e6:12.2f} {ratio:13.2f}")
+            print(
+                f"{name:<11} {stats.seconds:8.1f} {stats.rays_per_second / 1e6:9.2f} "
+                f"{stats.material_queries / 1e6:10.2f} "
+                f"{stats.material_queries / stats.seconds / 1e6:12.2f} {ratio:13.2f}"
+            )
     return found
 
 

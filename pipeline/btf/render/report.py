@@ -59,7 +59,7 @@ def rendered_runs(runs: pd.DataFrame) -> pd.DataFrame:
 def spp_levels(runs: pd.DataFrame) -> list[int]:
     """The samples-per-pixel levels of which the runs logged metrics."""
     prefix = "metrics.render_rmse_dark_spp"
-    return sorted(int(c[len(prefix):]) for c in runs.columns if c.startswith(prefix))
+    return sorted(int(c[len(prefix) :]) for c in runs.columns if c.startswith(prefix))
 
 
 def scored_against(runs: pd.DataFrame) -> pd.Series:
@@ -83,15 +83,25 @@ def scored_runs(runs: pd.DataFrame) -> pd.DataFrame:
     """
     runs = runs.copy()
     runs[SCORED_AGAINST] = against = scored_against(runs)
-    names = [c[len("metrics.render_"):] for c in runs.columns
-             if c.startswith(("metrics.render_rmse_", "metrics.render_hf_ratio_",
-                              "metrics.render_flip", "metrics.render_ssim",
-                              "metrics.render_psnr_db"))]
+    names = [
+        c[len("metrics.render_") :]
+        for c in runs.columns
+        if c.startswith(
+            (
+                "metrics.render_rmse_",
+                "metrics.render_hf_ratio_",
+                "metrics.render_flip",
+                "metrics.render_ssim",
+                "metrics.render_psnr_db",
+            )
+        )
+    ]
     nothing = pd.Series(np.nan, index=runs.index)
     for name in names:
         truth = runs.get(f"metrics.render_truth_{name}", nothing)
-        runs[f"metrics.scored_{name}"] = truth.where(against == TRUTH,
-                                                     runs[f"metrics.render_{name}"])
+        runs[f"metrics.scored_{name}"] = truth.where(
+            against == TRUTH, runs[f"metrics.render_{name}"]
+        )
     keyed = runs[against == TRUTH]
     if keyed.empty:
         return runs
@@ -99,7 +109,8 @@ def scored_runs(runs: pd.DataFrame) -> pd.DataFrame:
     references = keyed.drop_duplicates(["dataset", *keys]).copy()
     for name in names:
         references[f"metrics.scored_{name}"] = references.get(
-            f"metrics.render_reference_truth_{name}", np.nan)
+            f"metrics.render_reference_truth_{name}", np.nan
+        )
     references["model"] = REFERENCE + _render_differences(references)
     references["order"] = -np.inf
     return pd.concat([runs, references], ignore_index=True)
@@ -113,15 +124,23 @@ def _render_differences(references: pd.DataFrame) -> pd.Series:
     for _, group in references.groupby("dataset"):
         differ = [c for c in settings if group[c].astype(str).nunique() > 1]
         if differ:
-            suffix[group.index] = group[differ].astype(str).apply(
-                lambda row: " [" + ", ".join(f"{c[len('params.'):]}={v}"
-                                             for c, v in row.items()) + "]", axis=1)
+            suffix[group.index] = (
+                group[differ]
+                .astype(str)
+                .apply(
+                    lambda row: (
+                        " [" + ", ".join(f"{c[len('params.') :]}={v}" for c, v in row.items()) + "]"
+                    ),
+                    axis=1,
+                )
+            )
     return suffix
 
 
 def beyond_grid_column(runs: pd.DataFrame, metric: str) -> pd.Series:
     """Per dataset, ``metrics.<metric>`` (a share beyond the grid) of its reference renders
     as a percentage: one value, or the range where renders differ; "–" where none logged."""
+
     def describe(values: pd.Series) -> str:
         values = values.dropna()
         if values.empty:
@@ -165,19 +184,22 @@ def scoring_note(bases) -> str:
             "decoder extrapolates beyond the measured grid's 75° ring, the measured BTF and "
             f"PCA clamp onto it). The column '{REFERENCE}' is the reference render's own "
             "distance from the truth: the floor of what scoring against the reference can "
-            "show.")
+            "show."
+        )
     if REFERENCE in bases:
         parts.append(
             f"Rows scored against the {REFERENCE}: each render is compared with the measured "
             "BTF's render (interpolated between its 81 × 81 directions), same scene, samples "
             "and seed; light and view directions beyond the grid's 75° ring are clamped onto "
             "it for every material alike, so the neural decoders' extrapolation is not "
-            "scored.")
+            "scored."
+        )
     parts.append(
         f"'{BEYOND_GRID}': the share of the (camera sample, light) pairs in the crop (Tables "
         "3-4) or on the lit cloth (cloth table), weighted by the light's irradiance, whose "
         "light or view direction lies beyond the measured grid, at the largest samples per "
-        "pixel.")
+        "pixel."
+    )
     return " ".join(parts)
 
 
@@ -187,8 +209,11 @@ def table_crop(runs: pd.DataFrame, region: str) -> pd.DataFrame:
     crop's share of samples beyond the grid."""
     table = tables.table_rmse(runs, f"scored_rmse_{region}")
     table.insert(0, SCORED_AGAINST, _against(runs).reindex(table.index))
-    table[BEYOND_GRID] = beyond_grid_column(runs, f"render_beyond_grid_share_{region}").reindex(
-        table.index).fillna("–")
+    table[BEYOND_GRID] = (
+        beyond_grid_column(runs, f"render_beyond_grid_share_{region}")
+        .reindex(table.index)
+        .fillna("–")
+    )
     return table
 
 
@@ -201,8 +226,12 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for spp in spp_levels(runs):
         for (dataset, model), group in runs.groupby(["dataset", "model"], sort=False):
-            row = {"dataset": dataset, SCORED_AGAINST: group[SCORED_AGAINST].iloc[0],
-                   "model": model, "spp": spp}
+            row = {
+                "dataset": dataset,
+                SCORED_AGAINST: group[SCORED_AGAINST].iloc[0],
+                "model": model,
+                "spp": spp,
+            }
             for region in REGIONS:
                 rmse = group.get(f"metrics.scored_rmse_{region}_spp{spp}")
                 hf = group.get(f"metrics.scored_hf_ratio_{region}_spp{spp}")
@@ -215,8 +244,9 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
         return pd.DataFrame()
     order = {m: i for i, m in enumerate(tables.model_columns(runs))}
     table = pd.DataFrame(rows)
-    return table.sort_values(["dataset", "spp", "model"],
-                             key=lambda s: s.map(order) if s.name == "model" else s)
+    return table.sort_values(
+        ["dataset", "spp", "model"], key=lambda s: s.map(order) if s.name == "model" else s
+    )
 
 
 def table_cloth(runs: pd.DataFrame, metric: str = "rmse_cloth") -> pd.DataFrame:
@@ -224,14 +254,18 @@ def table_cloth(runs: pd.DataFrame, metric: str = "rmse_cloth") -> pd.DataFrame:
     RMSE over every pixel wholly on lit cloth; a larger sample than the crops, so a steadier
     ranking), mean ± std over seeds. With what it is scored against and the lit cloth's
     share beyond the grid."""
-    parts = [tables.table_rmse(runs, f"scored_{metric}_spp{spp}").assign(spp=spp)
-             for spp in spp_levels(runs) if f"metrics.scored_{metric}_spp{spp}" in runs]
+    parts = [
+        tables.table_rmse(runs, f"scored_{metric}_spp{spp}").assign(spp=spp)
+        for spp in spp_levels(runs)
+        if f"metrics.scored_{metric}_spp{spp}" in runs
+    ]
     if not parts:
         return pd.DataFrame()
     table = pd.concat(parts).reset_index().fillna("–")  # a model not rendered at that spp
     table[SCORED_AGAINST] = table["dataset"].map(_against(runs))
-    table[BEYOND_GRID] = table["dataset"].map(
-        beyond_grid_column(runs, "render_beyond_grid_share")).fillna("–")
+    table[BEYOND_GRID] = (
+        table["dataset"].map(beyond_grid_column(runs, "render_beyond_grid_share")).fillna("–")
+    )
     first = ["dataset", SCORED_AGAINST, "spp"]
     return table[[*first, *[c for c in table.columns if c not in first]]]
 
@@ -244,57 +278,85 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
     runs = runs_of(runs, RENDERED)
     if runs.empty or "metrics.render_rmse_dark" not in runs:
         return []
-    runs = rendered_runs(tables.label_runs(runs[runs["metrics.render_rmse_dark"].notna()],
-                                           render=True))
+    runs = rendered_runs(
+        tables.label_runs(runs[runs["metrics.render_rmse_dark"].notna()], render=True)
+    )
     if runs.empty:
         return []
     scored = scored_runs(runs)
     bases = set(scored[SCORED_AGAINST])
     against = _target_words(bases)
     found = []
-    note = ("RMSE of linear radiance (the key light gives irradiance 1 at the sheet's centre, "
-            "so values are in the BTF's units); mean ± std over seeds (n), at "
-            f"{spp_levels(runs)[-1]} samples per pixel. The crops (marked in Fig. 8) are "
-            f"chosen on the render they are scored against. {scoring_note(bases)}")
+    note = (
+        "RMSE of linear radiance (the key light gives irradiance 1 at the sheet's centre, "
+        "so values are in the BTF's units); mean ± std over seeds (n), at "
+        f"{spp_levels(runs)[-1]} samples per pixel. The crops (marked in Fig. 8) are "
+        f"chosen on the render they are scored against. {scoring_note(bases)}"
+    )
     for number, region in ((3, "dark"), (4, "bright")):
-        found.append(write_table(table_crop(scored, region), out,
-                                 f"table{number}_render_{region}",
-                                 f"Table {number}: RMSE of the rendered {region} crop against "
-                                 f"{against}", note))
+        found.append(
+            write_table(
+                table_crop(scored, region),
+                out,
+                f"table{number}_render_{region}",
+                f"Table {number}: RMSE of the rendered {region} crop against {against}",
+                note,
+            )
+        )
     cloth = table_cloth(scored)
     if not cloth.empty:
-        found.append(write_table(
-            cloth, out, "render_cloth",
-            f"RMSE of the render over the whole lit cloth against {against}",
-            "As Tables 3-4, over every pixel whose camera samples all land on cloth that a "
-            "light sees (no silhouette, shadow or floor pixels), at each samples-per-pixel "
-            f"level. {scoring_note(bases)}"))
-    for metric, title in (("flip", "LDR-FLIP (mean; 0 is identical, lower is better)"),
-                          ("ssim", "SSIM (1 is identical)")):
+        found.append(
+            write_table(
+                cloth,
+                out,
+                "render_cloth",
+                f"RMSE of the render over the whole lit cloth against {against}",
+                "As Tables 3-4, over every pixel whose camera samples all land on cloth that a "
+                "light sees (no silhouette, shadow or floor pixels), at each samples-per-pixel "
+                f"level. {scoring_note(bases)}",
+            )
+        )
+    for metric, title in (
+        ("flip", "LDR-FLIP (mean; 0 is identical, lower is better)"),
+        ("ssim", "SSIM (1 is identical)"),
+    ):
         frame = table_cloth(scored, metric)
         if not frame.empty:
-            found.append(write_table(
-                frame, out, f"render_{metric}",
-                f"{title} of the whole frame against {against}",
-                "The frame as displayed (exposure, gamma 2.2, clipped to [0, 1]: the PNG's "
-                "values), compared with the render it is scored against by "
-                "pipeline.core.image_metrics (FLIP: NVIDIA's flip-evaluator at 67 pixels per "
-                "degree; SSIM: Gaussian window, sigma 1.5). LPIPS needs network weights from "
-                f"a hub that cannot be fetched here and is not reported. {scoring_note(bases)}"))
+            found.append(
+                write_table(
+                    frame,
+                    out,
+                    f"render_{metric}",
+                    f"{title} of the whole frame against {against}",
+                    "The frame as displayed (exposure, gamma 2.2, clipped to [0, 1]: the PNG's "
+                    "values), compared with the render it is scored against by "
+                    "pipeline.core.image_metrics (FLIP: NVIDIA's flip-evaluator at 67 pixels per "
+                    "degree; SSIM: Gaussian window, sigma 1.5). LPIPS needs network weights from "
+                    f"a hub that cannot be fetched here and is not reported. {scoring_note(bases)}",
+                )
+            )
     grain = table_graininess(scored)
     if not grain.empty:
-        found.append(write_table(
-            grain, out, "render_graininess",
-            f"Does the graininess survive rendering? Scored against {against}",
-            "Each crop at every samples-per-pixel level: RMSE and the high-frequency energy "
-            "(image minus its Gaussian blur, sigma 1 pixel) of the crop over the target's "
-            "(the render it is scored against): above 1 the model adds grain, near 1 it has "
-            "the target's texture, below 1 it is smoother. Pixel samples are shared with the "
-            f"target, so what differs is the BTF alone. {scoring_note(bases)}"))
+        found.append(
+            write_table(
+                grain,
+                out,
+                "render_graininess",
+                f"Does the graininess survive rendering? Scored against {against}",
+                "Each crop at every samples-per-pixel level: RMSE and the high-frequency energy "
+                "(image minus its Gaussian blur, sigma 1 pixel) of the crop over the target's "
+                "(the render it is scored against): above 1 the model adds grain, near 1 it has "
+                "the target's texture, below 1 it is smoother. Pixel samples are shared with the "
+                f"target, so what differs is the BTF alone. {scoring_note(bases)}",
+            )
+        )
     files = draw_fig8(runs, out)
     if files:
-        found.append("## Fig. 8: renders\n\n" + "\n".join(
-            f"![{p.stem}]({p.name})" for p in files if p.suffix == ".png") + "\n")
+        found.append(
+            "## Fig. 8: renders\n\n"
+            + "\n".join(f"![{p.stem}]({p.name})" for p in files if p.suffix == ".png")
+            + "\n"
+        )
     return found
 
 
@@ -324,8 +386,10 @@ def draw_fig8(runs: pd.DataFrame, out: Path) -> list[Path]:
                 log.warning("Fig. 8 of %s: its truth render is not in the cache", dataset)
                 continue
             entries.insert(0, ("truth", truth))
-        models = [(run["model"], cache.lookup("render", str(run.get("tags.cache.render"))))
-                  for _, run in group.iterrows()]
+        models = [
+            (run["model"], cache.lookup("render", str(run.get("tags.cache.render"))))
+            for _, run in group.iterrows()
+        ]
         models = [(name, entry) for name, entry in models if entry is not None]
         if not models:
             log.warning("Fig. 8 of %s: none of its model renders is in the cache", dataset)
@@ -335,16 +399,28 @@ def draw_fig8(runs: pd.DataFrame, out: Path) -> list[Path]:
         levels = sorted(int(s) for s in reference.manifest["summary"]["spp"])
         spp = levels[-1]
         size = int(float(group["params.btf.render.crop_size"].iloc[0]))
-        by_spp = {s: [(name, e.array(f"image_spp{s}", mmap=False)) for name, e in entries]
-                  for s in levels}
+        by_spp = {
+            s: [(name, e.array(f"image_spp{s}", mmap=False)) for name, e in entries] for s in levels
+        }
         panels = by_spp[spp]
         stem = "fig8_" + safe_stem(dataset)
         exposure = float(group["params.btf.render.exposure"].iloc[0])
         seed = int(group["seed"].min())
-        written.append(_grid(panels, crops, size, exposure, f"{dataset}, {spp} spp, seed {seed}",
-                             out / f"{stem}.png"))
-        written.append(_crops_per_spp(by_spp, crops, size, f"{dataset}, seed {seed}",
-                                      out / f"{stem}_crops_per_spp.png"))
+        written.append(
+            _grid(
+                panels,
+                crops,
+                size,
+                exposure,
+                f"{dataset}, {spp} spp, seed {seed}",
+                out / f"{stem}.png",
+            )
+        )
+        written.append(
+            _crops_per_spp(
+                by_spp, crops, size, f"{dataset}, seed {seed}", out / f"{stem}_crops_per_spp.png"
+            )
+        )
         for name, image in panels:
             path = out / f"{stem}_{safe_stem(name)}.exr"
             write_exr(path, image)
@@ -356,19 +432,27 @@ def _grid(panels, crops: dict, size: int, exposure: float, title: str, path: Pat
     """Renders in a row, both crops marked, each crop enlarged below its render."""
     columns = len(panels)
     fig = Figure(figsize=(2.4 * columns, 2.4 * 2 + 0.4))
-    axes = fig.subplots(3, columns, squeeze=False,
-                        gridspec_kw={"height_ratios": [2, 1, 1]})
+    axes = fig.subplots(3, columns, squeeze=False, gridspec_kw={"height_ratios": [2, 1, 1]})
     for column, (name, image) in enumerate(panels):
         shown = gamma_encode(image * np.float32(exposure))
         axes[0, column].imshow(shown, interpolation="nearest")
         axes[0, column].set_title(name, fontsize=9)
         for row, region in enumerate(REGIONS, start=1):
             r, c = crops[region]
-            axes[0, column].add_patch(Rectangle((c - 0.5, r - 0.5), size, size, fill=False,
-                                                edgecolor=COLOURS[region], linewidth=1.2))
+            axes[0, column].add_patch(
+                Rectangle(
+                    (c - 0.5, r - 0.5),
+                    size,
+                    size,
+                    fill=False,
+                    edgecolor=COLOURS[region],
+                    linewidth=1.2,
+                )
+            )
             axes[row, column].imshow(shown[r : r + size, c : c + size], interpolation="nearest")
-            axes[row, column].set_ylabel(region if column == 0 else "", fontsize=8,
-                                         color=COLOURS[region])
+            axes[row, column].set_ylabel(
+                region if column == 0 else "", fontsize=8, color=COLOURS[region]
+            )
     for axis in axes.ravel():
         axis.set_xticks([])
         axis.set_yticks([])

@@ -161,8 +161,9 @@ def write_images(stem: Path, image: np.ndarray, exposure: float) -> None:
     Image.fromarray(encoded).save(stem.with_suffix(".png"))
 
 
-def choose_crops(target: np.ndarray, lit_cloth: np.ndarray, size: int,
-                 given: dict | None = None) -> dict:
+def choose_crops(
+    target: np.ndarray, lit_cloth: np.ndarray, size: int, given: dict | None = None
+) -> dict:
     """Top-left [row, col] of the dark and bright crops of ``target`` (H, W, 3), the render
     that scores the models (the truth, else the reference).
 
@@ -191,8 +192,9 @@ def choose_crops(target: np.ndarray, lit_cloth: np.ndarray, size: int,
                 f"no {size}x{size} window of the render is wholly on "
                 "lit cloth: lower btf.render.crop_size or give btf.render.crops"
             )
-        flat = pick(np.where(full, total[np.ix_(rows, cols)],
-                             np.inf if region == "dark" else -np.inf))
+        flat = pick(
+            np.where(full, total[np.ix_(rows, cols)], np.inf if region == "dark" else -np.inf)
+        )
         r, c = np.unravel_index(flat, full.shape)
         chosen[region] = [int(rows[r]), int(cols[c])]
     return chosen
@@ -213,8 +215,14 @@ def high_frequency_energy(image: np.ndarray) -> float:
     return float(np.mean(np.square(image - blurred)))
 
 
-def compare(model: np.ndarray, target: np.ndarray, lit_cloth: np.ndarray, crops: dict,
-            size: int, exposure: float = 1.0) -> dict:
+def compare(
+    model: np.ndarray,
+    target: np.ndarray,
+    lit_cloth: np.ndarray,
+    crops: dict,
+    size: int,
+    exposure: float = 1.0,
+) -> dict:
     """RMSE and high-frequency energy ratio of ``model`` against ``target`` (both
     (H, W, 3)) in each crop, and the RMSE over every pixel wholly on lit cloth
     (``lit_cloth`` (H, W) is 1); over the whole frame as displayed (``exposure``, gamma
@@ -224,8 +232,12 @@ def compare(model: np.ndarray, target: np.ndarray, lit_cloth: np.ndarray, crops:
     from pipeline.data.images import gamma_encode
 
     found = {}
-    shown = [np.clip(gamma_encode(np.asarray(image, np.float32) * np.float32(exposure)), 0, 1)
-             .astype(np.float64) for image in (target, model)]
+    shown = [
+        np.clip(gamma_encode(np.asarray(image, np.float32) * np.float32(exposure)), 0, 1).astype(
+            np.float64
+        )
+        for image in (target, model)
+    ]
     found["flip"] = flip(*shown)
     found["ssim"] = ssim(*shown)
     found["psnr_db"] = psnr(*shown)
@@ -244,22 +256,36 @@ def compare(model: np.ndarray, target: np.ndarray, lit_cloth: np.ndarray, crops:
     return found
 
 
-def scores(model: np.ndarray, reference: np.ndarray, lit_cloth: np.ndarray, crops: dict,
-           size: int, truth: np.ndarray | None = None, exposure: float = 1.0) -> dict:
+def scores(
+    model: np.ndarray,
+    reference: np.ndarray,
+    lit_cloth: np.ndarray,
+    crops: dict,
+    size: int,
+    truth: np.ndarray | None = None,
+    exposure: float = 1.0,
+) -> dict:
     """:func:`compare` of a model's render (H, W, 3) with the reference's (``render_*``) and,
     given the truth's, with it (``render_truth_*``), and of the reference with the truth
     (``render_reference_truth_*``); same crops and lit cloth for all."""
-    found = {f"render_{name}": v for name, v in
-             compare(model, reference, lit_cloth, crops, size, exposure).items()}
+    found = {
+        f"render_{name}": v
+        for name, v in compare(model, reference, lit_cloth, crops, size, exposure).items()
+    }
     if truth is not None:
         for prefix, image in (("render_truth_", model), ("render_reference_truth_", reference)):
-            found.update({f"{prefix}{name}": v for name, v in
-                          compare(image, truth, lit_cloth, crops, size, exposure).items()})
+            found.update(
+                {
+                    f"{prefix}{name}": v
+                    for name, v in compare(image, truth, lit_cloth, crops, size, exposure).items()
+                }
+            )
     return found
 
 
-def beyond_grid_shares(indicator: np.ndarray, lit_cloth: np.ndarray, crops: dict,
-                       size: int) -> dict:
+def beyond_grid_shares(
+    indicator: np.ndarray, lit_cloth: np.ndarray, crops: dict, size: int
+) -> dict:
     """Share of the samples beyond the measured grid, over the lit cloth and in each crop.
 
     Parameters
@@ -287,8 +313,9 @@ def beyond_grid_shares(indicator: np.ndarray, lit_cloth: np.ndarray, crops: dict
     found = {"beyond_grid_share": share(indicator, lit)}
     for region in REGIONS:
         r, c = crops[region]
-        found[f"beyond_grid_share_{region}"] = share(indicator[r : r + size, c : c + size],
-                                                     lit[r : r + size, c : c + size])
+        found[f"beyond_grid_share_{region}"] = share(
+            indicator[r : r + size, c : c + size], lit[r : r + size, c : c + size]
+        )
     return found
 
 
@@ -314,13 +341,16 @@ def reference_stage(ctx: Context, cropped: Entry) -> Entry:
         try:
             reference = MeasuredMaterial(values, crop_size, directions)
         except DataError as error:
-            raise DataError(f"the render's reference interpolates the crop's {len(directions)} "
-                            f"measured direction pairs, but: {error}") from None
+            raise DataError(
+                f"the render's reference interpolates the crop's {len(directions)} "
+                f"measured direction pairs, but: {error}"
+            ) from None
         scene = _scene(settings)
         stats = _render_every_spp(scene, reference, settings, folder, "reference")
         top = settings["spp"][-1]
-        indicator, _ = render_with_stats(scene, BeyondGridIndicator(crop_size, directions), top,
-                                         settings["seed"])
+        indicator, _ = render_with_stats(
+            scene, BeyondGridIndicator(crop_size, directions), top, settings["seed"]
+        )
         save_arrays(folder, **{f"beyond_grid_spp{top}": indicator})
         return {"spp": stats}
 
@@ -332,9 +362,11 @@ def truth_stage(ctx: Context, cropped: Entry) -> Entry:
     :class:`~pipeline.btf.render.surfaces.AnalyticMaterial`) at every spp."""
     settings = render_settings(ctx.cfg)
     generator = plain_settings(ctx.cfg.dataset.synthetic)
-    own = {**settings,
-           "generator": {name: generator[name] for name in ("size", "seed", "material")},
-           "crop": plain_settings(ctx.cfg.btf.crop)}
+    own = {
+        **settings,
+        "generator": {name: generator[name] for name in ("size", "seed", "material")},
+        "crop": plain_settings(ctx.cfg.btf.crop),
+    }
 
     def compute(folder: Path) -> dict:
         from pipeline.btf.render.surfaces import AnalyticMaterial
@@ -374,8 +406,14 @@ def linear_material(fitted: Entry, cropped: Entry, prep: Entry):
     )
 
 
-def model_stage(ctx: Context, cropped: Entry, inputs: dict[str, Entry], material,
-                reference: Entry, truth: Entry | None = None) -> Entry:
+def model_stage(
+    ctx: Context,
+    cropped: Entry,
+    inputs: dict[str, Entry],
+    material,
+    reference: Entry,
+    truth: Entry | None = None,
+) -> Entry:
     """Render a model at every spp and score it against the reference, and the truth when
     given (:func:`scores`); the crops are chosen on the truth, else on the reference.
 
@@ -390,14 +428,20 @@ def model_stage(ctx: Context, cropped: Entry, inputs: dict[str, Entry], material
     def compute(folder: Path) -> dict:
         from pipeline.btf.render.surfaces import GridClamped
 
-        material_ = (material() if truth is not None
-                     else GridClamped(material(), cropped.array("directions", mmap=False)))
+        material_ = (
+            material()
+            if truth is not None
+            else GridClamped(material(), cropped.array("directions", mmap=False))
+        )
         stats = _render_every_spp(_scene(settings), material_, settings, folder, "model")
         top = settings["spp"][-1]
         target = truth if truth is not None else reference
-        crops = choose_crops(target.array(f"image_spp{top}", mmap=False),
-                             target.array(f"lit_cloth_spp{top}", mmap=False),
-                             settings["crop_size"], settings.get("crops"))
+        crops = choose_crops(
+            target.array(f"image_spp{top}", mmap=False),
+            target.array(f"lit_cloth_spp{top}", mmap=False),
+            settings["crop_size"],
+            settings.get("crops"),
+        )
         save_json(folder, "crops", crops)
         metrics = {}
         for spp in settings["spp"]:
@@ -413,9 +457,12 @@ def model_stage(ctx: Context, cropped: Entry, inputs: dict[str, Entry], material
             metrics.update({f"{name}_spp{spp}": value for name, value in found.items()})
             if spp == top:  # the headline: Tables 3 and 4
                 metrics.update(found)
-        shares = beyond_grid_shares(reference.array(f"beyond_grid_spp{top}", mmap=False),
-                                    reference.array(f"lit_cloth_spp{top}", mmap=False),
-                                    crops, settings["crop_size"])
+        shares = beyond_grid_shares(
+            reference.array(f"beyond_grid_spp{top}", mmap=False),
+            reference.array(f"lit_cloth_spp{top}", mmap=False),
+            crops,
+            settings["crop_size"],
+        )
         metrics.update({f"render_{name}": value for name, value in shares.items()})
         metrics["render_seconds"] = sum(s["seconds"] for s in stats.values())
         metrics["render_rays_per_second"] = stats[str(top)]["rays"] / stats[str(top)]["seconds"]
@@ -429,11 +476,12 @@ def model_stage(ctx: Context, cropped: Entry, inputs: dict[str, Entry], material
 
 
 def _entries(ctx: Context, *names: str) -> list[Entry]:
-    found = [ctx.cache.lookup(name, ctx.keys[name]) if name in ctx.keys else None
-             for name in names]
+    found = [ctx.cache.lookup(name, ctx.keys[name]) if name in ctx.keys else None for name in names]
     if any(entry is None for entry in found):
-        raise RuntimeError(f"the render stages need the job's {', '.join(names)} entries, "
-                           f"which are not all in the cache {ctx.cache.root}")
+        raise RuntimeError(
+            f"the render stages need the job's {', '.join(names)} entries, "
+            f"which are not all in the cache {ctx.cache.root}"
+        )
     return found
 
 
@@ -459,6 +507,7 @@ def run(ctx: Context) -> dict[str, float]:
 
         def material():
             return compressed_material(exported)
+
     reference = reference_stage(ctx, cropped)
     truth = truth_stage(ctx, cropped) if has_truth(ctx.cfg) else None
     rendered = model_stage(ctx, cropped, inputs, material, reference, truth)

@@ -340,8 +340,15 @@ class LinearMaterial(MeasuredMaterial):
     A PCA value may be slightly negative; the renderer clamps radiance at 0.
     """
 
-    def __init__(self, mean, basis, coefficients, crop_size, scale: float,
-                 directions: np.ndarray | None = None):
+    def __init__(
+        self,
+        mean,
+        basis,
+        coefficients,
+        crop_size,
+        scale: float,
+        directions: np.ndarray | None = None,
+    ):
         self.crop_size = check_crop_size(crop_size)
         directions = btf_directions() if directions is None else np.asarray(directions)
         n = len(directions)
