@@ -142,7 +142,9 @@ def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | Non
     if parent_id is not None and "tags.mlflow.parentRunId" in runs:
         runs = runs[runs["tags.mlflow.parentRunId"] == parent_id]
     found = verdict(runs)
-    head = f"Sweep finished: {len(runs)} jobs, MLflow experiment {experiment!r}"
+    head = (
+        f"Sweep finished: {len(runs)} job{'s' * (len(runs) != 1)}, MLflow experiment {experiment!r}"
+    )
     if parent_id is not None:
         head += f", parent run {parent_id}"
     tables = Path(config.paths.runs) / "tables"

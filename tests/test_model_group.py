@@ -66,6 +66,8 @@ def test_the_default_and_paper_experiments_compose_their_arms():
         2000,
         2000,
     ]
+    # PCA at the bytes of k = 1000 in float16: in float32 not one component fits them.
+    assert {(m.dtype, m.match_clustered_k) for m in paper if m.name == "pca"} == {("float16", 1000)}
     # A command-line value replaces the arm's: k = 64 in the clustered arm only.
     jobs = _jobs("experiment=paper", "model=clustered", "model.k=64")
     assert [compose_config(*job).model.k for job in jobs] == [64]
