@@ -60,7 +60,7 @@ def test_the_anova_matches_a_regression_on_k_and_seed_dummies():
 def test_no_evidence_reports_the_detectable_step_and_the_seeds_needed():
     verdict = blocked_verdict(_table(np.random.default_rng(3), seeds=2, noise_sd=0.002))
     text = describe(verdict)["verdict"]
-    assert text.startswith("no evidence") and "seeds would detect 4.4 %" in text
+    assert text.startswith("no evidence") and "seeds would detect 5.7 %" in text
     assert verdict.detectable_step > 0 and verdict.seeds_needed > 2
 
 

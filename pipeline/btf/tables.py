@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from pipeline.btf.k_verdict import blocked_verdict, describe
+from pipeline.btf.k_verdict import PAPER_LARGEST_K_STEP, blocked_verdict, describe
 from pipeline.btf.models import models_of
 from pipeline.core.recipe import (
     ABSENT,
@@ -520,7 +520,9 @@ def table_interpolation(runs: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def k_verdict(runs: pd.DataFrame, alpha: float = 0.05, target: float = 0.044) -> pd.DataFrame:
+def k_verdict(
+    runs: pd.DataFrame, alpha: float = 0.05, target: float = PAPER_LARGEST_K_STEP
+) -> pd.DataFrame:
     """Does k change the error beyond the seed-to-seed spread? (:mod:`pipeline.btf.k_verdict`)
 
     For each dataset and clustered model family (runs whose labels differ only in k: the
