@@ -39,7 +39,9 @@ ALPHA = 1e-3  # the chance that a check fails although both renderers agree
 MESH_RESOLUTION = 24  # coarse: the vertex tangents differ most from Mitsuba's dP/du
 
 
-def smoke_compressed_file(tmp_path: Path, empty_store: Path | None = None) -> Path:
+def smoke_compressed_file(
+    tmp_path: Path, empty_store: Path | None = None, model: str = "clustered"
+) -> Path:
     """Train the smoke experiment in a fresh interpreter (``python -m pipeline
     experiment=smoke paths.runs=<tmp_path>/runs``, about 15 s) and return the compressed
     file it exported, found in the stage cache (``cache/export/<key>/btf.safetensors``).
@@ -49,7 +51,14 @@ def smoke_compressed_file(tmp_path: Path, empty_store: Path | None = None) -> Pa
     if empty_store is not None:
         shutil.copy(empty_store, runs / "mlflow.db")
     done = subprocess.run(
-        [sys.executable, "-m", "pipeline", "experiment=smoke", f"paths.runs={runs}"],
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "experiment=smoke",
+            f"model={model}",
+            f"paths.runs={runs}",
+        ],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -67,9 +76,12 @@ def variant() -> str:
     return mitsuba_bsdf.register(mitsuba_bsdf.choose_variant())
 
 
-@pytest.fixture(scope="module")
-def compressed_file(tmp_path_factory, _empty_mlflow_db) -> Path:
-    return smoke_compressed_file(tmp_path_factory.mktemp("smoke"), _empty_mlflow_db)
+@pytest.fixture(scope="module", params=["clustered", "neural_btf"])
+def compressed_file(request, tmp_path_factory, _empty_mlflow_db) -> Path:
+    """A smoke model of each trained kind (PCA: tests/test_mitsuba_pca.py)."""
+    return smoke_compressed_file(
+        tmp_path_factory.mktemp("smoke"), _empty_mlflow_db, model=request.param
+    )
 
 
 @pytest.fixture(scope="module")
