@@ -43,7 +43,7 @@ def smoke_compressed_file(
     tmp_path: Path, empty_store: Path | None = None, model: str = "clustered"
 ) -> Path:
     """Train the smoke experiment in a fresh interpreter (``python -m pipeline
-    experiment=smoke paths.runs=<tmp_path>/runs``, about 15 s) and return the compressed
+    experiment=smoke paths.runs=<tmp_path>/runs``) and return the compressed
     file it exported, found in the stage cache (``cache/export/<key>/btf.safetensors``).
     ``empty_store``: an empty ``mlflow.db`` to start from (creating one takes seconds)."""
     runs = tmp_path / "runs"

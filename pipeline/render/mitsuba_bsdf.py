@@ -1,8 +1,8 @@
 """Any :class:`~pipeline.render.materials.Material` as a Mitsuba 3 BSDF plugin.
 
-Importing this module registers the BSDF ``pipeline_btf`` (:data:`PLUGIN`) with Mitsuba for
-the current variant, choosing one first when none is set (:func:`choose_variant`), so that
-after ``import pipeline.render.mitsuba_bsdf`` a scene file naming it loads::
+:func:`register` registers the BSDF ``pipeline_btf`` (:data:`PLUGIN`) with Mitsuba for a
+variant, choosing one when none is given (:func:`choose_variant`); importing the module
+changes no Mitsuba state. After ``register()`` a scene file naming it loads::
 
     <bsdf type="pipeline_btf">
         <string name="loader" value="package.module:function"/>  <!-- function(path) -> Material -->
@@ -350,6 +350,3 @@ def _define_class() -> type:
 
     return MaterialBSDF
 
-
-if mi is not None:
-    register()

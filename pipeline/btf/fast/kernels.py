@@ -283,7 +283,7 @@ def _build_in_child(
         raise _NotBuilt(f"no time left to build within {timeout:.0f} s ({TIMEOUT_VARIABLE})")
     _tell(
         "building the decoder's C++ kernels in %s (first use of this version on this "
-        "machine, ~30 s)...",
+        "machine; docs/performance.md says how long it takes)...",
         build_dir,
     )
     start = time.monotonic()

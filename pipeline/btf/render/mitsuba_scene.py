@@ -10,9 +10,10 @@ folded sheet, the floor, the point light, the camera) as Mitsuba 3 reads it::
     FOLDER/btf.safetensors  a copy of the model, read by the BSDF ``pipeline_btf``
 
 The cloth's BSDF is :mod:`pipeline.render.mitsuba_bsdf`'s ``pipeline_btf``, which loads the
-copied file with :func:`material_from_file`; importing that module registers it::
+copied file with :func:`material_from_file`; its ``register()`` makes it known::
 
     import mitsuba as mi, pipeline.render.mitsuba_bsdf as btf_bsdf
+    btf_bsdf.register()
     with btf_bsdf.evaluated_calls():
         image = mi.render(mi.load_file("FOLDER/scene.xml"))  # linear RGB
 
