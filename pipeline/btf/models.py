@@ -233,11 +233,6 @@ def model_of(cfg: DictConfig) -> Model:
     return MODELS[name]
 
 
-def model_named(name: str) -> Model | None:
-    """The :class:`Model` called ``name`` (a run's ``model.name`` param), or None."""
-    return MODELS.get(name)
-
-
 def models_of(runs) -> list[Model | None]:
     """The :class:`Model` of each run (rows of ``mlflow.search_runs``), None for runs of
     other methods."""
