@@ -349,4 +349,3 @@ def _define_class() -> type:
             )
 
     return MaterialBSDF
-
