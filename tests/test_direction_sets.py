@@ -475,7 +475,6 @@ def test_measured_data_on_a_fibonacci_set_renders_every_model_clamped_to_its_edg
             f"paths.runs={runs_dir}",
             "dataset=ubo2014",
             f"dataset.root={path}",
-            "dataset.crop=null",
             "model=pca",
             "model.n_components=2",
         )

@@ -182,7 +182,7 @@ def test_direction_entries_off_the_file_or_out_of_range(tmp_path):
         select_rows(dfmf, views=[[31, 90]])
     with pytest.raises(ConfigError, match="entry 4 is not an index of the file's 4 lights"):
         select_rows(dfmf, lights=[4])
-    with pytest.raises(ConfigError, match=r"dataset.crop=\[0, 0, 5, 5\] does not fit"):
+    with pytest.raises(ConfigError, match=r"crop \[0, 0, 5, 5\] does not fit"):
         decode_dfmf(dfmf, crop=[0, 0, 5, 5])
 
 
@@ -316,13 +316,13 @@ def _load_config(tmp_path, root, *overrides):
         "dataset=ubo2014",
         f"dataset.root={root}",
         "dataset.views=null",
-        "dataset.crop=[0,1,3,3]",
         "btf.crop.size=3",
+        "btf.crop.offset=[0,1]",
         *overrides,
     )
 
 
-def test_the_load_stage_decodes_the_crop_with_the_files_directions(tmp_path):
+def test_the_crop_stage_decodes_the_crop_from_the_factors_as_abrdfs(tmp_path):
     from pipeline.btf import stages
     from pipeline.core.stage import Context
 
@@ -330,19 +330,36 @@ def test_the_load_stage_decodes_the_crop_with_the_files_directions(tmp_path):
     cfg = _load_config(tmp_path, tmp_path / "m.btf", "dataset.lights=[0,2]")
     ctx = Context.from_config(cfg)
     loaded = stages.load(ctx)
+    assert not loaded.file("images.npy").exists()  # the header only: nothing decoded
     rows = np.array([0, 2, 4, 6, 8, 10])
-    np.testing.assert_allclose(
-        loaded.array("images"),
-        expected_images(factors, "float16", 11)[rows, 0:3, 1:4],
-        rtol=2e-6,
-        atol=2e-6,
-    )
     np.testing.assert_array_equal(
         loaded.array("directions"), read_dfmf(tmp_path / "m.btf").directions()[rows]
     )
     cropped = stages.crop(ctx, loaded)
-    assert cropped.array("abrdf").shape == (9, 6, 3)
+    images = expected_images(factors, "float16", 11)[rows, 0:3, 1:4]  # (n, 3, 3, 3)
+    np.testing.assert_allclose(
+        cropped.array("abrdf"),
+        images.reshape(len(rows), 9, 3).transpose(1, 0, 2),
+        rtol=2e-6,
+        atol=2e-6,
+    )
+    np.testing.assert_array_equal(cropped.array("directions"), loaded.array("directions"))
     assert stages.load(Context.from_config(cfg)).key == loaded.key  # a rerun is a hit
+
+
+def test_a_crop_that_does_not_fit_is_refused_from_the_header_naming_a_fitting_offset(tmp_path):
+    from pipeline.btf import stages
+    from pipeline.core.stage import Context
+
+    write(tmp_path / "m.btf")  # 4 x 5 texels
+    cfg = _load_config(tmp_path, tmp_path / "m.btf", "btf.crop.offset=[2,2]")
+    ctx = Context.from_config(cfg)
+    loaded = stages.load(ctx)
+    with pytest.raises(
+        ConfigError, match=r"btf.crop.offset=\[2, 2\].*give btf.crop.offset=\[1, 2\]"
+    ):
+        stages.crop(ctx, loaded)
+    assert not list(Path(cfg.paths.cache).glob("crop/*/abrdf.npy"))
 
 
 def test_a_bad_file_fails_the_load_stage_naming_it_and_caches_nothing(tmp_path):

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from pipeline.btf.model import LATENT_DIM, Decoder, parameter_count
+from pipeline.core.progress import progress
 
 DTYPE_BYTES = {"float32": 4, "float16": 2, "int32": 4, "uint16": 2}
 FLOAT_TYPES = ("float32", "float16")  # storage types of weights, latents and the scale
@@ -129,7 +130,7 @@ def reconstruction_error(
     sq_dir = np.zeros(n, dtype=np.float64)
     sq_dir_scaled = np.zeros(n, dtype=np.float64)
     scales = np.empty(m, dtype=np.float32) if clustered else None
-    for start in range(0, m, chunk):
+    for start in progress(range(0, m, chunk), "evaluate", total=m, unit="texel", scale=chunk):
         stop = min(start + chunk, m)
         target = np.asarray(abrdf[start:stop], dtype=np.float32) / np.float32(alpha)
         if clustered:

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.errors import DataError
+
 # A dimension that is constant over all texels (sigma = 0) would divide by zero; such a
 # dimension carries no information, so it is mapped to 0 instead.
 _SIGMA_FLOOR = 1e-6
@@ -63,7 +65,12 @@ def fit_normalization(abrdf: np.ndarray, chunk: int = 1024) -> Normalization:
     for start in range(0, m, chunk):
         block = np.asarray(abrdf[start : start + chunk], dtype=np.float32)
         if not np.all(np.isfinite(block)):
-            raise ValueError(f"abrdf holds NaN or Inf in texels {start}..{start + len(block)}")
+            raise DataError(f"the data hold NaN or Inf in texels {start}..{start + len(block)}")
+        if (low := float(block.min())) <= -1.0:
+            raise DataError(
+                f"the data hold values down to {low:.3g} in texels {start}..{start + len(block)}:"
+                " eq. 1's log(x + 1) needs x > -1 (radiance is not negative)"
+            )
         logged = np.log1p(block, dtype=np.float64)
         total += logged.sum(axis=0)
         total_sq += np.square(logged).sum(axis=0)

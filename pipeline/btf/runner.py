@@ -62,6 +62,20 @@ def check_settings_at_the_door(cfg, model: Model) -> None:
     check_settings(cfg, {**CONSTRAINTS, **constraints(model.config, "model")})
     if model.trains:
         _train_settings(cfg)
+    if model.clusters:
+        from pipeline.btf.clustering import check_k
+
+        check_k(cfg.model.k, int(cfg.btf.crop.size) ** 2)
+
+
+def check_settings_against_the_data(cfg, loaded: Entry) -> None:
+    """Refuse settings that the data's shape rules out, as soon as the load stage knows it
+    (for a UBO2014 file: from its header, before anything is decoded): the crop must fit
+    the texture, the held-out lights must leave lights to train on."""
+    summary = loaded.manifest["summary"]
+    stages.check_crop_fits(cfg, summary["height"], summary["width"], summary.get("root"))
+    lights = direction_sets(loaded.array("directions", mmap=False)).lights
+    interpolation.heldout_light_indices(cfg, lights)
 
 
 def _train_settings(cfg):
@@ -281,6 +295,7 @@ def run(ctx: Context) -> dict[str, float]:
         return run_linear(ctx)
     cfg = ctx.cfg
     loaded = stages.load(ctx)
+    check_settings_against_the_data(cfg, loaded)
     cropped = stages.crop(ctx, loaded)
     prep = stages.preprocess(ctx, cropped)
     clusters = reps = None
@@ -442,6 +457,7 @@ def run_linear(ctx: Context) -> dict[str, float]:
     from pipeline.btf.export import export_linear_stage
 
     loaded = stages.load(ctx)
+    check_settings_against_the_data(ctx.cfg, loaded)
     cropped = stages.crop(ctx, loaded)
     prep = stages.preprocess(ctx, cropped)
     fitted = linear_stage(ctx, cropped, prep)

@@ -18,6 +18,7 @@ from pipeline.btf.preprocess import Normalization, encoder_inputs, fit_normaliza
 from pipeline.core.cache import Entry, canonical_json, save_arrays, save_json
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.files import reserved_memmap
+from pipeline.core.progress import progress
 from pipeline.core.stage import Context, folder_fingerprint, plain_settings
 
 log = logging.getLogger(__name__)
@@ -124,6 +125,7 @@ def load(ctx: Context) -> Entry:
 
     def compute(folder: Path) -> dict:
         n, height, width = count_btf_images(root, format=ds.format, views=views)
+        check_crop_fits(ctx.cfg, height, width, root)  # before the images are decoded
         images = reserved_memmap(folder / "images.npy", (n, height, width, 3), np.float32)
         btf = load_btf(root, format=ds.format, views=views, out=images, linearize=linearize)
         images.flush()
@@ -135,63 +137,84 @@ def load(ctx: Context) -> Entry:
 
 
 def _load_ubo2014(ctx: Context) -> Entry:
-    """The load stage for a UBO2014 ``.btf`` file: only ``dataset.crop`` of the chosen
-    directions is decoded (from the factors), never the whole file."""
-    from pipeline.data.ubo2014 import count_ubo2014_images, load_ubo2014
+    """The load stage for a UBO2014 ``.btf`` file: its header, directions and fingerprint,
+    nothing decoded (the crop stage decodes ``btf.crop`` from the factors)."""
+    from pipeline.data.ubo2014 import select_rows
     from pipeline.data.ubo2014_header import describe, read_dfmf
 
     ds = ctx.cfg.dataset
     path = dataset_root(ctx.cfg).resolve()
     views, lights = plain_settings(ds.views), plain_settings(ds.get("lights"))
-    crop_texels = plain_settings(ds.get("crop"))
     settings = {
         "format": "ubo2014",
         "fingerprint": file_fingerprint(path),
         "views": views,
         "lights": lights,
-        "crop": crop_texels,
     }
 
     def compute(folder: Path) -> dict:
         # Inside compute: a bad file raises here, and nothing is published.
-        n, height, width = count_ubo2014_images(path, views, lights, crop_texels)
-        images = reserved_memmap(folder / "images.npy", (n, height, width, 3), np.float32)
-        btf = load_ubo2014(path, views, lights, crop_texels, out=images)
-        images.flush()
-        del images
-        save_arrays(folder, directions=np.asarray(btf.directions, dtype=np.float64))
+        dfmf = read_dfmf(path)
+        rows = select_rows(dfmf, views, lights)
+        save_arrays(folder, directions=dfmf.directions()[rows], rows=rows)
         return {
-            "n_images": n,
-            "height": height,
-            "width": width,
+            "n_images": len(rows),
+            "height": dfmf.height,
+            "width": dfmf.width,
             "root": str(path),
-            **describe(read_dfmf(path)),
+            **describe(dfmf),
         }
 
-    return ctx.run("load", settings, {}, compute, version="3")
+    return ctx.run("load", settings, {}, compute, version="4")
 
 
 # --------------------------------------------------------------------------- crop
 
 
+def check_crop_fits(cfg: DictConfig, height: int, width: int, root) -> None:
+    """Refuse a ``btf.crop`` that does not fit a texture of ``height`` x ``width`` texels
+    (known from the dataset's header, before anything is decoded), naming the setting,
+    the texture and an offset that would fit."""
+    size = int(cfg.btf.crop.size)
+    y0, x0 = (int(v) for v in cfg.btf.crop.offset)
+    if size > height or size > width:
+        raise ConfigError(
+            f"btf.crop.size={size} is larger than the texture of {height}x{width} texels: {root}"
+        )
+    if y0 + size > height or x0 + size > width:
+        fits = [min(y0, height - size), min(x0, width - size)]
+        raise ConfigError(
+            f"btf.crop.size={size} at btf.crop.offset=[{y0}, {x0}] does not fit the texture "
+            f"of {height}x{width} texels: give btf.crop.offset={fits} ({root})"
+        )
+
+
 def crop(ctx: Context, loaded: Entry) -> Entry:
-    """Cut a ``btf.crop.size`` square at ``btf.crop.offset`` and lay it out as ABRDFs (M, N, 3)."""
+    """Cut a ``btf.crop.size`` square at ``btf.crop.offset`` and lay it out as ABRDFs (M, N, 3).
+
+    From a UBO2014 file the crop is decoded straight from the factors into that layout;
+    from image formats it is copied out of the load stage's images."""
     settings = plain_settings(ctx.cfg.btf.crop)
     size = int(settings["size"])
     y0, x0 = (int(v) for v in settings["offset"])
-    images = loaded.array("images")
-    n, height, width, _ = images.shape
-    if size < 1 or y0 < 0 or x0 < 0 or y0 + size > height or x0 + size > width:
-        raise ConfigError(
-            f"btf.crop.size={size} at crop.offset=[{y0}, {x0}] does not fit the texture "
-            f"of {height}x{width} texels ({loaded.manifest.get('summary', {}).get('root')})"
-        )
+    summary = loaded.manifest["summary"]
+    n, height, width = summary["n_images"], summary["height"], summary["width"]
+    check_crop_fits(ctx.cfg, height, width, summary.get("root"))
+    from_file = ctx.cfg.dataset.format == "ubo2014"
 
     def compute(folder: Path) -> dict:
         abrdf = reserved_memmap(folder / "abrdf.npy", (size * size, n, 3), np.float32)
-        # Image by image: the crop of one image is one column of the ABRDF matrix.
-        for i in range(n):
-            abrdf[:, i, :] = images[i, y0 : y0 + size, x0 : x0 + size, :].reshape(-1, 3)
+        if from_file:
+            from pipeline.data.ubo2014_decode import decode_abrdf
+            from pipeline.data.ubo2014_header import read_dfmf
+
+            dfmf = read_dfmf(summary["root"])
+            decode_abrdf(dfmf, loaded.array("rows"), [y0, x0, size, size], out=abrdf)
+        else:
+            images = loaded.array("images")
+            # Image by image: the crop of one image is one column of the ABRDF matrix.
+            for i in progress(range(n), "crop", unit="image"):
+                abrdf[:, i, :] = images[i, y0 : y0 + size, x0 : x0 + size, :].reshape(-1, 3)
         abrdf.flush()
         del abrdf
         save_arrays(folder, directions=loaded.array("directions", mmap=False))
@@ -207,7 +230,10 @@ def preprocess(ctx: Context, cropped: Entry) -> Entry:
     """Fit the eq. 1-6 normalization (per-dimension mean/std of log values, alpha)."""
 
     def compute(folder: Path) -> dict:
-        norm = fit_normalization(cropped.array("abrdf"))
+        try:
+            norm = fit_normalization(cropped.array("abrdf"))
+        except DataError as error:
+            raise DataError(f"{error}: {ctx.cfg.dataset.root or 'the built-in BTF'}") from None
         save_arrays(folder, mean=norm.mean, std=norm.std)
         save_json(folder, "alpha", norm.alpha)
         return {"alpha": norm.alpha}

@@ -26,10 +26,13 @@ Conventions of this decoder, each as btflib decodes:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.files import output_array
+from pipeline.core.progress import progress
 from pipeline.data.ubo2014_format import DRR_EPS, YUV_TO_RGB, DFMFFile
 
 
@@ -69,7 +72,7 @@ def check_crop(crop, dfmf: DFMFFile) -> tuple[int, int, int, int]:
     try:
         row, col, height, width = (int(value) for value in crop)
     except (TypeError, ValueError):
-        raise ConfigError(f"dataset.crop={crop!r} is not [row, col, height, width]") from None
+        raise ConfigError(f"crop {crop!r} is not [row, col, height, width]") from None
     if (
         height < 1
         or width < 1
@@ -79,7 +82,7 @@ def check_crop(crop, dfmf: DFMFFile) -> tuple[int, int, int, int]:
         or (col + width > dfmf.width)
     ):
         raise ConfigError(
-            f"dataset.crop={[row, col, height, width]} does not fit the texture of "
+            f"crop {[row, col, height, width]} does not fit the texture of "
             f"{dfmf.height} × {dfmf.width} texels (height × width): {dfmf.path}"
         )
     return row, col, height, width
@@ -135,6 +138,56 @@ def decode_block(
     return np.clip(rgb, 0.0, 1.0, out=rgb) if clip else rgb
 
 
+@dataclass(frozen=True)
+class _Factors:
+    """What decoding some direction rows at a crop needs: the rows' U, the crop's SV (each
+    per channel, in the compute type) and the cosine each row is multiplied by (or None)."""
+
+    rows: np.ndarray
+    directions: list[np.ndarray]
+    texels: list[np.ndarray]
+    cosine: np.ndarray | None
+    height: int
+    width: int
+
+    def check_finite(self, values: np.ndarray, rows: np.ndarray, path) -> None:
+        """Raise :class:`DataError` naming ``path`` where ``values`` (n_rows, m, 3) are not
+        finite."""
+        finite = np.isfinite(values)
+        if not finite.all():
+            bad = rows[~finite.all(axis=(1, 2))]
+            raise DataError(
+                f"the factors give NaN or Inf at {len(bad)} direction rows (first {bad[0]}): {path}"
+            )
+
+
+def _factors(dfmf: DFMFFile, rows, crop, include_cosine: bool) -> _Factors:
+    if len(dfmf.channels) != 3:
+        raise DataError(
+            f"UBO2014 file has {len(dfmf.channels)} channels {list(dfmf.channel_names)}; "
+            f"the decoder needs 3: {dfmf.path}"
+        )
+    rows = np.arange(dfmf.n_directions) if rows is None else np.asarray(rows, dtype=np.int64)
+    if rows.ndim != 1 or (len(rows) and (rows.min() < 0 or rows.max() >= dfmf.n_directions)):
+        raise ConfigError(f"direction rows must be a list of 0..{dfmf.n_directions - 1}")
+    _, _, height, width = check_crop(crop, dfmf)
+    dtype = _compute_dtype(dfmf)
+    cosine = None
+    if include_cosine and not dfmf.cosine_in_data:
+        theta_light = dfmf.light_angles.reshape(-1, 2)[rows, 0]
+        cosine = np.maximum(np.cos(theta_light), 0.0).astype(np.float32)
+    return _Factors(
+        rows=rows,
+        directions=[
+            np.asarray(channel_factors(dfmf, channel)[1][rows], dtype=dtype) for channel in range(3)
+        ],
+        texels=[crop_texel_factors(dfmf, channel, crop) for channel in range(3)],
+        cosine=cosine,
+        height=height,
+        width=width,
+    )
+
+
 def decode_dfmf(
     dfmf: DFMFFile,
     rows=None,
@@ -145,7 +198,7 @@ def decode_dfmf(
     clip: bool = True,
     block_bytes: int = 32 << 20,
 ) -> np.ndarray:
-    """Decode the chosen direction rows at a crop of texels, and nothing else.
+    """Decode the chosen direction rows at a crop of texels, and nothing else, as images.
 
     Parameters
     ----------
@@ -173,39 +226,57 @@ def decode_dfmf(
     Raises
     ------
     DataError
-        When the file does not have three channels.
+        When the file does not have three channels, or its factors give NaN or Inf
+        (naming the file).
     ConfigError
         For rows out of range, a crop that does not fit, or an ``out`` of the wrong
         shape or dtype.
     """
-    if len(dfmf.channels) != 3:
-        raise DataError(
-            f"UBO2014 file has {len(dfmf.channels)} channels {list(dfmf.channel_names)}; "
-            f"the decoder needs 3: {dfmf.path}"
-        )
-    rows = np.arange(dfmf.n_directions) if rows is None else np.asarray(rows, dtype=np.int64)
-    if rows.ndim != 1 or (len(rows) and (rows.min() < 0 or rows.max() >= dfmf.n_directions)):
-        raise ConfigError(f"direction rows must be a list of 0..{dfmf.n_directions - 1}")
-    _, _, height, width = check_crop(crop, dfmf)
-    shape = (len(rows), height, width, 3)
-    out = output_array(out, shape)
-    dtype = _compute_dtype(dfmf)
-    texel_factors = [crop_texel_factors(dfmf, channel, crop) for channel in range(3)]
-    direction_factors = [
-        np.asarray(channel_factors(dfmf, channel)[1][rows], dtype=dtype) for channel in range(3)
-    ]
-    cosine = None
-    if include_cosine and not dfmf.cosine_in_data:
-        theta_light = dfmf.light_angles.reshape(-1, 2)[rows, 0]
-        cosine = np.maximum(np.cos(theta_light), 0.0).astype(np.float32)
+    f = _factors(dfmf, rows, crop, include_cosine)
+    height, width = f.height, f.width
+    out = output_array(out, (len(f.rows), height, width, 3))
     # Three float32 values per texel and direction, and about as much in temporaries.
     step = max(1, block_bytes // (2 * 3 * 4 * height * width))
-    for start in range(0, len(rows), step):
-        stop = min(start + step, len(rows))
+    for start in range(0, len(f.rows), step):
+        stop = min(start + step, len(f.rows))
         block = decode_block(
-            [u[start:stop] for u in direction_factors], texel_factors, dfmf.color_model, clip
+            [u[start:stop] for u in f.directions], f.texels, dfmf.color_model, clip
         )
-        if cosine is not None:
-            block *= cosine[start:stop, None, None]
+        f.check_finite(block, f.rows[start:stop], dfmf.path)
+        if f.cosine is not None:
+            block *= f.cosine[start:stop, None, None]
         out[start:stop] = block.reshape(stop - start, height, width, 3)
+    return out
+
+
+def decode_abrdf(
+    dfmf: DFMFFile,
+    rows=None,
+    crop=None,
+    *,
+    out: np.ndarray | None = None,
+    include_cosine: bool = True,
+    block_bytes: int = 32 << 20,
+) -> np.ndarray:
+    """:func:`decode_dfmf`'s values laid out as ABRDFs, the layout method A's chain reads:
+    shape (height × width, n_rows, 3), texel ``r · width + c`` with row 0 at the top.
+
+    Decoded a block of texels at a time (all the rows of each), so that every block is one
+    contiguous write, and no image-layout copy is ever held. Progress is shown (a whole
+    UBO2014 material takes minutes)."""
+    f = _factors(dfmf, rows, crop, include_cosine)
+    m, n = f.height * f.width, len(f.rows)
+    out = output_array(out, (m, n, 3))
+    step = max(1, block_bytes // (2 * 3 * 4 * n))
+    with progress(None, f"decode {dfmf.path.name}", total=m, unit="texel") as bar:
+        for start in range(0, m, step):
+            stop = min(start + step, m)
+            block = decode_block(
+                f.directions, [sv[start:stop] for sv in f.texels], dfmf.color_model
+            )
+            f.check_finite(block, f.rows, dfmf.path)
+            if f.cosine is not None:
+                block *= f.cosine[:, None, None]
+            out[start:stop] = block.transpose(1, 0, 2)
+            bar.update(stop - start)
     return out
