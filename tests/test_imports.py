@@ -1,99 +1,195 @@
-"""How the package's modules import each other: no private names across modules, no
-cycles but the listed ones, packages depend downwards, and the general renderer imports no
-method.
+"""How the package's modules import each other: packages depend downwards, the general
+renderer imports no method, no import cycle, no private names across modules.
 
-Packages (see ``pipeline/__init__.py``): ``core`` (shared), ``data`` (readers), one per
-method (``btf`` A, ``brdf_map`` B, ``fourier`` C), and the commands (``__main__``,
-``app``, ``tables``, ``bench``).
+Packages (see ``pipeline/__init__.py``): ``core`` (shared), ``data`` (readers), the general
+renderer ``render``, one per method (``btf`` A, ``brdf_map`` B, ``fourier`` C), and the
+commands (``__main__``, ``app``, ``tables``, ``bench``, ``cache``).
+
+The rules between modules are import-linter contracts in ``.importlinter`` (run by
+:func:`test_import_contracts_hold`). The rest stays here because import-linter cannot say it:
+
+- private names: its graph holds module-to-module edges, not the names taken from a module
+  nor attributes read from it, and only the package's modules (not tests/, not other
+  libraries'); its ``private_modules`` contract lets a package import its own private
+  modules, which this rule refuses;
+- cycles: its ``acyclic_siblings`` contract compares the children of each package and so
+  misses a cycle through a package's ``__init__`` (``pkg`` imports ``pkg.mod``, which
+  imports ``pkg``): the check below runs on import-linter's own graph (grimp) instead;
+- conftest.py: what tests import and what conftest defines are not package imports.
 """
 
 from __future__ import annotations
 
 import ast
-from dataclasses import dataclass
-from functools import cache
+import graphlib
+import os
+import subprocess
+import sys
+from importlib.util import resolve_name
+from itertools import pairwise
 from pathlib import Path
 
+import grimp
+import pytest
 from helpers import PACKAGE, ROOT, module_name
 from helpers import PIPELINE_MODULES as MODULES
 
 TESTS = ROOT / "tests"
 
 
-@dataclass(frozen=True)
-class Import:
-    """One import statement's target, as written in a file."""
-
-    source: str  # the importing module
-    target: str  # the module imported (for ``from m import x``: ``m.x`` if a module, else ``m``)
-    names: tuple[str, ...]  # for ``from m import x, y``: the names taken from ``target``
-    line: int
-    deferred: bool  # inside a function (runs when called) or ``if TYPE_CHECKING:``
-
-
-def _resolve(source: str, is_package: bool, module: str | None, level: int) -> str:
-    if level == 0:
-        return module or ""
-    base = source.split(".") if is_package else source.split(".")[:-1]
-    base = base[: len(base) - (level - 1)]
-    return ".".join(base + ([module] if module else []))
+def _lint_imports(cwd: Path) -> subprocess.CompletedProcess:
+    """``lint-imports`` with the repository's contracts, on the ``pipeline`` found from
+    ``cwd``; without a cache, which it would leave in ``cwd``."""
+    return subprocess.run(
+        [sys.executable, "-c", "from importlinter.cli import lint_imports_command as c; c()"]
+        + [str(ROOT / ".importlinter"), "--no-cache", "--no-logo"],
+        cwd=cwd,
+        env={**os.environ, "COLUMNS": "200"},  # one line per import in the report
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
-@cache
-def _imports(path: Path) -> tuple[list[Import], list[tuple[str, int]]]:
-    """The file's imports, and the private attributes it reads from pipeline modules
-    (``module._name`` where ``module`` was imported as a pipeline module)."""
+def test_import_contracts_hold():
+    """Every import in the package, wherever it is written (module level, functions, class
+    bodies, ``if TYPE_CHECKING:``), keeps the contracts in ``.importlinter``."""
+    done = _lint_imports(ROOT)
+    assert done.returncode == 0 and " 0 broken." in done.stdout, done.stdout + done.stderr
+
+
+# A package that looks like the real one, each fault commented with the contract it breaks.
+FAULTY_PACKAGE = {
+    "__init__.py": "",
+    **{f"{command}.py": "" for command in ("__main__", "app", "tables", "bench", "cache")},
+    "core/__init__.py": "",
+    "core/errors.py": "def f():\n    from pipeline import app\n",  # layers
+    "data/__init__.py": "import typing\nif typing.TYPE_CHECKING:\n    import pipeline.btf\n",  # layers
+    "btf/__init__.py": "",
+    "btf/interpolation.py": "import pipeline\n",  # root
+    "brdf_map/__init__.py": "class C:\n    from pipeline.render import scene\n",  # renderer-users
+    "brdf_map/report.py": "",
+    "fourier/__init__.py": "",
+    "fourier/series.py": "from ..brdf_map import report\n",  # layers: methods are independent
+    "render/__init__.py": "",
+    "render/scene.py": (  # renderer (and layers)
+        "import numpy\n"
+        "from pipeline import btf, core\n"
+        "def f():\n"
+        "    import pipeline.fourier.series\n"
+        "    from ..brdf_map import report\n"
+        "class C:\n"
+        "    from pipeline.btf.interpolation import Barycentric\n"
+    ),
+}
+
+
+def test_import_contracts_catch_every_kind_of_import(tmp_path):
+    for name, text in FAULTY_PACKAGE.items():
+        (tmp_path / "pipeline" / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / "pipeline" / name).write_text(text)
+    done = _lint_imports(tmp_path)
+    report = done.stdout
+    assert done.returncode == 1 and "Contracts: 0 kept, 4 broken." in report, report + done.stderr
+    for breach in [
+        "pipeline.core.errors -> pipeline.app (l.2)",
+        "pipeline.data -> pipeline.btf (l.3)",
+        "pipeline.fourier.series -> pipeline.brdf_map.report (l.1)",
+        "pipeline.btf.interpolation -> pipeline (l.1)",
+        "pipeline.brdf_map -> pipeline.render.scene (l.2)",
+        "pipeline.render.scene -> pipeline.btf (l.2)",
+        "pipeline.render.scene -> pipeline.fourier.series (l.4)",
+        "pipeline.render.scene -> pipeline.brdf_map.report (l.5)",
+        "pipeline.render.scene -> pipeline.btf.interpolation (l.7)",
+    ]:
+        assert breach in report, report
+
+
+# ---------------------------------------------------------------------------- cycles
+
+
+def _cycle(graph: grimp.ImportGraph) -> list[str]:
+    """One import cycle of ``graph``, an ``importer -> imported (line n)`` per import; [] if
+    there is none."""
+    imported_by = {m: graph.find_modules_directly_imported_by(m) for m in graph.modules}
+    try:
+        graphlib.TopologicalSorter(imported_by).prepare()
+    except graphlib.CycleError as found:
+        chain = found.args[1][::-1]  # graphlib lists each module before its importer
+        return [
+            f"{a} -> {b} (line {graph.get_import_details(importer=a, imported=b)[0]['line_number']})"
+            for a, b in pairwise(chain)
+        ]
+    return []
+
+
+def test_no_import_cycle():
+    """No cycle among the package's imports, wherever they are written: a cycle at load time
+    works or fails depending on which of its modules is imported first, and leaves
+    half-initialised modules behind; one closed inside a function works, but should be a
+    decision, not an accident (to allow one, remove that import from ``graph`` here and say
+    why)."""
+    graph = grimp.build_graph("pipeline", cache_dir=None)
+    assert _cycle(graph) == []
+
+
+@pytest.mark.parametrize(
+    "files, cycle",
+    [
+        (  # through a package's __init__ and a function: acyclic_siblings misses this one
+            {
+                "__init__.py": "from probe import child\n",
+                "child.py": "def f():\n    import probe\n",
+            },
+            ["probe -> probe.child (line 1)", "probe.child -> probe (line 2)"],
+        ),
+        (  # through a class body and a type-checking block
+            {
+                "__init__.py": "",
+                "a.py": "class C:\n    from probe import b\n",
+                "b.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import probe.a\n",
+            },
+            ["probe.a -> probe.b (line 2)", "probe.b -> probe.a (line 3)"],
+        ),
+    ],
+)
+def test_cycle_check_finds_cycles(tmp_path, monkeypatch, files, cycle):
+    (tmp_path / "probe").mkdir()
+    for name, text in files.items():
+        (tmp_path / "probe" / name).write_text(text)
+    monkeypatch.syspath_prepend(tmp_path)
+    assert sorted(_cycle(grimp.build_graph("probe", cache_dir=None))) == cycle
+
+
+# --------------------------------------------------------------------- private names
+
+
+def _imports(path: Path) -> tuple[list[tuple[int, str, tuple[str, ...]]], dict[str, str]]:
+    """Every import in the file, wherever it is written: ``(line, module, names taken from
+    it)`` (``from m import x``: ``m.x`` if that is a pipeline module, else ``m`` with
+    ``x``), and the local names bound to modules."""
     source = module_name(path) if path.is_relative_to(PACKAGE) else path.stem
-    tree = ast.parse(path.read_text(), str(path))
-    found: list[Import] = []
-    bound: dict[str, str] = {}  # local name -> pipeline module it refers to
-
-    def visit(body: list[ast.stmt] | ast.AST, deferred: bool) -> None:
-        for child in body if isinstance(body, list) else ast.iter_child_nodes(body):
-            if isinstance(child, ast.Import):
-                for alias in child.names:
-                    found.append(Import(source, alias.name, (), child.lineno, deferred))
-                    if alias.asname:
-                        bound[alias.asname] = alias.name
-                    else:
-                        top = alias.name.split(".")[0]
-                        bound[top] = top
-            elif isinstance(child, ast.ImportFrom):
-                base = _resolve(source, path.name == "__init__.py", child.module, child.level)
-                plain = []
-                for alias in child.names:
-                    full = f"{base}.{alias.name}"
-                    if full in MODULES:  # a submodule
-                        found.append(Import(source, full, (), child.lineno, deferred))
-                        bound[alias.asname or alias.name] = full
-                    else:
-                        plain.append(alias.name)
-                if plain:
-                    found.append(Import(source, base, tuple(plain), child.lineno, deferred))
-            elif isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
-                visit(child.body, True)  # read by type checkers only
-                visit(child.orelse, deferred)
-            else:
-                visit(
-                    child,
-                    deferred
-                    or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda),
-                )
-
-    visit(tree, False)
-
-    private_reads = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Attribute) and _is_private(node.attr):
-            chain, value = [], node.value
-            while isinstance(value, ast.Attribute):
-                chain.append(value.attr)
-                value = value.value
-            if isinstance(value, ast.Name) and value.id in bound:
-                owner = ".".join([bound[value.id], *reversed(chain)])
-                if owner in MODULES:
-                    private_reads.append((f"{owner}.{node.attr}", node.lineno))
-    return found, private_reads
+    found: list[tuple[int, str, tuple[str, ...]]] = []
+    bound: dict[str, str] = {}  # local name -> module it refers to
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                found.append((node.lineno, alias.name, ()))
+                top = alias.name.split(".")[0]
+                bound[alias.asname or top] = alias.name if alias.asname else top
+        elif isinstance(node, ast.ImportFrom):
+            package = source if path.name == "__init__.py" else source.rpartition(".")[0]
+            base = resolve_name("." * node.level + (node.module or ""), package)
+            plain = []
+            for alias in node.names:
+                if f"{base}.{alias.name}" in MODULES:  # a submodule
+                    found.append((node.lineno, f"{base}.{alias.name}", ()))
+                    bound[alias.asname or alias.name] = f"{base}.{alias.name}"
+                else:
+                    plain.append(alias.name)
+            if plain:
+                found.append((node.lineno, base, tuple(plain)))
+    return found, bound
 
 
 def _is_private(name: str) -> bool:
@@ -109,18 +205,26 @@ def _private_uses(path: Path, pipeline_only: bool) -> list[str]:
     """``file:line module.name`` for each private name that ``path`` takes from another
     module: ``from m import _x``, ``import m._x`` and ``module._x`` (a pipeline module's
     attribute; attributes of other libraries' modules are not followed)."""
-    imports, reads = _imports(path)
+    source = module_name(path) if path.is_relative_to(PACKAGE) else path.stem
+    imports, bound = _imports(path)
     where = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path
     out = []
-    for imp in imports:
-        if imp.target == imp.source or (pipeline_only and imp.target not in MODULES):
+    for line, target, names in imports:
+        if target in (source, *DOCUMENTED_STDLIB) or (pipeline_only and target not in MODULES):
             continue
-        if imp.target in DOCUMENTED_STDLIB:
-            continue
-        if any(_is_private(part) for part in imp.target.split(".")):  # a private module
-            out.append(f"{where}:{imp.line} {imp.target}")
-        out += [f"{where}:{imp.line} {imp.target}.{n}" for n in imp.names if _is_private(n)]
-    out += [f"{where}:{line} {name}" for name, line in reads]
+        if any(_is_private(part) for part in target.split(".")):  # a private module
+            out.append(f"{where}:{line} {target}")
+        out += [f"{where}:{line} {target}.{n}" for n in names if _is_private(n)]
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Attribute) and _is_private(node.attr):
+            chain, value = [], node.value
+            while isinstance(value, ast.Attribute):
+                chain.append(value.attr)
+                value = value.value
+            if isinstance(value, ast.Name) and value.id in bound:
+                owner = ".".join([bound[value.id], *reversed(chain)])
+                if owner in MODULES:
+                    out.append(f"{where}:{node.lineno} {owner}.{node.attr}")
     return out
 
 
@@ -140,173 +244,6 @@ def test_tests_use_only_public_names():
     assert found == []
 
 
-def test_tests_take_helpers_from_helpers_and_fixtures_from_conftest():
-    """No test imports ``conftest`` (pytest loads it as a plugin; importing it again runs
-    it twice under another name); conftest.py defines fixtures (and hooks) only."""
-    importers = [
-        f"{path.name}:{imp.line}"
-        for path in sorted(TESTS.glob("*.py"))
-        for imp in _imports(path)[0]
-        if imp.target.split(".")[0] == "conftest"
-    ]
-    assert importers == []
-    tree = ast.parse((TESTS / "conftest.py").read_text())
-    plain = [
-        node.name
-        for node in tree.body
-        if isinstance(node, ast.FunctionDef | ast.ClassDef)
-        and not node.name.startswith("pytest_")
-        and not any("fixture" in ast.unparse(d) for d in node.decorator_list)
-    ]
-    assert plain == [], "move these to tests/helpers.py"
-
-
-def _graph(include_deferred: bool) -> dict[str, dict[str, int]]:
-    """module -> {imported pipeline module: line}. An edge goes to the module named in the
-    import only, not to the packages above it (whose ``__init__`` Python runs first)."""
-    graph: dict[str, dict[str, int]] = {name: {} for name in MODULES}
-    for name, path in MODULES.items():
-        for imp in _imports(path)[0]:
-            if (
-                imp.target in MODULES
-                and imp.target != name
-                and (include_deferred or not imp.deferred)
-            ):
-                graph[name].setdefault(imp.target, imp.line)
-    return graph
-
-
-def _cycles(graph: dict[str, dict[str, int]]) -> list[list[str]]:
-    """The strongly connected components with more than one module (Tarjan)."""
-    index: dict[str, int] = {}
-    low: dict[str, int] = {}
-    stack: list[str] = []
-    components: list[list[str]] = []
-
-    def connect(v: str) -> None:
-        index[v] = low[v] = len(index)
-        stack.append(v)
-        for w in graph[v]:
-            if w not in index:
-                connect(w)
-                low[v] = min(low[v], low[w])
-            elif w in stack:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            component = []
-            while (w := stack.pop()) != v:
-                component.append(w)
-            if component:
-                components.append(sorted([v, *component]))
-
-    for v in sorted(graph):
-        if v not in index:
-            connect(v)
-    return components
-
-
-def _describe(graph, components) -> list[str]:
-    return [
-        f"{a} -> {b} (line {graph[a][b]})"
-        for component in components
-        for a in component
-        for b in graph[a]
-        if b in component
-    ]
-
-
-def test_no_import_cycle():
-    """No cycle among the imports that run when a module is loaded (module level, class
-    bodies included; ``if TYPE_CHECKING:`` blocks excluded): such a cycle works or fails
-    depending on which of its modules is imported first, and leaves half-initialised
-    modules behind. Edges go to the module an import names (``from pkg import mod``:
-    ``pkg.mod``; ``from mod import name``: ``mod``)."""
-    graph = _graph(include_deferred=False)
-    assert _cycles(graph) == [], _describe(graph, _cycles(graph))
-
-
-# Cycles that close only through an import inside a function, each with why it is there:
-# Python resolves them (the inner import runs when the function is called, once both
-# modules are loaded), e.g. a module and the child-process entry point that calls back
-# into it, but each should be a decision, not an accident. Across packages they are
-# refused anyway by test_packages_depend_downwards (one edge then points up a layer).
-DEFERRED_CYCLES: dict[frozenset[str], str] = {}
-
-
-def test_import_cycles_through_functions_are_the_listed_ones():
-    """Catches a new cycle through a function-level import (add it to DEFERRED_CYCLES
-    with its reason if it is meant), and a listed one that is gone."""
-    graph = _graph(include_deferred=True)
-    loaded = {frozenset(c) for c in _cycles(_graph(include_deferred=False))}
-    deferred = [c for c in _cycles(graph) if frozenset(c) not in loaded]
-    new = [c for c in deferred if frozenset(c) not in DEFERRED_CYCLES]
-    assert new == [], "import cycles closed inside functions: " + "; ".join(_describe(graph, new))
-    gone = set(DEFERRED_CYCLES) - {frozenset(c) for c in deferred}
-    assert gone == set(), f"listed in DEFERRED_CYCLES but no longer there: {gone}"
-
-
-def test_imports_inside_functions_and_type_checking_blocks_are_deferred(tmp_path):
-    """Catches the import scanner that the cycle tests rely on taking a function's or a
-    type-checking block's import for one that runs at load time, or the reverse."""
-    module = tmp_path / "scanned.py"
-    module.write_text(
-        "import os\n"
-        "from typing import TYPE_CHECKING\n"
-        "if TYPE_CHECKING:\n"
-        "    import json\n"
-        "class Loaded:\n"
-        "    import math\n"
-        "def later():\n"
-        "    import re\n"
-        "    return lambda: __import__('glob')\n"
-        "async def later_too():\n"
-        "    from pipeline.core import errors\n"
-    )
-    found = [(imp.target, imp.deferred) for imp in _imports(module)[0]]
-    assert found == [
-        ("os", False),
-        ("typing", False),
-        ("json", True),
-        ("math", False),
-        ("re", True),
-        ("pipeline.core.errors", True),
-    ]
-
-
-def test_cycle_finder_finds_cycles():
-    graph = {"a": {"b": 1}, "b": {"c": 2}, "c": {"a": 3, "d": 4}, "d": {}}
-    assert _cycles(graph) == [["a", "b", "c"]]
-    assert _describe(graph, _cycles(graph)) == [
-        "a -> b (line 1)",
-        "b -> c (line 2)",
-        "c -> a (line 3)",
-    ]
-
-
-# What each package may import (imports inside functions included); the commands
-# (pipeline.__main__, app, tables, bench) may import anything, and only they import them.
-ALLOWED = {
-    "core": {"core"},
-    "data": {"core", "data"},
-    "btf": {"core", "data", "btf", "render"},  # btf.render: A's materials on the renderer
-    "render": {"core", "data", "render"},  # the general renderer, a library below the methods
-    "brdf_map": {"core", "data", "brdf_map"},
-    "fourier": {"core", "data", "fourier"},
-}
-
-
-def test_packages_depend_downwards():
-    """core <- data <- each method <- the commands; the methods do not import each other."""
-    wrong = []
-    for name, targets in _graph(include_deferred=True).items():
-        part = name.split(".")[1] if "." in name else ""
-        for target, line in targets.items():
-            to = target.split(".")[1] if "." in target else ""
-            if part in ALLOWED and to not in ALLOWED[part]:
-                wrong.append(f"{name}:{line} imports {target}")
-    assert wrong == []
-
-
 def test_private_name_rules_see_every_kind_of_use(tmp_path):
     path = tmp_path / "test_probe.py"
     path.write_text(
@@ -318,82 +255,34 @@ def test_private_name_rules_see_every_kind_of_use(tmp_path):
         "    from pipeline.fourier.quilting import _OverlapSearch\n"
         "    return kernels._cpu_key(), c._publish, pipeline.core.cache._write_atomic\n"
     )
-    uses = _private_uses(path, True)
-    imports, _ = _imports(path)
-    assert sorted(u.split(" ", 1)[1] for u in uses) == [
+    assert sorted(u.split(" ", 1)[1] for u in _private_uses(path, True)) == [
         "pipeline.btf.fast.kernels._cpu_key",
         "pipeline.core.cache._publish",
         "pipeline.core.cache._publish",
         "pipeline.core.cache._write_atomic",
         "pipeline.fourier.quilting._OverlapSearch",
     ]
-    assert [(i.target, i.deferred) for i in imports if i.target.startswith("pipeline.f")] == [
-        ("pipeline.fourier.quilting", True)
+
+
+# ------------------------------------------------------------------------- conftest
+
+
+def test_tests_take_helpers_from_helpers_and_fixtures_from_conftest():
+    """No test imports ``conftest`` (pytest loads it as a plugin; importing it again runs
+    it twice under another name); conftest.py defines fixtures (and hooks) only."""
+    importers = [
+        f"{path.name}:{line}"
+        for path in sorted(TESTS.glob("*.py"))
+        for line, target, _ in _imports(path)[0]
+        if target.split(".")[0] == "conftest"
     ]
-
-
-# ------------------------------------------------------- the renderer imports no method
-
-METHOD_PACKAGES = ("pipeline.btf", "pipeline.brdf_map", "pipeline.fourier")
-
-
-def _method_imports(path: Path, module: str) -> list[str]:
-    """``file:line target`` for each import in ``path`` (module ``module``) that names a
-    method package or a module in one, wherever it is: module level, functions, classes,
-    ``if TYPE_CHECKING:``; relative imports resolved."""
-    tree = ast.parse(path.read_text(), str(path))
-
-    def is_method(target: str) -> bool:
-        return any(target == p or target.startswith(p + ".") for p in METHOD_PACKAGES)
-
-    found = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            targets = [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = _resolve(module, path.name == "__init__.py", node.module, node.level)
-            # ``from pipeline import btf`` names the method in the imported names.
-            targets = [base] if is_method(base) else [f"{base}.{a.name}" for a in node.names]
-        else:
-            continue
-        found += [(node.lineno, t) for t in targets if is_method(t)]
-    where = path.relative_to(ROOT) if path.is_relative_to(ROOT) else path.name
-    return [f"{where}:{line} {target}" for line, target in sorted(found)]
-
-
-def test_the_general_renderer_imports_no_method_package():
-    """``pipeline/render/`` (scene, tracer, the material interface) is a library that any
-    method can build on: none of its modules imports a method package, not even inside a
-    function. A method's materials, render stages and reports live in its own package
-    (method A's in ``pipeline/btf/render/``)."""
-    renderer = {
-        name: path
-        for name, path in MODULES.items()
-        if name == "pipeline.render" or name.startswith("pipeline.render.")
-    }
-    assert {"pipeline.render", "pipeline.render.engine", "pipeline.render.scene"} <= set(renderer)
-    assert set(METHOD_PACKAGES) <= set(MODULES)  # the names checked are the real packages
-    found = [hit for name, path in renderer.items() for hit in _method_imports(path, name)]
-    assert found == []
-
-
-def test_the_method_import_check_sees_every_kind_of_import(tmp_path):
-    path = tmp_path / "probe.py"
-    path.write_text(
-        "import numpy\n"
-        "from pipeline.render.scene import Scene\n"
-        "from pipeline import btf, core\n"
-        "def f():\n"
-        "    import pipeline.fourier.series\n"
-        "    from ..brdf_map import report\n"
-        "    return 1\n"
-        "class C:\n"
-        "    from pipeline.btf.interpolation import Barycentric, ProductInterpolator\n"
-    )
-    found = _method_imports(path, "pipeline.render.probe")
-    assert [hit.split(" ", 1)[1] for hit in found] == [
-        "pipeline.btf",
-        "pipeline.fourier.series",
-        "pipeline.brdf_map",
-        "pipeline.btf.interpolation",
+    assert importers == []
+    tree = ast.parse((TESTS / "conftest.py").read_text())
+    plain = [
+        node.name
+        for node in tree.body
+        if isinstance(node, ast.FunctionDef | ast.ClassDef)
+        and not node.name.startswith("pytest_")
+        and not any("fixture" in ast.unparse(d) for d in node.decorator_list)
     ]
+    assert plain == [], "move these to tests/helpers.py"
