@@ -202,13 +202,16 @@ def paper_run(runs: str, steps: int, threads: int, device: str = "cpu") -> dict:
 
     root = Path(runs) / "bench_paper"
     figures: dict = {}
-    for variant in ("neural_btf", "k1000"):
+    for variant, model in (
+        ("neural_btf", ["model=neural_btf"]),
+        ("k1000", ["model=clustered", "model.k=1000"]),
+    ):
         command = [
             sys.executable,
             "-m",
             "pipeline",
             "experiment=paper",
-            f"variant={variant}",
+            *model,
             f"train.max_steps={steps}",
             f"train.threads={threads}",
             f"train.device={device}",
