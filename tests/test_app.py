@@ -117,15 +117,15 @@ def test_missing_dataset_root_fails_cleanly(smoke_cfg, tmp_path):
 def test_crop_larger_than_texture_fails_cleanly(smoke_cfg):
     cfg = smoke_cfg("btf.crop.size=17")
     _assert_failed_cleanly(cfg, ConfigError, "btf.crop.size=17")
-    assert {p.parent.name for p in _cache_entries(cfg)} == {"load"}
+    assert _cache_entries(cfg) == []  # refused from the images' size, before decoding them
 
 
 def test_k_larger_than_texel_count_fails_cleanly(smoke_cfg):
+    """k against btf.crop.size²: refused before the job's run opens, no stage computed."""
     cfg = smoke_cfg("model.k=145")
-    _assert_failed_cleanly(
-        cfg, ConfigError, "model.k=145 is larger than the number of texels M=144"
-    )
-    assert "kmeans" not in {p.parent.name for p in _cache_entries(cfg)}
+    with pytest.raises(ConfigError, match="model.k=145 is larger than the number of texels M=144"):
+        run_job(cfg)
+    assert _cache_entries(cfg) == []
 
 
 def test_corrupt_image_fails_cleanly_with_its_path(smoke_cfg, tmp_path):

@@ -338,13 +338,39 @@ def test_the_crop_stage_decodes_the_crop_from_the_factors_as_abrdfs(tmp_path):
     cropped = stages.crop(ctx, loaded)
     images = expected_images(factors, "float16", 11)[rows, 0:3, 1:4]  # (n, 3, 3, 3)
     np.testing.assert_allclose(
-        cropped.array("abrdf"),
+        np.asarray(stages.abrdf(cropped)),
         images.reshape(len(rows), 9, 3).transpose(1, 0, 2),
         rtol=2e-6,
         atol=2e-6,
     )
     np.testing.assert_array_equal(cropped.array("directions"), loaded.array("directions"))
     assert stages.load(Context.from_config(cfg)).key == loaded.key  # a rerun is a hit
+    assert (
+        not list(Path(cfg.paths.cache).glob("*/*/*.npy.*"))
+        and not cropped.file("abrdf.npy").exists()
+    )  # the crop is served from the factors, never written
+    # Indexing as the stages do: texels, texels x directions, single entries (the same
+    # values up to the last bit, which depends on the block's shape in the product).
+    served = stages.abrdf(cropped)
+    whole = np.asarray(served)
+    for key in ([1, 4], (slice(2, 5), [0, 3]), (slice(None), 2), 3):
+        assert served[key].shape == whole[key].shape
+        np.testing.assert_allclose(served[key], whole[key], rtol=1e-6)
+    with pytest.raises(IndexError, match="pair"):
+        served[[0, 1], [0, 1]]
+
+
+def test_a_cached_crop_whose_file_changed_is_refused_naming_it(tmp_path):
+    from pipeline.btf import stages
+    from pipeline.core.stage import Context
+
+    write(tmp_path / "m.btf")
+    cfg = _load_config(tmp_path, tmp_path / "m.btf")
+    ctx = Context.from_config(cfg)
+    cropped = stages.crop(ctx, stages.load(ctx))
+    write(tmp_path / "m.btf", seed=1)  # another file under the same name
+    with pytest.raises(DataError, match="has changed since.*m.btf"):
+        stages.abrdf(cropped)
 
 
 def test_a_crop_that_does_not_fit_is_refused_from_the_header_naming_a_fitting_offset(tmp_path):
@@ -359,7 +385,7 @@ def test_a_crop_that_does_not_fit_is_refused_from_the_header_naming_a_fitting_of
         ConfigError, match=r"btf.crop.offset=\[2, 2\].*give btf.crop.offset=\[1, 2\]"
     ):
         stages.crop(ctx, loaded)
-    assert not list(Path(cfg.paths.cache).glob("crop/*/abrdf.npy"))
+    assert not list(Path(cfg.paths.cache).glob("crop/*/*"))
 
 
 def test_a_bad_file_fails_the_load_stage_naming_it_and_caches_nothing(tmp_path):

@@ -70,7 +70,7 @@ def test_training_targets_are_the_files_values_at_the_directions_they_are_paired
     tmp_path, order_seed
 ):
     cropped, norm = _chain(tmp_path, _write(tmp_path / "m.btf", order_seed))
-    abrdf, directions = cropped.array("abrdf"), cropped.array("directions")
+    abrdf, directions = stages.abrdf(cropped), cropped.array("directions")
     m, n, _ = abrdf.shape
     assert (m, n) == (CROP * CROP, N_VIEWS * N_LIGHTS)
     sampling = Sampling(m, 16, False, np.arange(n), n, target_from_source=False)
@@ -96,7 +96,7 @@ def test_the_evaluation_scores_the_files_values_at_their_directions_in_any_order
     for order_seed in (None, 7):
         folder = tmp_path / str(order_seed)
         cropped, norm = _chain(folder, _write(tmp_path / f"m{order_seed}.btf", order_seed))
-        abrdf, directions = cropped.array("abrdf"), cropped.array("directions")
+        abrdf, directions = stages.abrdf(cropped), cropped.array("directions")
         m, n, _ = abrdf.shape
         recon = reconstruction_error(
             decoder, latents, np.arange(m), abrdf, norm.alpha, direction_features(directions)

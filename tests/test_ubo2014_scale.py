@@ -36,13 +36,13 @@ def test_a_structured_file_repeats_its_patch_at_the_stated_rank(structured):
 
 def test_the_readmes_command_runs_and_the_cache_holds_the_crop_once(structured, tmp_path):
     """`python -m pipeline dataset=ubo2014 dataset.root=... btf.crop.size=...` with the
-    default offset, here with the PCA model (seconds); the load stage reads the header
-    only, the crop stage writes the decoded crop and its directions."""
+    default offset, here with the PCA model (seconds). No data stage writes the decoded
+    crop: load reads the header, crop records its texels and directions, preprocess its
+    statistics; the ABRDFs are decoded from the file's factors where they are read."""
     size = 16
     rows = run_chain(structured, tmp_path / "runs", size, models=("pca",), offset=None)
     written = {row["stage"]: row["cache_bytes"] for row in rows}
     decoded = size * size * VIEWS * LIGHTS * 3 * 4
-    assert written["crop"] <= 1.2 * decoded and written["load"] < 0.2 * decoded
-    # The data's stages hold the crop once; the model's own (linear, export) hold the model.
-    assert written["load"] + written["crop"] + written["preprocess"] <= 1.2 * decoded
+    # The model's own stages (linear, export) hold the model, which is not counted here.
+    assert written["load"] + written["crop"] + written["preprocess"] < 0.2 * decoded
     assert 0 < rows[0]["rmse"] < rows[0]["rmse_mean_abrdf"]

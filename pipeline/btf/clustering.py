@@ -11,6 +11,7 @@ from sklearn.cluster import KMeans
 from sklearn.decomposition import PCA
 
 from pipeline.core.errors import ConfigError
+from pipeline.core.progress import progress
 
 
 def pca_reduce(
@@ -91,7 +92,7 @@ def cluster_medians(abrdf: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray
     order = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order], np.arange(k + 1))
     representatives = np.empty((k,) + abrdf.shape[1:], dtype=np.float32)
-    for cluster in range(k):
+    for cluster in progress(range(k), "cluster medians", unit="cluster"):
         members = order[bounds[cluster] : bounds[cluster + 1]]
         if len(members) == 0:
             raise ValueError(f"cluster {cluster} of k={k} is empty")

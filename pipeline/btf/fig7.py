@@ -18,6 +18,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.figure import Figure
 
+from pipeline.btf import stages  # noqa: E402
 from pipeline.btf.evaluate import decode_all  # noqa: E402
 from pipeline.btf.model import load_decoder  # noqa: E402
 from pipeline.btf.stereographic import direction_features  # noqa: E402
@@ -97,7 +98,7 @@ def draw_fig7(runs: pd.DataFrame, pairs_degrees: list, out_dir: Path) -> list[Pa
         if crop is None or prep is None:
             log.warning("fig7: cache entries of %s are gone; skipping its figure", dataset)
             continue
-        abrdf, directions = crop.array("abrdf"), crop.array("directions", mmap=False)
+        abrdf, directions = stages.abrdf(crop), crop.array("directions", mmap=False)
         alpha = float(prep.json("alpha"))
         size = int(round(np.sqrt(abrdf.shape[0])))
         panels: list[list[tuple[str, np.ndarray]]] = []

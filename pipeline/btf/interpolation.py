@@ -371,7 +371,9 @@ def measure(
     ``heldout`` indexes the light set of the crop's directions (:func:`heldout_light_indices`);
     ``texel_scale`` (M,), when the clustered model stores one, multiplies its predictions.
     """
-    abrdf = cropped.array("abrdf")
+    from pipeline.btf.stages import abrdf as crop_abrdf
+
+    abrdf = crop_abrdf(cropped)
     directions = cropped.array("directions", mmap=False)
     alpha = np.float32(norm.alpha)
     train_cols = training_directions(directions, heldout)

@@ -46,7 +46,7 @@ def train_stage(
 
         from pipeline.btf.latent_texture import train_latent_texture
 
-        abrdf = cropped.array("abrdf")
+        abrdf = stages.abrdf(cropped)
         directions = cropped.array("directions", mmap=False)
         norm = stages.normalization(prep)
         size = int(cfg.btf.crop.size)

@@ -44,9 +44,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 from torch import nn
-from tqdm.auto import tqdm
 
 from pipeline.btf.model import Decoder
+from pipeline.core.progress import progress
 
 INIT_STD = 0.01  # latents start small: the decoder first sees mostly the directions
 WARMUP = 0.02  # fraction of the steps over which the learning rate rises linearly
@@ -308,7 +308,7 @@ def train_latent_texture(
     running, count, seconds = 0.0, 0, 0.0
     with (
         _one_thread(),
-        tqdm(total=steps, desc="latent texture", unit="step", leave=False, mininterval=1) as bar,
+        progress(None, "latent texture", total=steps, unit="step") as bar,
     ):
         clock = time.perf_counter()
         for step in range(1, steps + 1):

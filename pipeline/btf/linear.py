@@ -16,6 +16,7 @@ from sklearn.utils.extmath import randomized_svd
 
 from pipeline.btf.evaluate import DTYPE_BYTES
 from pipeline.core.errors import ConfigError
+from pipeline.core.progress import progress
 
 
 @dataclass
@@ -62,7 +63,7 @@ def linear_error(model: LinearModel, targets: np.ndarray, chunk: int = 256):
     sq_dir = np.zeros(n, dtype=np.float64)
     basis = model.basis.astype(np.float32)
     mean = model.mean.astype(np.float32)
-    for start in range(0, m, chunk):
+    for start in progress(range(0, m, chunk), "evaluate", total=m, unit="texel", scale=chunk):
         coeffs = model.coefficients[start : start + chunk].astype(np.float32)
         pred = (coeffs @ basis + mean).reshape(len(coeffs), n, 3)
         diff = pred - np.asarray(targets[start : start + chunk], dtype=np.float32)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core.errors import DataError
+from pipeline.core.progress import progress
 
 # A dimension that is constant over all texels (sigma = 0) would divide by zero; such a
 # dimension carries no information, so it is mapped to 0 instead.
@@ -62,7 +63,7 @@ def fit_normalization(abrdf: np.ndarray, chunk: int = 1024) -> Normalization:
     total = np.zeros(abrdf.shape[1:], dtype=np.float64)
     total_sq = np.zeros(abrdf.shape[1:], dtype=np.float64)
     alpha = 0.0
-    for start in range(0, m, chunk):
+    for start in progress(range(0, m, chunk), "normalization", total=m, unit="texel", scale=chunk):
         block = np.asarray(abrdf[start : start + chunk], dtype=np.float32)
         if not np.all(np.isfinite(block)):
             raise DataError(f"the data hold NaN or Inf in texels {start}..{start + len(block)}")
@@ -91,7 +92,7 @@ def encoder_inputs(
     m, n, _ = abrdf.shape
     if out is None:
         out = np.empty((m, n * 3), dtype=np.float32)
-    for start in range(0, m, chunk):
+    for start in progress(range(0, m, chunk), "encoder inputs", total=m, unit="texel", scale=chunk):
         block = norm.encoder_input(abrdf[start : start + chunk])
         out[start : start + len(block)] = block.reshape(len(block), -1)
     return out

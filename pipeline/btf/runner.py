@@ -121,7 +121,7 @@ def train_stage(
 
         from pipeline.btf.train import encode, train
 
-        abrdf = cropped.array("abrdf")
+        abrdf = stages.abrdf(cropped)
         directions = cropped.array("directions", mmap=False)
         norm = stages.normalization(prep)
         if clusters is None:
@@ -209,7 +209,7 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         )
         from pipeline.btf.model import load_decoder
 
-        abrdf = cropped.array("abrdf")
+        abrdf = stages.abrdf(cropped)
         directions = cropped.array("directions", mmap=False)
         norm = stages.normalization(prep)
         sizes_settings = cfg.btf.sizes
@@ -418,9 +418,9 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     def compute(folder: Path) -> dict:
         norm = stages.normalization(prep)
         model = fit_linear(
-            norm.target(cropped.array("abrdf")), n_components, pca.dtype, seed=ctx.cfg.seed
+            norm.target(stages.abrdf(cropped)), n_components, pca.dtype, seed=ctx.cfg.seed
         )
-        rmse, per_direction = linear_error(model, norm.target(cropped.array("abrdf")))
+        rmse, per_direction = linear_error(model, norm.target(stages.abrdf(cropped)))
         save_arrays(
             folder,
             mean=model.mean,
@@ -443,7 +443,7 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
             "rmse": rmse,
             "n_components": n_components,
             **sizes,
-            "rmse_mean_abrdf": mean_abrdf_rmse(cropped.array("abrdf"), norm.alpha),
+            "rmse_mean_abrdf": mean_abrdf_rmse(stages.abrdf(cropped), norm.alpha),
         }
         save_json(folder, "metrics", metrics)
         return {"rmse": rmse}

@@ -190,10 +190,13 @@ def check_crop_fits(cfg: DictConfig, height: int, width: int, root) -> None:
 
 
 def crop(ctx: Context, loaded: Entry) -> Entry:
-    """Cut a ``btf.crop.size`` square at ``btf.crop.offset`` and lay it out as ABRDFs (M, N, 3).
+    """Cut a ``btf.crop.size`` square at ``btf.crop.offset`` and lay it out as ABRDFs (M, N, 3),
+    read with :func:`abrdf`.
 
-    From a UBO2014 file the crop is decoded straight from the factors into that layout;
-    from image formats it is copied out of the load stage's images."""
+    From image formats the crop is copied out of the load stage's images into
+    ``abrdf.npy``. A UBO2014 file already holds the crop, compressed: the entry records
+    only which texels and direction rows it is, and :func:`abrdf` decodes them from the
+    file's factors when read."""
     settings = plain_settings(ctx.cfg.btf.crop)
     size = int(settings["size"])
     y0, x0 = (int(v) for v in settings["offset"])
@@ -203,24 +206,52 @@ def crop(ctx: Context, loaded: Entry) -> Entry:
     from_file = ctx.cfg.dataset.format == "ubo2014"
 
     def compute(folder: Path) -> dict:
-        abrdf = reserved_memmap(folder / "abrdf.npy", (size * size, n, 3), np.float32)
+        save_arrays(folder, directions=loaded.array("directions", mmap=False))
         if from_file:
-            from pipeline.data.ubo2014_decode import decode_abrdf
-            from pipeline.data.ubo2014_header import read_dfmf
-
-            dfmf = read_dfmf(summary["root"])
-            decode_abrdf(dfmf, loaded.array("rows"), [y0, x0, size, size], out=abrdf)
-        else:
-            images = loaded.array("images")
-            # Image by image: the crop of one image is one column of the ABRDF matrix.
-            for i in progress(range(n), "crop", unit="image"):
-                abrdf[:, i, :] = images[i, y0 : y0 + size, x0 : x0 + size, :].reshape(-1, 3)
+            save_arrays(folder, rows=loaded.array("rows", mmap=False))
+            return {
+                "M": size * size,
+                "N": n,
+                "root": summary["root"],
+                "texels": [y0, x0, size, size],
+                "fingerprint": loaded.manifest["settings"]["fingerprint"],
+            }
+        images = loaded.array("images")
+        abrdf = reserved_memmap(folder / "abrdf.npy", (size * size, n, 3), np.float32)
+        # Image by image: the crop of one image is one column of the ABRDF matrix.
+        for i in progress(range(n), "crop", unit="image"):
+            abrdf[:, i, :] = images[i, y0 : y0 + size, x0 : x0 + size, :].reshape(-1, 3)
         abrdf.flush()
         del abrdf
-        save_arrays(folder, directions=loaded.array("directions", mmap=False))
         return {"M": size * size, "N": n}
 
     return ctx.run("crop", settings, {"load": loaded}, compute, version="1")
+
+
+def abrdf(cropped: Entry):
+    """The crop's ABRDFs, shape (M, N, 3), float32: the crop stage's memory-mapped
+    ``abrdf.npy``, or for a UBO2014 file a
+    :class:`~pipeline.data.ubo2014_decode.FactorABRDFs` that decodes what is indexed.
+
+    Raises
+    ------
+    DataError
+        Naming the UBO2014 file, when it is gone or no longer the file the entry was made
+        from (its size or modification time changed).
+    """
+    if "texels" not in cropped.manifest["summary"]:
+        return cropped.array("abrdf")
+    from pipeline.data.ubo2014_decode import FactorABRDFs
+    from pipeline.data.ubo2014_header import read_dfmf
+
+    summary = cropped.manifest["summary"]
+    path = Path(summary["root"])
+    if not path.is_file() or file_fingerprint(path) != summary["fingerprint"]:
+        raise DataError(
+            f"the UBO2014 file the cached crop {cropped.key} was made from is gone or has "
+            f"changed since: {path}"
+        )
+    return FactorABRDFs(read_dfmf(path), cropped.array("rows", mmap=False), summary["texels"])
 
 
 # --------------------------------------------------------------------------- preprocess
@@ -231,7 +262,7 @@ def preprocess(ctx: Context, cropped: Entry) -> Entry:
 
     def compute(folder: Path) -> dict:
         try:
-            norm = fit_normalization(cropped.array("abrdf"))
+            norm = fit_normalization(abrdf(cropped))
         except DataError as error:
             raise DataError(f"{error}: {ctx.cfg.dataset.root or 'the built-in BTF'}") from None
         save_arrays(folder, mean=norm.mean, std=norm.std)
@@ -257,7 +288,7 @@ def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     def compute(folder: Path) -> dict:
         from pipeline.btf.clustering import pca_reduce
 
-        features = encoder_inputs(cropped.array("abrdf"), normalization(prep))
+        features = encoder_inputs(abrdf(cropped), normalization(prep))
         scores, ratio = pca_reduce(features, settings["n_components"], settings["random_state"])
         save_arrays(folder, scores=scores, explained_variance_ratio=ratio)
         return {"explained_variance": float(ratio.sum())}
@@ -296,7 +327,7 @@ def representatives(ctx: Context, cropped: Entry, clusters: Entry) -> Entry:
     def compute(folder: Path) -> dict:
         from pipeline.btf.clustering import cluster_medians
 
-        medians = cluster_medians(cropped.array("abrdf"), clusters.array("labels"), k)
+        medians = cluster_medians(abrdf(cropped), clusters.array("labels"), k)
         save_arrays(folder, representatives=medians)
         return {"k": k}
 
@@ -354,7 +385,7 @@ def truth_floor(ctx: Context, cropped: Entry, prep: Entry) -> Entry | None:
 
     def compute(folder: Path) -> dict:
         rmse = data_truth_rmse(
-            cropped.array("abrdf"),
+            abrdf(cropped),
             cropped.array("directions", mmap=False),
             truth_of,
             prep.json("alpha"),

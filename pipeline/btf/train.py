@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from pipeline.btf.backends import make_step, resolve_backend
 from pipeline.btf.batches import (
@@ -36,6 +35,7 @@ from pipeline.btf.model import LATENT_DIM, Decoder, Encoder
 from pipeline.btf.preprocess import Normalization
 from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.errors import ConfigError
+from pipeline.core.progress import progress
 
 log = logging.getLogger(__name__)
 
@@ -223,7 +223,7 @@ def train(
     try:
         with (
             training_tuning(settings, workers, on_cpu=device.type == "cpu"),
-            tqdm(total=total, desc="train", unit="step", leave=False, mininterval=1.0) as bar,
+            progress(None, "train", total=total, unit="step") as bar,
         ):
             if curve is not None:
                 measure(0)

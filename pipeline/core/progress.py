@@ -67,6 +67,7 @@ class progress:  # noqa: N801 - used like tqdm, a function-like name
             scale,
         )
         self.done = 0
+        self.postfix = ""
         self.start = self.last_log = time.monotonic()
         self.bar = tqdm(
             total=total,
@@ -88,6 +89,11 @@ class progress:  # noqa: N801 - used like tqdm, a function-like name
             self.last_log = now
             log.info("%s", self.line(now))
 
+    def set_postfix(self, **values) -> None:
+        """Values shown after the count (``epoch=3, loss="0.002"``), as tqdm's."""
+        self.bar.set_postfix(**values)
+        self.postfix = ", ".join(f"{key}={value}" for key, value in values.items())
+
     def line(self, now: float | None = None) -> str:
         """``what: done/total unit (x %), rate, elapsed, left``."""
         elapsed = max((now or time.monotonic()) - self.start, 1e-9)
@@ -100,7 +106,7 @@ class progress:  # noqa: N801 - used like tqdm, a function-like name
         text += f", {rate:,.1f} {self.unit}/s, {_clock(elapsed)} elapsed"
         if self.total and self.done:
             text += f", ~{_clock((self.total - self.done) / rate)} left"
-        return text
+        return f"{text}, {self.postfix}" if self.postfix else text
 
     def close(self) -> None:
         self.bar.close()

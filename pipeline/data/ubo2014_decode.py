@@ -32,7 +32,6 @@ import numpy as np
 
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.files import output_array
-from pipeline.core.progress import progress
 from pipeline.data.ubo2014_format import DRR_EPS, YUV_TO_RGB, DFMFFile
 
 
@@ -249,34 +248,75 @@ def decode_dfmf(
     return out
 
 
-def decode_abrdf(
-    dfmf: DFMFFile,
-    rows=None,
-    crop=None,
-    *,
-    out: np.ndarray | None = None,
-    include_cosine: bool = True,
-    block_bytes: int = 32 << 20,
-) -> np.ndarray:
-    """:func:`decode_dfmf`'s values laid out as ABRDFs, the layout method A's chain reads:
-    shape (height × width, n_rows, 3), texel ``r · width + c`` with row 0 at the top.
+class FactorABRDFs:
+    """A crop's ABRDFs (texels × direction rows × 3) served from a DFMF file's factors:
+    indexing decodes just the texels (and directions) asked for, a small matrix product,
+    so the decoded crop is never written or held (a whole UBO2014 material would be
+    43.8 GB; its factors are a few MB).
 
-    Decoded a block of texels at a time (all the rows of each), so that every block is one
-    contiguous write, and no image-layout copy is ever held. Progress is shown (a whole
-    UBO2014 material takes minutes)."""
-    f = _factors(dfmf, rows, crop, include_cosine)
-    m, n = f.height * f.width, len(f.rows)
-    out = output_array(out, (m, n, 3))
-    step = max(1, block_bytes // (2 * 3 * 4 * n))
-    with progress(None, f"decode {dfmf.path.name}", total=m, unit="texel") as bar:
-        for start in range(0, m, step):
-            stop = min(start + step, m)
-            block = decode_block(
-                f.directions, [sv[start:stop] for sv in f.texels], dfmf.color_model
-            )
-            f.check_finite(block, f.rows, dfmf.path)
-            if f.cosine is not None:
-                block *= f.cosine[:, None, None]
-            out[start:stop] = block.transpose(1, 0, 2)
-            bar.update(stop - start)
-    return out
+    It stands in for the (M, N, 3) float32 array method A's stages read: ``shape``,
+    ``len``, ``abrdf[texels]`` and ``abrdf[texels, directions]`` with ints, slices or index
+    arrays (one array at most: numpy's paired indexing of two arrays is refused), and
+    ``np.asarray(abrdf)`` (everything, decoded: only for crops that fit in memory).
+
+    Parameters
+    ----------
+    dfmf : DFMFFile
+    rows : array-like of int
+        Direction rows (:func:`pipeline.data.ubo2014.select_rows`).
+    crop : [row, col, height, width]
+        Texels, image row 0 at the top; texel ``r · width + c``.
+    """
+
+    dtype = np.dtype(np.float32)
+    ndim = 3
+
+    def __init__(self, dfmf: DFMFFile, rows, crop):
+        self.path = dfmf.path
+        self.color_model = dfmf.color_model
+        self._factors = _factors(dfmf, rows, crop, include_cosine=True)
+        m = self._factors.height * self._factors.width
+        self.shape = (m, len(self._factors.rows), 3)
+        self.size = int(np.prod(self.shape))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        texels, directions = _texels_and_directions(key)
+        t = np.arange(self.shape[0])[texels]
+        d = np.arange(self.shape[1])[directions]
+        if t.ndim > 1 or d.ndim > 1 or (_is_array(texels) and _is_array(directions)):
+            raise IndexError("FactorABRDFs does not pair two index arrays: decode a block first")
+        f = self._factors
+        u = [factor[np.atleast_1d(d)] for factor in f.directions]
+        sv = [factor[np.atleast_1d(t)] for factor in f.texels]
+        block = decode_block(u, sv, self.color_model)  # (directions, texels, 3)
+        f.check_finite(block, f.rows[np.atleast_1d(d)], self.path)
+        if f.cosine is not None:
+            block *= f.cosine[np.atleast_1d(d), None, None]
+        values = np.ascontiguousarray(block.transpose(1, 0, 2))
+        if d.ndim == 0:
+            values = values[:, 0]
+        if t.ndim == 0:
+            values = values[0]
+        return values
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        values = self[:]
+        return values if dtype is None else values.astype(dtype, copy=False)
+
+
+def _texels_and_directions(key):
+    """``abrdf[key]``'s texel and direction indices (the colour axis only as ``:``)."""
+    if not isinstance(key, tuple):
+        return key, slice(None)
+    if len(key) == 1:
+        return key[0], slice(None)
+    if len(key) == 2 or (len(key) == 3 and key[2] == slice(None)):
+        return key[0], key[1]
+    raise IndexError("FactorABRDFs takes [texels] or [texels, directions]")
+
+
+def _is_array(index) -> bool:
+    return not isinstance(index, (slice, int, np.integer)) and np.ndim(index) > 0

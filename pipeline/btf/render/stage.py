@@ -332,9 +332,10 @@ def reference_stage(ctx: Context, cropped: Entry) -> Entry:
 
     def compute(folder: Path) -> dict:
         from pipeline.btf.render.surfaces import BeyondGridIndicator, MeasuredMaterial
+        from pipeline.btf.stages import abrdf
         from pipeline.render.engine import render_with_stats
 
-        values = cropped.array("abrdf")
+        values = np.asarray(abrdf(cropped))  # pairs of (texel, direction) are looked up
         directions = cropped.array("directions", mmap=False)
         side = math.isqrt(values.shape[0])
         crop_size = (side, values.shape[0] // side)
