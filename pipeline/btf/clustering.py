@@ -46,6 +46,22 @@ def pca_reduce(
     return scores, pca.explained_variance_ratio_.astype(np.float64)
 
 
+def streamed_pca(
+    rows, m: int, d: int, n_components: int, random_state: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`pca_reduce` of a matrix read a block of rows at a time (``rows(start, stop)``
+    -> (stop − start, d) float32), for features that do not fit in memory
+    (:func:`pipeline.btf.streamed_svd.streamed_svd`)."""
+    from pipeline.btf.streamed_svd import streamed_svd
+
+    if not 1 <= n_components <= min(m, d):
+        raise ConfigError(
+            f"btf.pca.n_components={n_components} must be between 1 and min(M={m}, D={d})"
+        )
+    u, s, _, _, total = streamed_svd(rows, m, d, n_components, seed=random_state, what="PCA")
+    return (u * s.astype(np.float32)), (np.square(s) / total).astype(np.float64)
+
+
 def check_k(k: int, n_texels: int) -> None:
     if not isinstance(k, int) or k < 1:
         raise ConfigError(f"model.k={k!r} must be a positive integer")

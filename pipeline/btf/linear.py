@@ -15,6 +15,7 @@ import numpy as np
 from sklearn.utils.extmath import randomized_svd
 
 from pipeline.btf.evaluate import DTYPE_BYTES
+from pipeline.btf.streamed_svd import IN_MEMORY_BYTES, streamed_svd
 from pipeline.core.errors import ConfigError
 from pipeline.core.progress import progress
 
@@ -46,13 +47,24 @@ def components_for_budget(budget: int, n_texels: int, n_directions: int, dtype: 
 
 
 def fit_linear(targets: np.ndarray, n_components: int, dtype: str, seed: int = 0) -> LinearModel:
-    """Truncated SVD of normalized ABRDFs (M, N, 3), rounded to the stored dtype."""
-    m = targets.shape[0]
-    flat = np.asarray(targets, dtype=np.float32).reshape(m, -1)
-    if not 1 <= n_components <= min(flat.shape):
-        raise ConfigError(f"model.n_components={n_components} must be in 1..{min(flat.shape)}")
-    mean = flat.mean(axis=0)
-    u, s, vt = randomized_svd(flat - mean, n_components, random_state=seed)
+    """Truncated SVD of normalized ABRDFs (M, N, 3), rounded to the stored dtype.
+
+    ``targets`` may be any array that can be sliced by texels
+    (:meth:`pipeline.btf.preprocess.Normalization.targets`); beyond
+    :data:`~pipeline.btf.streamed_svd.IN_MEMORY_BYTES` it is read a block at a time."""
+    m, d = targets.shape[0], int(np.prod(targets.shape[1:]))
+    if not 1 <= n_components <= min(m, d):
+        raise ConfigError(f"model.n_components={n_components} must be in 1..{min(m, d)}")
+    if m * d * 4 <= IN_MEMORY_BYTES:
+        flat = np.asarray(targets, dtype=np.float32).reshape(m, -1)
+        mean = flat.mean(axis=0)
+        u, s, vt = randomized_svd(flat - mean, n_components, random_state=seed)
+    else:  # a block of texels at a time (a whole UBO2014 material: 43.8 GB of targets)
+
+        def rows(start: int, stop: int) -> np.ndarray:
+            return np.asarray(targets[start:stop], dtype=np.float32).reshape(stop - start, -1)
+
+        u, s, vt, mean, _ = streamed_svd(rows, m, d, n_components, seed=seed, what="linear")
     store = np.float16 if dtype == "float16" else np.float32
     return LinearModel(mean.astype(store), vt.astype(store), (u * s).astype(store))
 

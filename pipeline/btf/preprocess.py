@@ -41,11 +41,32 @@ class Normalization:
         logged = np.log1p(np.asarray(abrdf, dtype=np.float32))
         return ((logged - self.mean) / self.std).astype(np.float32, copy=False)
 
+    def targets(self, abrdf) -> Targets:
+        """``abrdf``'s targets, normalized where indexed (a memory map or
+        :class:`~pipeline.data.ubo2014_decode.FactorABRDFs` is not read whole)."""
+        return Targets(abrdf, self)
+
     def target(self, abrdf: np.ndarray) -> np.ndarray:
         """Map raw values to the normalized [0, 1] space of the targets."""
         return (np.asarray(abrdf, dtype=np.float32) / np.float32(self.alpha)).astype(
             np.float32, copy=False
         )
+
+
+class Targets:
+    """``norm.target(abrdf[key])`` for ``targets[key]``; ``np.asarray`` gives all of them."""
+
+    ndim = 3
+
+    def __init__(self, abrdf, norm: Normalization):
+        self.abrdf, self.norm, self.shape = abrdf, norm, abrdf.shape
+
+    def __getitem__(self, key) -> np.ndarray:
+        return self.norm.target(self.abrdf[key])
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        values = self.norm.target(self.abrdf)
+        return values if dtype is None else values.astype(dtype, copy=False)
 
 
 def fit_normalization(abrdf: np.ndarray, chunk: int = 1024) -> Normalization:

@@ -417,10 +417,9 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
 
     def compute(folder: Path) -> dict:
         norm = stages.normalization(prep)
-        model = fit_linear(
-            norm.target(stages.abrdf(cropped)), n_components, pca.dtype, seed=ctx.cfg.seed
-        )
-        rmse, per_direction = linear_error(model, norm.target(stages.abrdf(cropped)))
+        targets = norm.targets(stages.abrdf(cropped))
+        model = fit_linear(targets, n_components, pca.dtype, seed=ctx.cfg.seed)
+        rmse, per_direction = linear_error(model, targets)
         save_arrays(
             folder,
             mean=model.mean,

@@ -286,10 +286,20 @@ def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     settings = plain_settings(ctx.cfg.btf.pca)
 
     def compute(folder: Path) -> dict:
-        from pipeline.btf.clustering import pca_reduce
+        from pipeline.btf.clustering import pca_reduce, streamed_pca
+        from pipeline.btf.streamed_svd import IN_MEMORY_BYTES
 
-        features = encoder_inputs(abrdf(cropped), normalization(prep))
-        scores, ratio = pca_reduce(features, settings["n_components"], settings["random_state"])
+        source, norm = abrdf(cropped), normalization(prep)
+        m, n, _ = source.shape
+        k, seed = settings["n_components"], settings["random_state"]
+        if m * n * 3 * 4 <= IN_MEMORY_BYTES:
+            scores, ratio = pca_reduce(encoder_inputs(source, norm), k, seed)
+        else:  # a block of texels at a time: the features are never held whole
+
+            def rows(start: int, stop: int) -> np.ndarray:
+                return norm.encoder_input(source[start:stop]).reshape(stop - start, -1)
+
+            scores, ratio = streamed_pca(rows, m, 3 * n, k, seed)
         save_arrays(folder, scores=scores, explained_variance_ratio=ratio)
         return {"explained_variance": float(ratio.sum())}
 
