@@ -455,7 +455,8 @@ def table_rmse(runs: pd.DataFrame, metric: str = "rmse") -> pd.DataFrame:
 def with_truth_floor(table: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
     """Table 2 with a first column ``data vs truth``: the data's own RMSE against the
     built-in generator's analytic truth (``metrics.rmse_data_vs_truth``), the score of a
-    perfect model; "–" for measured data, which has no truth."""
+    model that recovers the truth exactly (not a lower bound: fitting the data's rounding
+    noise scores below it); "–" for measured data, which has no truth."""
     column = "metrics.rmse_data_vs_truth"
     if column not in runs or runs[column].isna().all():
         return table

@@ -8,8 +8,8 @@ model adds grain); the cloth table gives the RMSE over every lit-cloth pixel at 
 What a row is scored against is read from the runs' metrics (:func:`scored_runs`): the
 analytic truth (``render_truth_*``: the built-in material's generator rendered with the same
 samples) where a dataset's runs have it, with the measured reference render as one more
-column (``render_reference_truth_*``, its own distance from the truth: the floor of what
-scoring against the reference can show); else the measured reference (``render_*``). Each
+column (``render_reference_truth_*``, its own distance from the truth: how far scoring
+against the reference is itself off); else the measured reference (``render_*``). Each
 table says which in its caption and a ``scored against`` column, and gives the share of
 samples beyond the measured grid (``render_beyond_grid_share*``).
 
@@ -183,8 +183,7 @@ def scoring_note(bases) -> str:
             "at every direction (no grid, no clamp); models are queried as they are (a neural "
             "decoder extrapolates beyond the measured grid's 75° ring, the measured BTF and "
             f"PCA clamp onto it). The column '{REFERENCE}' is the reference render's own "
-            "distance from the truth: the floor of what scoring against the reference can "
-            "show."
+            "distance from the truth: how far scoring against the reference is itself off."
         )
     if REFERENCE in bases:
         parts.append(

@@ -23,7 +23,7 @@ displayed, ``flip`` (LDR-FLIP), ``ssim`` or ``psnr_db``, each also per spp with
 - ``render_<name>``: the model against the measured reference render;
 - ``render_truth_<name>``: the model against the truth render (built-in material only);
 - ``render_reference_truth_<name>``: the reference itself against the truth, logged on
-  every run: the floor of what scoring against the reference can show;
+  every run: how far scoring against the reference is itself off;
 - ``render_beyond_grid_share`` and ``render_beyond_grid_share_{dark,bright}``: the share
   of the (camera sample, light) pairs on the lit cloth and in each crop whose light or
   view direction lies beyond the measured grid (weighted by the light's irradiance;
