@@ -79,6 +79,12 @@ def test_comparison_of_a_render_with_itself_and_with_grain():
         "rmse_cloth"
     ] == pytest.approx(0.05, rel=1e-4)
     assert found["hf_ratio_dark"] > 1.5
+    # Detail of the same amount in the wrong place: the ratio is blind, the HF RMSE is not.
+    shifted = np.roll(reference, 1, axis=1)
+    moved = compare(shifted, reference, np.ones((32, 32), np.float32), crops, 16)
+    assert moved["hf_ratio_dark"] == pytest.approx(1.0, abs=0.1)
+    assert moved["hf_rmse_dark"] > 0.5 * np.sqrt(high_frequency_energy(reference[:16, :16]))
+    assert same["hf_rmse_dark"] == 0
     # Smooth images have less high-frequency energy than grainy ones.
     assert high_frequency_energy(np.full((8, 8, 3), 0.3)) == pytest.approx(0.0, abs=1e-12)
 
@@ -115,7 +121,7 @@ def test_scores_name_what_each_render_is_compared_with():
     }.items():
         for name, value in compare(a, b, coverage, crops, 8).items():
             assert found[prefix + name] == value, prefix + name
-    assert len(found) == 3 * 8
+    assert len(found) == 3 * 10  # 3 image metrics, 3 per crop (2 crops), the cloth RMSE
     assert set(scores(model, reference, coverage, crops, 8)) == {
         f"render_{name}" for name in compare(model, reference, coverage, crops, 8)
     }

@@ -217,8 +217,9 @@ def table_crop(runs: pd.DataFrame, region: str) -> pd.DataFrame:
 
 
 def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
-    """Rows (dataset, model, spp) of :func:`scored_runs`: both crops' RMSE and
-    high-frequency energy ratio against the row's target."""
+    """Rows (dataset, model, spp) of :func:`scored_runs`: both crops' RMSE, high-frequency
+    energy ratio and (where logged) the RMSE of the high-pass parts against the row's
+    target: the ratio alone cannot see fine detail in the wrong place."""
     target = {TRUTH: "truth", REFERENCE: "reference"}
     bases = set(runs[SCORED_AGAINST]) if SCORED_AGAINST in runs else {REFERENCE}
     word = target[bases.pop()] if len(bases) == 1 else "target"
@@ -234,10 +235,13 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
             for region in REGIONS:
                 rmse = group.get(f"metrics.scored_rmse_{region}_spp{spp}")
                 hf = group.get(f"metrics.scored_hf_ratio_{region}_spp{spp}")
+                hf_rmse = group.get(f"metrics.scored_hf_rmse_{region}_spp{spp}")
                 if rmse is None or hf is None:
                     continue
                 row[f"{region}: RMSE"] = tables.mean_std(rmse)
                 row[f"{region}: HF energy / {word}"] = tables.mean_std(hf)
+                if hf_rmse is not None and hf_rmse.notna().any():  # renders of version 6 on
+                    row[f"{region}: HF RMSE"] = tables.mean_std(hf_rmse)
             rows.append(row)
     if not rows:
         return pd.DataFrame()
