@@ -12,7 +12,7 @@ import sys  # noqa: E402
 import hydra  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from pipeline.core.errors import ConfigError  # noqa: E402
+from pipeline.core.errors import ConfigError, PipelineError  # noqa: E402
 from pipeline.core.methods import CONF_DIR, register_schemas  # noqa: E402
 from pipeline.core.refusal import check_command_line, debugging, refuse  # noqa: E402
 from pipeline.core.settings import check_added_keys  # noqa: E402
@@ -33,7 +33,7 @@ def main(cfg: DictConfig) -> float | None:
         from pipeline.app import run_job
 
         return run_job(cfg)
-    except ConfigError as error:  # a bad setting: its message is the answer
+    except PipelineError as error:  # a bad setting or file, a full disk: its message is the answer
         if debugging():
             raise
         refuse(error)

@@ -7,6 +7,7 @@ metrics).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import re
 import tempfile
@@ -61,12 +62,13 @@ def run_job(cfg: DictConfig) -> float | None:
             first = {name: metrics[name] for name in method.headline if name in metrics}
             mlflow.log_metrics(first)
             mlflow.log_metrics({k: v for k, v in metrics.items() if k not in first})
-        finally:
-            # Grouped under "time/" and "memory/" (the UI folds names by their prefix).
-            mlflow.set_tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
-            mlflow.log_metrics({f"time/{s}_seconds": t for s, t in ctx.seconds.items()})
-            mlflow.log_metrics({f"memory/{s}_peak_rss_mb": v for s, v in ctx.peak_rss_mb.items()})
-            mlflow.log_metric("memory/peak_rss_mb", process_peak_mb())
+        except BaseException:
+            # The job's error is the answer, not a second one from logging (a full disk
+            # fails both).
+            with contextlib.suppress(Exception):
+                log_usage(ctx)
+            raise
+        log_usage(ctx)
         if method.figures is not None:
             log_job_figures(method, cfg, ctx.keys)
         print_result(
@@ -79,6 +81,17 @@ def run_job(cfg: DictConfig) -> float | None:
         )
     headline = [metrics[name] for name in method.headline if name in metrics]
     return headline[0] if headline else None
+
+
+def log_usage(ctx: Context) -> None:
+    """Log the stages' cache keys (tags), seconds and peak memory to the active run,
+    grouped under "time/" and "memory/" (the UI folds names by their prefix)."""
+    import mlflow
+
+    mlflow.set_tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
+    mlflow.log_metrics({f"time/{s}_seconds": t for s, t in ctx.seconds.items()})
+    mlflow.log_metrics({f"memory/{s}_peak_rss_mb": v for s, v in ctx.peak_rss_mb.items()})
+    mlflow.log_metric("memory/peak_rss_mb", process_peak_mb())
 
 
 def log_job_figures(method: Method, cfg: DictConfig, cache_keys: dict[str, str]) -> None:

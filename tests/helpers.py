@@ -33,6 +33,16 @@ def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictCo
         )
 
 
+def check_one_line_refusal(done: subprocess.CompletedProcess, named: str) -> None:
+    """A refusal (``pipeline/core/refusal.py``): exit status 2, no traceback, and one
+    ``error: `` line on stderr that holds ``named``."""
+    output = done.stdout + done.stderr
+    assert done.returncode == 2, output[-2000:]
+    assert "Traceback" not in output and "HYDRA_FULL_ERROR" not in output, output[-2000:]
+    errors = [line for line in done.stderr.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1 and named in errors[0], done.stderr[-2000:]
+
+
 def recipe_tags(params: dict) -> dict[str, str]:
     """The ``recipe`` and ``render_recipe`` tags a job with these flattened settings logs
     (:func:`pipeline.core.tracking.job_run`): hand-made runs need them to be tabled."""

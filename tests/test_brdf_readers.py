@@ -76,6 +76,32 @@ def test_utia_writer_rejects_wrong_shape(tmp_path):
         write_utia_brdf(tmp_path / "x.bin", np.zeros((10, 3)))
 
 
+def test_utia_writer_refuses_what_the_reader_would(tmp_path):
+    """NaN or inf where a sample is written: refused, nothing written; masked out: -1."""
+    reflectance = np.full((N_UTIA, 3), 0.5)
+    reflectance[[7, 9], 1] = [np.nan, np.inf]
+    with pytest.raises(DataError, match=r"x\.bin holds non-finite values at 2 .*row 7"):
+        write_utia_brdf(tmp_path / "x.bin", reflectance)
+    assert list(tmp_path.iterdir()) == []
+    measured = np.ones(N_UTIA, dtype=bool)
+    measured[[7, 9]] = False
+    brdf = read_utia_brdf(write_utia_brdf(tmp_path / "x.bin", reflectance, measured))
+    np.testing.assert_array_equal(brdf.measured, measured)
+
+
+def test_utia_file_holding_inf_or_nan_names_the_file(tmp_path):
+    """A missing measurement is negative in the layout; a non-finite value is damage."""
+    for value, offset in ((np.inf, 0), (-np.inf, N_UTIA * 3 - 1), (np.nan, 12345)):
+        raw = np.full(N_UTIA * 3, 0.25)
+        raw[offset] = value
+        path = tmp_path / "damaged.bin"
+        raw.astype("<f8").tofile(path)
+        with pytest.raises(
+            DataError, match=rf"damaged\.bin holds 1 non-finite .*byte {8 * offset}"
+        ):
+            read_utia_brdf(path)
+
+
 def test_utia_interpolator_nodes_holes_and_range():
     light, view = utia_directions()
     values = np.stack([light[:, 0], light[:, 1], view[:, 1]], axis=-1)  # a known function

@@ -88,6 +88,19 @@ def test_exact_recovery_without_regularization(tiny, solver):
     np.testing.assert_allclose(recovered, truth, atol=1e-4)
 
 
+def test_m_zero_is_the_diffuse_term_plus_a_constant(tiny):
+    """M = 0 (allowed: pipeline.fourier.settings) is a_d cos θd + a_0 / √2, by hand: no
+    term in θs, so λ has nothing to penalise, and two lights suffice (N >= 2M + 2)."""
+    rng, lights, normals = tiny
+    a_d, a_0 = rng.uniform(size=(3, 4, 3)), rng.uniform(size=(3, 4, 3))
+    cos_d = np.einsum("hwi,ni->nhw", normals, lights / np.linalg.norm(lights, axis=1)[:, None])
+    images = a_d * cos_d[..., None] + a_0 / np.sqrt(2.0)
+    for lam in (0.0, 50.0):
+        coeffs = fit_fourier(images, lights, normals, M=0, lam=lam)
+        np.testing.assert_allclose(coeffs, np.stack([a_d, a_0], axis=-1), atol=1e-8)
+    assert fit_fourier(images[:2], lights[:2], normals, M=0).shape == (3, 4, 3, 2)
+
+
 def test_svd_solver_matches_lstsq_when_ill_conditioned(tiny):
     rng, lights, normals = tiny
     images = rng.uniform(size=(len(lights), 3, 4, 3))

@@ -6,9 +6,12 @@ Fig. 6 tables on hand-made runs.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import re
 from pathlib import Path
 
+import hydra
 import numpy as np
 import pandas as pd
 import pytest
@@ -22,6 +25,14 @@ from pipeline.core.errors import ConfigError
 from pipeline.core.tracking import tracking_uri
 from pipeline.data.images import read_exr_channels
 from pipeline.fourier import report as fourier_tables
+from pipeline.fourier import segmentation
+from pipeline.fourier.series import SOLVER_NAMES
+from pipeline.fourier.settings import (
+    COLOUR_SPACES,
+    SOLVERS,
+    FourierSettings,
+    fourier_settings,
+)
 from pipeline.fourier.stack import shrink
 from pipeline.fourier.synthetic import write_synthetic_stack
 
@@ -245,6 +256,25 @@ def test_light_stack_without_root_is_a_config_error(fourier_cfg):
 def test_too_few_lights_for_m_is_a_config_error(fourier_cfg):
     with pytest.raises(ConfigError, match=r"M=20 needs N >= 2M \+ 2 = 42 images, got N=33"):
         run_job(fourier_cfg("method.M=20"))
+
+
+def test_the_settings_dataclass_is_the_one_source_of_the_fit_defaults():
+    """method.M, lam, clamp_diffuse, solver: declared once (FourierSettings), typed in the
+    composed config of both of method C's jobs; the YAML holds no second copy."""
+    assert fourier_settings(compose_config("experiment=fourier")) == FourierSettings()
+    for name in ("fourier", "fourier_pattern"):
+        yaml = (CONF_DIR / "method" / f"{name}.yaml").read_text()
+        for field in dataclasses.fields(FourierSettings):
+            assert not re.search(rf"^{field.name}:", yaml, re.MULTILINE), (name, field.name)
+    pattern = compose_config("experiment=fourier_pattern_smoke", "method.lam=0")
+    assert fourier_settings(pattern) == FourierSettings(M=3, lam=0.0)
+    # The maps of fourier.yaml and fourier_pattern.yaml, and the experiment's, all kept.
+    assert pattern.method.segmentation.n_regions == 3 and pattern.method.quilting.block_size == 6
+    for bad in ("method.lam=big", "method.M=1.5", "method.solvr=svd", "method.quilting.seed=1"):
+        with pytest.raises(hydra.errors.ConfigCompositionException):
+            compose_config("experiment=fourier_smoke", bad)
+    # The allowed values declared with the settings are those the code takes.
+    assert SOLVERS == SOLVER_NAMES and COLOUR_SPACES == segmentation.COLOUR_SPACES
 
 
 def test_sweep_grid_is_fig6_and_fits_the_real_capture():

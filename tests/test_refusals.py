@@ -7,11 +7,14 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import numpy as np
 import pytest
-from helpers import ROOT
+from helpers import ROOT, check_one_line_refusal
 from mlflow.tracking import MlflowClient
 
+from pipeline.core.errors import DataError
 from pipeline.core.tracking import tracking_uri
+from pipeline.data.brdf import UTIA_N_BYTES, read_utia_brdf, utia_directions, write_utia_brdf
 
 # (experiment, override, what the one line must name); every one is refused before any
 # job starts: no store, no cache.
@@ -24,6 +27,10 @@ BEFORE_ANY_JOB = [
     ("smoke", "model.n_components=8", "model.n_components=8: no such setting"),
     ("smoke", "model.k=4,-1", "is a sweep: add -m"),
     ("smoke", "+btf.crop.szie=3", "did you mean btf.crop.size?"),
+    # Method C's fit is a structured config (pipeline.fourier.settings.FourierSettings).
+    ("fourier_smoke", "method.lam=big", "method.lam=big"),
+    ("fourier_smoke", "method.M=1.5", "method.M=1.5"),
+    ("fourier_smoke", "method.lamm=1", "did you mean method.lam?"),
 ]
 # Refused as the job starts (the run records why), before any stage.
 AT_THE_JOB = [
@@ -31,6 +38,12 @@ AT_THE_JOB = [
     ("smoke", "threads=0", "threads=0 must be an integer >= 1"),
     ("smoke", "model.k=0", "model.k=0 must be an integer >= 1"),
     ("smoke", "btf.network.encoder_channels=[]", "btf.network.encoder_channels"),
+    ("brdf_smoke", "method.n_theta_cells=0", "method.n_theta_cells=0 must be an integer >= 1"),
+    ("brdf_smoke", "method.rs_range=[0.5,0.2]", "method.rs_range=(0.5, 0.2) must be"),
+    ("fourier_smoke", "method.M=-1", "method.M=-1 must be an integer >= 0"),
+    ("fourier_smoke", "method.lam=-1", "method.lam=-1.0 must be a finite number >= 0"),
+    ("fourier_smoke", "method.solver=qr", "method.solver='qr' must be one of auto, normal, svd"),
+    ("fourier_smoke", "method.segmentation.n_init=0", "method.segmentation.n_init=0 must be"),
 ]
 
 
@@ -44,25 +57,17 @@ def _run(tmp_path, *arguments: str) -> subprocess.CompletedProcess:
     )
 
 
-def _check_one_line(done: subprocess.CompletedProcess, named: str) -> None:
-    output = done.stdout + done.stderr
-    assert done.returncode == 2, output[-2000:]
-    assert "Traceback" not in output and "HYDRA_FULL_ERROR" not in output, output[-2000:]
-    errors = [line for line in done.stderr.splitlines() if line.startswith("error: ")]
-    assert len(errors) == 1 and named in errors[0], done.stderr[-2000:]
-
-
 @pytest.mark.parametrize(("experiment", "override", "named"), BEFORE_ANY_JOB)
 def test_a_bad_command_line_is_one_line_before_any_job(tmp_path, experiment, override, named):
     done = _run(tmp_path, f"experiment={experiment}", override)
-    _check_one_line(done, named)
+    check_one_line_refusal(done, named)
     assert not (tmp_path / "runs").exists()  # no store, no cache, no data
 
 
 @pytest.mark.parametrize(("experiment", "override", "named"), AT_THE_JOB)
 def test_a_bad_value_is_one_line_and_its_run_says_why(tmp_path, experiment, override, named):
     done = _run(tmp_path, f"experiment={experiment}", override)
-    _check_one_line(done, named)
+    check_one_line_refusal(done, named)
     assert not list((tmp_path / "runs" / "cache").glob("*/*"))  # no stage computed
     if (tmp_path / "runs" / "mlflow.db").exists():  # a run was opened: it says why it failed
         client = MlflowClient(tracking_uri(tmp_path / "runs"))
@@ -74,7 +79,7 @@ def test_a_bad_value_is_one_line_and_its_run_says_why(tmp_path, experiment, over
 
 def test_a_sweep_checks_every_job_before_the_first_runs(tmp_path):
     done = _run(tmp_path, "-m", "experiment=smoke", "model.k=4,-1")
-    _check_one_line(done, "job #1")
+    check_one_line_refusal(done, "job #1")
     assert "model.k=-1 must be an integer >= 1" in done.stderr
     assert not list((tmp_path / "runs" / "cache").glob("*/*"))  # job #0 did not train
 
@@ -82,8 +87,36 @@ def test_a_sweep_checks_every_job_before_the_first_runs(tmp_path):
 def test_a_setting_read_from_the_data_is_refused_naming_it(tmp_path):
     """The crop must fit the texture: known once the data's header is read."""
     done = _run(tmp_path, "experiment=smoke", "btf.crop.size=1000")
-    _check_one_line(done, "btf.crop.size=1000")
+    check_one_line_refusal(done, "btf.crop.size=1000")
     assert "Traceback" not in done.stdout + done.stderr
+
+
+def _utia_file_with_nan(path):
+    """A UTIA BRDF file (the real layout, by the real writer) with one value made NaN."""
+    light, view = utia_directions()
+    write_utia_brdf(path, np.tile(0.1 + np.cos(light[:, :1]) * np.cos(view[:, :1]), 3))
+    raw = np.fromfile(path, dtype="<f8")
+    raw[1000] = np.nan
+    raw.astype("<f8").tofile(path)
+    assert path.stat().st_size == UTIA_N_BYTES
+    return path
+
+
+def test_a_utia_brdf_file_holding_nan_is_refused_naming_it(tmp_path):
+    path = _utia_file_with_nan(tmp_path / "fabric139.bin")
+    with pytest.raises(DataError, match=rf"{path} holds 1 non-finite values .*at byte 8000"):
+        read_utia_brdf(path)
+
+
+def test_a_bad_file_is_one_line_naming_it_and_its_run_says_why(tmp_path):
+    """A DataError (here a UTIA file holding NaN) ends the job as a refused setting does."""
+    path = _utia_file_with_nan(tmp_path / "fabric139.bin")
+    done = _run(tmp_path, "experiment=brdf_smoke", "dataset=utia_brdf", f"dataset.root={path}")
+    check_one_line_refusal(done, f"UTIA BRDF file {path} holds 1 non-finite values")
+    client = MlflowClient(tracking_uri(tmp_path / "runs"))
+    (run,) = client.search_runs([e.experiment_id for e in client.search_experiments()])
+    assert run.info.status == "FAILED" and str(path) in run.data.tags["error"]
+    assert not list((tmp_path / "runs" / "cache").glob("*/[!.]*"))  # no stage published
 
 
 def test_debug_shows_the_traceback(tmp_path):

@@ -78,6 +78,7 @@ def test_the_pca_arm_checks_its_own_settings(smoke_cfg):
             [1e-9, 2, 0.5],
             [0, 0.0, -1, float("inf"), float("nan"), True, "1"],
         ),
+        (Real(0.0, high=100.0), [0, 5.0, 100], [100.5, -1e-9, float("nan"), None]),
         (OneOf("a", None), ["a", None], ["b", 0, False]),
         (ListOf(Integer(0), length=2), [[0, 1], (2, 3)], [[0], [0, -1], "01", [0, 1.5]]),
     ],

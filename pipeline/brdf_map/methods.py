@@ -5,11 +5,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from pipeline.brdf_map.settings import MicrofacetEMSettings
+from pipeline.brdf_map.settings import MicrofacetEMSettings, em_settings
 from pipeline.core.methods import Method
 from pipeline.core.settings import schema
 
 if TYPE_CHECKING:
+    from omegaconf import DictConfig
+
     from pipeline.core.stage import Context
 
 
@@ -17,6 +19,11 @@ def run(ctx: Context) -> dict[str, float]:
     from pipeline.brdf_map import runner
 
     return runner.run(ctx)
+
+
+def check(cfg: DictConfig) -> None:
+    """Method B's settings (``method.*``) against their declared constraints (no data read)."""
+    em_settings(cfg)
 
 
 BRDF_MAP = Method(
@@ -46,4 +53,6 @@ BRDF_MAP = Method(
             ),
         ),
     ),
+    check=check,
+    settings=(("method", MicrofacetEMSettings),),
 )

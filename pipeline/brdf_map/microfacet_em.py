@@ -95,40 +95,8 @@ from pipeline.brdf_map.microfacet_model import (
     schlick_fresnel,
 )
 from pipeline.brdf_map.settings import MicrofacetEMSettings
-from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.errors import DataError
 from pipeline.data.brdf import MeasuredBRDF, half_vector_angles
-
-
-def _check_settings(s: MicrofacetEMSettings) -> None:
-    for name in (
-        "n_theta_components",
-        "n_phi_components",
-        "n_theta_cells",
-        "n_phi_cells",
-        "n_rs",
-        "max_em_iter",
-        "max_outer_iter",
-    ):
-        value = getattr(s, name)
-        if not isinstance(value, int | np.integer) or value < 1:
-            raise ConfigError(f"{name}={value!r} must be an integer >= 1")
-    if not (np.isfinite(s.prior_strength) and s.prior_strength >= 0):
-        raise ConfigError(f"prior_strength={s.prior_strength} must be finite and >= 0")
-    if len(s.rs_range) != 2:
-        raise ConfigError(f"rs_range={s.rs_range} must be (low, high)")
-    lo, hi = s.rs_range
-    if not 0.0 <= lo <= hi <= 1.0:
-        raise ConfigError(f"rs_range={s.rs_range} must satisfy 0 <= low <= high <= 1")
-    if not 0.0 <= s.diffuse_percentile <= 100.0:
-        raise ConfigError(f"diffuse_percentile={s.diffuse_percentile} must lie in [0, 100]")
-    if s.theta_mode not in ("line", "fold"):
-        raise ConfigError(f"theta_mode={s.theta_mode!r} must be 'line' or 'fold'")
-    if s.phi_mode not in ("line", "wrap"):
-        raise ConfigError(f"phi_mode={s.phi_mode!r} must be 'line' or 'wrap'")
-    for name in ("tol", "outer_tol", "min_std_cells"):
-        if not getattr(s, name) > 0:
-            raise ConfigError(f"{name}={getattr(s, name)} must be > 0")
-
 
 # ----------------------------------------------------------------------------- EM kernels
 
@@ -335,8 +303,7 @@ def fit_microfacet_em(
     MicrofacetFit
         Evaluable at any pair of directions.
     """
-    settings = MicrofacetEMSettings() if settings is None else settings
-    _check_settings(settings)
+    settings = MicrofacetEMSettings() if settings is None else settings  # checked when built
     use = brdf.measured & (brdf.light[:, 0] < 0.5 * np.pi) & (brdf.view[:, 0] < 0.5 * np.pi)
     if use.sum() < 10:
         raise DataError(

@@ -26,7 +26,7 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import asdict, fields, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import mlflow
@@ -39,7 +39,7 @@ from pipeline.brdf_map.microfacet_model import (
     MicrofacetFit,
     MixtureParams,
 )
-from pipeline.brdf_map.settings import MicrofacetEMSettings
+from pipeline.brdf_map.settings import em_settings
 from pipeline.brdf_map.synthetic import (
     SyntheticAnisotropicBRDF,
     write_synthetic_utia_brdf,
@@ -55,16 +55,6 @@ log = logging.getLogger(__name__)
 
 READERS = {"utia": brdf_io.read_utia_brdf, "merl": brdf_io.read_merl_brdf}
 NEAR_MIRROR_DEG = 10.0  # missing samples with theta_h below this are "near the mirror direction"
-
-
-def em_settings(cfg) -> MicrofacetEMSettings:
-    """``method.*`` as :class:`MicrofacetEMSettings` (which checks the values); the
-    structured config of ``conf/method/brdf_map.yaml`` has already refused unknown keys."""
-    method = plain_settings(cfg.method)
-    values = {f.name: method[f.name] for f in fields(MicrofacetEMSettings) if f.name in method}
-    if "rs_range" in values:
-        values["rs_range"] = tuple(values["rs_range"])
-    return MicrofacetEMSettings(**values)
 
 
 # --------------------------------------------------------------------------- data

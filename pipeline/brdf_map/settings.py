@@ -3,7 +3,18 @@ them as a Hydra structured config) imports no numerics."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
+
+from pipeline.core.errors import ConfigError
+from pipeline.core.settings import (
+    Integer,
+    ListOf,
+    OneOf,
+    Real,
+    check_settings,
+    constraints,
+    setting,
+)
 
 RS_RANGE_METAL = (0.5, 0.9)
 RS_RANGE_DIELECTRIC = (0.02, 0.2)
@@ -11,7 +22,11 @@ RS_RANGE_DIELECTRIC = (0.02, 0.2)
 
 @dataclass(frozen=True)
 class MicrofacetEMSettings:
-    """Settings of :func:`fit_microfacet_em`.
+    """Settings of :func:`fit_microfacet_em`: ``method.*`` of ``method=brdf_map``.
+
+    Each field declares what it may be; the settings check themselves when built and name
+    a bad one as the job's config does (``method.n_theta_cells=0 must be an integer >=
+    1``), so a job refuses it before any stage runs (:func:`em_settings`).
 
     Attributes
     ----------
@@ -51,19 +66,38 @@ class MicrofacetEMSettings:
         v on the real line as in the paper, or periodic in phi.
     """
 
-    n_theta_components: int = 12
-    n_phi_components: int = 16
-    prior_strength: float = 0.05
-    n_theta_cells: int = 45
-    n_phi_cells: int = 96
-    rs_range: tuple[float, float] = RS_RANGE_DIELECTRIC
-    n_rs: int = 10
-    diffuse_percentile: float = 5.0
-    tol: float = 1e-7
-    max_em_iter: int = 300
-    outer_tol: float = 1e-3
-    max_outer_iter: int = 8
-    min_std_cells: float = 0.5
-    rho_s_from_observed_cells: bool = False
-    theta_mode: str = "line"
-    phi_mode: str = "line"
+    n_theta_components: int = setting(12, Integer(1))
+    n_phi_components: int = setting(16, Integer(1))
+    prior_strength: float = setting(0.05, Real(0.0))
+    n_theta_cells: int = setting(45, Integer(1))
+    n_phi_cells: int = setting(96, Integer(1))
+    rs_range: tuple[float, float] = setting(RS_RANGE_DIELECTRIC, ListOf(Real(0.0, high=1.0), 2))
+    n_rs: int = setting(10, Integer(1))
+    diffuse_percentile: float = setting(5.0, Real(0.0, high=100.0))
+    tol: float = setting(1e-7, Real(0.0, closed=False))
+    max_em_iter: int = setting(300, Integer(1))
+    outer_tol: float = setting(1e-3, Real(0.0, closed=False))
+    max_outer_iter: int = setting(8, Integer(1))
+    min_std_cells: float = setting(0.5, Real(0.0, closed=False))
+    rho_s_from_observed_cells: bool = setting(False, OneOf(True, False))
+    theta_mode: str = setting("line", OneOf("line", "fold"))
+    phi_mode: str = setting("line", OneOf("line", "wrap"))
+
+    def __post_init__(self) -> None:
+        check_settings({"method": asdict(self)}, constraints(type(self), "method"))
+        low, high = self.rs_range
+        if low > high:
+            raise ConfigError(f"method.rs_range={self.rs_range!r} must be (low, high), low <= high")
+
+
+def em_settings(cfg) -> MicrofacetEMSettings:
+    """``method.*`` of the composed config ``cfg`` as :class:`MicrofacetEMSettings`, which
+    checks the values; the structured config of ``conf/method/brdf_map.yaml`` has already
+    refused unknown keys and values of the wrong type."""
+    from omegaconf import OmegaConf
+
+    method = OmegaConf.to_container(cfg.method, resolve=True)
+    values = {f.name: method[f.name] for f in fields(MicrofacetEMSettings) if f.name in method}
+    if isinstance(values.get("rs_range"), list):
+        values["rs_range"] = tuple(values["rs_range"])
+    return MicrofacetEMSettings(**values)

@@ -29,8 +29,9 @@ from pipeline.core.errors import DataError
 
 _FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 # The C library's texts for them, which libraries that lose the errno still quote (OpenEXR:
-# 'Failed to write pixel data to image file "x.exr". No space left on device.').
-_FULL_TEXTS = tuple(os.strerror(number) for number in _FULL_ERRNOS)
+# 'Failed to write pixel data to image file "x.exr". No space left on device.'), and
+# SQLite's for SQLITE_FULL, which is all that reaches MLflow's store from a full disk.
+_FULL_TEXTS = (*(os.strerror(number) for number in _FULL_ERRNOS), "database or disk is full")
 # A write that failed while less than this is free failed for want of space.
 NEARLY_FULL_BYTES = 1 << 20
 
@@ -63,7 +64,7 @@ def is_disk_full(error: BaseException, free: int | None = None) -> bool:
     """Whether ``error`` (raised by a write) means the disk or the quota is full.
 
     True when it, or an exception it was raised from, carries ENOSPC or EDQUOT or quotes
-    their text; or when it is an OSError without an errno or a RuntimeError (what libraries
+    their text (or SQLite's "database or disk is full"); or when it is an OSError without an errno or a RuntimeError (what libraries
     that lose the errno raise) and ``free``, the bytes free when it was raised, is below
     :data:`NEARLY_FULL_BYTES`.
     """

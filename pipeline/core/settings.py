@@ -56,11 +56,12 @@ class Integer:
 @dataclass(frozen=True)
 class Real:
     """A finite number (not a bool, not a string) above ``low`` (or at it when
-    ``closed``); None too when ``optional``."""
+    ``closed``) and at most ``high``; None too when ``optional``."""
 
     low: float | None = None
     closed: bool = True
     optional: bool = False
+    high: float | None = None
 
     def ok(self, value) -> bool:
         if value is None:
@@ -69,11 +70,17 @@ class Real:
             return False
         if not math.isfinite(value):
             return False
+        if self.high is not None and value > self.high:
+            return False
         return self.low is None or value > self.low or (self.closed and value == self.low)
 
     def __str__(self) -> str:
-        bound = "" if self.low is None else f" {'>=' if self.closed else '>'} {self.low:g}"
-        return f"a finite number{bound}" + (" or null" if self.optional else "")
+        bounds = [
+            "" if self.low is None else f"{'>=' if self.closed else '>'} {self.low:g}",
+            "" if self.high is None else f"<= {self.high:g}",
+        ]
+        text = " and ".join(b for b in bounds if b)
+        return f"a finite number {text}".rstrip() + (" or null" if self.optional else "")
 
 
 @dataclass(frozen=True)

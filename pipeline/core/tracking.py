@@ -8,12 +8,17 @@ before any job logs; sweeps call it once in the launching process as well.
 
 A run records who runs it (tags ``host`` and ``pid``): any later start, ``cache gc`` and a
 stopping sweep mark FAILED the RUNNING runs whose process is gone from this machine.
+
+A full disk met while the store is created or a run writes to it is one error naming the
+store's ``mlflow.db`` and the space left (:func:`store_full`); the run ends FAILED, or,
+when the store cannot take even that, is left RUNNING for the next start to mark FAILED.
 """
 
 from __future__ import annotations
 
 import atexit
 import contextlib
+import errno
 import fcntl
 import logging
 import os
@@ -32,7 +37,8 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.core import stopping
-from pipeline.core.errors import ConfigError, StoreError
+from pipeline.core.errors import DataError, PipelineError, StoreError
+from pipeline.core.files import DiskFullError, is_disk_full, no_space
 from pipeline.core.process import process_alive, stop_children
 from pipeline.core.recipe import recipe_id, render_recipe_id
 
@@ -47,7 +53,7 @@ EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
 EXPERIMENT_KIND = (EXPERIMENT_KIND_TAG, "custom_model_development")
 NOTE_TAG = "mlflow.note.content"  # the run's description in the UI (Markdown)
 ENDED_BY_TAG = "ended_by"  # why a run ended FAILED when its own process did not say
-ERROR_TAG = "error"  # the refused setting's message, on a run that ended FAILED for it
+ERROR_TAG = "error"  # the refused setting's or file's message, on a run that ended FAILED for it
 MLFLOW_TABLES = {"experiments", "alembic_version"}  # what makes a SQLite file a store
 _PARTIAL = re.compile(rf"\.{re.escape(DB_NAME)}\.partial-(\d+)(?:-journal|-wal|-shm)?")
 
@@ -91,11 +97,19 @@ def use_store(runs: str | os.PathLike, must_exist: bool = True) -> str:
 
     uri = tracking_uri(runs, must_exist)
     mlflow.set_tracking_uri(uri)
+    logging.getLogger("mlflow.store.db.utils").addFilter(_no_full_disk_traceback)  # once
     if uri == _sqlite_uri(runs):
         os.environ[_OWN_URI] = uri
     else:  # the user's server: it stays the choice for every later call and subprocess
         os.environ.pop(_OWN_URI, None)
     return uri
+
+
+def _no_full_disk_traceback(record: logging.LogRecord) -> bool:
+    """False for MLflow's log of an SQL statement that failed for a full disk: it comes
+    with its traceback, and the job says it in one line (:func:`store_full`)."""
+    error = record.exc_info[1] if record.exc_info else None
+    return error is None or not is_disk_full(error)
 
 
 def init_store(
@@ -117,6 +131,8 @@ def init_store(
     StoreError
         Naming the store, when it cannot be opened (a damaged database, say), is empty,
         or holds another program's tables.
+    DataError
+        Naming the store and the space left, when the disk is full (:func:`store_full`).
     """
     from mlflow.tracking import MlflowClient
 
@@ -124,7 +140,7 @@ def init_store(
     runs.mkdir(parents=True, exist_ok=True)
     uri = use_store(runs, must_exist=False)  # the one place a store is created
     # The lock serializes schema creation between processes that share this folder.
-    with open(runs / ".mlflow.lock", "w") as lock:
+    with open(runs / ".mlflow.lock", "w") as lock, _store_full_is_named(uri):
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
             db = sqlite_path(uri)
@@ -139,6 +155,8 @@ def init_store(
                 found = client.get_experiment_by_name(experiment)
                 fail_dead_runs(client)
             except Exception as error:  # SQLAlchemy's and MLflow's errors alike
+                if is_disk_full(error):
+                    raise  # the store is sound, the disk full: _store_full_is_named says so
                 raise StoreError(
                     f"the MLflow store {uri} cannot be opened ({type(error).__name__}: "
                     f"{error}); move it aside to start a new one (artifacts stay in "
@@ -253,18 +271,90 @@ def sqlite_path(uri: str) -> Path | None:
     return Path(uri[len(prefix) :].split("?", 1)[0]) if uri.startswith(prefix) else None
 
 
+STORE_FULL_HINT = "free some space, or point paths.runs (or MLFLOW_TRACKING_URI) elsewhere"
+
+
+def store_full(
+    error: BaseException, uri: str, run_id: str | None = None, status: str | None = None
+) -> DiskFullError | None:
+    """The one-line error for ``error`` when it is a full disk met while MLflow wrote the
+    SQLite store of ``uri``; None for any other error.
+
+    A full disk reaches the store as SQLite's "database or disk is full" (through
+    SQLAlchemy and MLflow) and an artifact as ENOSPC. The error names the file (the
+    store's ``mlflow.db``, or the artifact when the OSError says which), the space left
+    and, given ``run_id``, what became of that run: ``status`` FAILED, or else left
+    RUNNING (the store could not take even that), which the next start marks FAILED
+    (:func:`fail_dead_runs`). A DataError is already named, and a tracking server's disk
+    is not this machine's to measure: both give None.
+    """
+    db = sqlite_path(uri)
+    if db is None or isinstance(error, DataError) or not is_disk_full(error):
+        return None
+    hint = STORE_FULL_HINT
+    if run_id is not None:
+        fate = (
+            "ended FAILED"
+            if status == "FAILED"
+            else "is left RUNNING: the next start marks it FAILED"
+        )
+        hint += f"; its run {run_id} {fate}"
+    return no_space(_file_written(error) or db, hint=hint)
+
+
+def _file_written(error: BaseException) -> Path | None:
+    """The file an ENOSPC in ``error``'s chain was writing, when it says (``shutil`` names
+    the destination of a copy ``filename2``, ``open`` its file ``filename``)."""
+    seen: set[int] = set()
+    cause: BaseException | None = error
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        if isinstance(cause, OSError) and cause.errno in (errno.ENOSPC, errno.EDQUOT):
+            name = cause.filename2 or cause.filename
+            if name:
+                return Path(os.fsdecode(name))
+        cause = cause.__cause__ or cause.__context__
+    return None
+
+
+@contextmanager
+def _store_full_is_named(uri: str) -> Iterator[None]:
+    """Raise :func:`store_full`'s error for a full disk met in the block."""
+    try:
+        yield
+    except Exception as error:
+        full = store_full(error, uri)
+        if full is None:
+            raise
+        raise full from error
+
+
 def _create_sqlite_store(db: Path) -> None:
     """Let MLflow create its tables in a temporary file, then rename it to ``db``."""
     from mlflow.tracking import MlflowClient
 
     partial = db.with_name(f".{db.name}.partial-{os.getpid()}")
     partial.unlink(missing_ok=True)
+    uri = f"sqlite:///{partial}"
     try:
-        MlflowClient(f"sqlite:///{partial}").search_experiments(max_results=1)
+        MlflowClient(uri).search_experiments(max_results=1)
         os.replace(partial, db)
     finally:
+        _close_engine(uri)
         partial.unlink(missing_ok=True)
         partial.with_name(f"{partial.name}-journal").unlink(missing_ok=True)
+
+
+def _close_engine(uri: str) -> None:
+    """Close the SQLAlchemy engine that MLflow keeps for ``uri`` as long as the process
+    lives (a private map of MLflow 3's SqlAlchemyStore; nothing to do without it): its
+    pooled connection holds the file open, so a partial store removed after a full disk
+    would keep its space taken, and the space named in the error would be wrong."""
+    from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
+
+    engine = getattr(SqlAlchemyStore, "_engine_map", {}).pop(uri, None)
+    if engine is not None:
+        engine.dispose()
 
 
 def remove_partial_stores(runs: Path) -> list[Path]:
@@ -484,11 +574,17 @@ def job_run(
     (``config/resolved.yaml``), the command-line overrides (``config/overrides.yaml`` and
     the tag ``overrides``), ``description`` as its note in the UI and, when the job runs
     under Hydra, Hydra's own files and the job's log (``hydra/``), logged as it ends.
+
+    The body's error is the one raised: logging those files and ending the run FAILED
+    must not replace it when they fail too (on a full disk, say; the run is then left
+    RUNNING for the next start to mark FAILED). A full disk met writing the store, in
+    the body or here, is raised as :func:`store_full`'s error.
     """
     import mlflow
 
     experiment_id = init_store(cfg.paths.runs, cfg.tracking.experiment, job=cfg)
-    _on_stop_fail_runs(tracking_uri(cfg.paths.runs))
+    uri = tracking_uri(cfg.paths.runs)
+    _on_stop_fail_runs(uri)
     tags = environment_tags()
     tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
     params = {k: v for k, v in flatten(cfg).items() if k not in set(unused)}
@@ -501,31 +597,59 @@ def job_run(
     tags["overrides"] = " ".join(overrides)
     if description:
         tags[NOTE_TAG] = description
-    with mlflow.start_run(
-        experiment_id=experiment_id,
-        run_name=run_name,
-        parent_run_id=_parent_run_id(),
-        tags=tags,
-    ) as run:
-        # Every setting, unset ones (model.k of Neural BTF) as "None": a null is a value
-        # that the tables compare like any other (pipeline.core.recipe).
-        mlflow.log_params({k: _param_value(v) for k, v in params.items()})
-        mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
-        mlflow.log_text(OmegaConf.to_yaml(overrides), "config/overrides.yaml")
-        log.info("MLflow run %s in %s", run.info.run_id, tracking_uri(cfg.paths.runs))
-        try:
-            yield run
-            stopping.check()  # a stop the job's code swallowed: the run ends FAILED
-        except BaseException as error:
-            if isinstance(error, ConfigError):  # a refused setting: the run says which
+    run_id = status = None  # the run, and the status it is left with when the job fails
+    try:
+        with mlflow.start_run(
+            experiment_id=experiment_id,
+            run_name=run_name,
+            parent_run_id=_parent_run_id(),
+            tags=tags,
+        ) as run:
+            run_id = run.info.run_id
+            try:
+                # Every setting, unset ones (model.k of Neural BTF) as "None": a null is a
+                # value that the tables compare like any other (pipeline.core.recipe).
+                mlflow.log_params({k: _param_value(v) for k, v in params.items()})
+                mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
+                mlflow.log_text(OmegaConf.to_yaml(overrides), "config/overrides.yaml")
+                log.info("MLflow run %s in %s", run_id, uri)
+                yield run
+                stopping.check()  # a stop the job's code swallowed: the run ends FAILED
+                _log_hydra_output()
+            except BaseException as error:
+                # A refused setting or file, a full disk: the run says which (if it can).
+                named = error if isinstance(error, PipelineError) else store_full(error, uri)
+                if named is not None:
+                    with contextlib.suppress(Exception):
+                        mlflow.set_tag(ERROR_TAG, " ".join(str(named).split())[:5000])
+                if stopping.requested() is not None:
+                    with contextlib.suppress(Exception):
+                        mlflow.set_tag(ENDED_BY_TAG, f"stopped by {stopping.describe()}")
                 with contextlib.suppress(Exception):
-                    mlflow.set_tag(ERROR_TAG, " ".join(str(error).split())[:5000])
-            if stopping.requested() is not None:
-                with contextlib.suppress(Exception):
-                    mlflow.set_tag(ENDED_BY_TAG, f"stopped by {stopping.describe()}")
+                    _log_hydra_output()
+                status = _end_failed_run(run_id)
+                raise
+    except Exception as error:
+        # Here too when the run could not be created, or not ended FINISHED (left RUNNING).
+        full = store_full(error, uri, run_id, status)
+        if full is None:
             raise
-        finally:
-            _log_hydra_output()
+        raise full from error
+
+
+def _end_failed_run(run_id: str) -> str:
+    """End the active run FAILED, before mlflow.start_run's exit would (whose error, when
+    the store cannot take it, would replace the job's); returns the status it is left
+    with: FAILED, or RUNNING for the next start to mark FAILED (:func:`fail_dead_runs`)."""
+    import mlflow
+
+    try:
+        mlflow.end_run("FAILED")  # takes it off MLflow's stack first, whatever follows
+    except Exception as error:
+        why = "the disk is full" if is_disk_full(error) else type(error).__name__
+        log.warning("run %s is left RUNNING (%s): the next start marks it FAILED", run_id, why)
+        return "RUNNING"
+    return "FAILED"
 
 
 def _hydra_config():
@@ -590,7 +714,14 @@ class SweepParentRun(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from mlflow.tracking import MlflowClient
 
-        experiment_id = init_store(config.paths.runs, config.tracking.experiment, job=config)
+        from pipeline.core.refusal import debugging, refuse
+
+        try:
+            experiment_id = init_store(config.paths.runs, config.tracking.experiment, job=config)
+        except PipelineError as error:  # a damaged store, a full disk: one line, no job runs
+            if debugging():
+                raise
+            refuse(error)  # Hydra would only warn of an error and start the jobs
         self.uri = tracking_uri(config.paths.runs)
         client = MlflowClient(self.uri)
         sweep_dir = Path(config.hydra.sweep.dir)

@@ -12,8 +12,10 @@ UTIA anisotropic BRDF ("Dense BRDF Measurements")
     [theta_v 6][phi_v 48]``, theta = 0, 15, ..., 75 deg, phi = 0, 7.5, ..., 352.5 deg,
     1,990,656 bytes. **Scaling chosen here: raw values.** Loaders in the wild disagree (some
     multiply by 1/140 and apply an sRGB curve); we apply neither, so the values stay linear
-    and a user who wants a different absolute scale multiplies afterwards. Negative or
-    non-finite values are read as missing measurements.
+    and a user who wants a different absolute scale multiplies afterwards. Negative values
+    are read as missing measurements (the writer writes -1); a NaN or an infinity is
+    refused, naming the file: the layout holds none, so one means a damaged file or one
+    in another layout (big-endian, float32).
 
 MERL isotropic BRDF
     int32 header ``(90, 90, 180)``, then three 90*90*180 float64 blocks (R, G, B), index
@@ -214,7 +216,13 @@ def read_utia_brdf(path: str | os.PathLike) -> MeasuredBRDF:
     Returns
     -------
     MeasuredBRDF
-        82944 samples in file order; negative or non-finite values are marked missing.
+        82944 samples in file order; negative values are marked missing.
+
+    Raises
+    ------
+    DataError
+        Naming the file, when it is missing, has the wrong size or holds a NaN or an
+        infinity (with how many and the byte offset of the first).
     """
     path = Path(path)
     if not path.is_file():
@@ -225,9 +233,16 @@ def read_utia_brdf(path: str | os.PathLike) -> MeasuredBRDF:
             f"UTIA BRDF file {path} has {size} bytes, expected {UTIA_N_BYTES} "
             f"(float64 [3][6][48][6][48])"
         )
-    table = np.fromfile(path, dtype="<f8").reshape(UTIA_SHAPE)
-    reflectance = table.reshape(3, -1).T.copy()
-    measured = np.all(np.isfinite(reflectance) & (reflectance >= 0.0), axis=1)
+    raw = np.fromfile(path, dtype="<f8")
+    bad = np.flatnonzero(~np.isfinite(raw))
+    if bad.size:  # not a missing sample (those are negative): a damaged file
+        raise DataError(
+            f"UTIA BRDF file {path} holds {bad.size} non-finite values (the first, "
+            f"{raw[bad[0]]}, at byte {8 * bad[0]}); a missing measurement is negative in "
+            f"this layout, so the file is damaged or in another layout"
+        )
+    reflectance = raw.reshape(3, -1).T.copy()
+    measured = np.all(reflectance >= 0.0, axis=1)
     reflectance[~measured] = 0.0
     light, view = utia_directions()
     return MeasuredBRDF(reflectance, light, view, measured, source=str(path))
@@ -251,6 +266,12 @@ def write_utia_brdf(
     -------
     Path
         The written file.
+
+    Raises
+    ------
+    DataError
+        For a wrong shape, or a NaN or an infinity among the samples written (which
+        :func:`read_utia_brdf` would refuse); nothing is written then.
     """
     reflectance = np.asarray(reflectance, dtype=np.float64)
     n = int(np.prod(UTIA_SHAPE[1:]))
@@ -262,6 +283,12 @@ def write_utia_brdf(
         if measured.shape != (n,):
             raise DataError(f"UTIA measured mask has shape {measured.shape}, expected ({n},)")
         values[~measured] = -1.0
+    bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
+    if bad.size:
+        raise DataError(
+            f"UTIA reflectance for {path} holds non-finite values at {bad.size} measured "
+            f"samples (the first: row {bad[0]}); mark missing samples with `measured`"
+        )
     payload = np.ascontiguousarray(values.T).astype("<f8").tobytes()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

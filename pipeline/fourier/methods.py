@@ -4,9 +4,12 @@ Light on purpose: the chain is imported when the job runs."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import dataclasses
+from typing import TYPE_CHECKING, Any
 
 from pipeline.core.methods import Method
+from pipeline.core.settings import schema
+from pipeline.fourier.settings import FourierSettings, check
 
 if TYPE_CHECKING:
     from pipeline.core.stage import Context
@@ -24,6 +27,20 @@ def run_pattern(ctx: Context) -> dict[str, float]:
     return pattern_runner.run(ctx)
 
 
+def _open_maps(*names: str) -> list[tuple[str, type, dataclasses.Field]]:
+    return [(name, dict[str, Any], dataclasses.field(default_factory=dict)) for name in names]
+
+
+# method.*: the fit's settings (defaults in FourierSettings) and the maps the YAML fills.
+# The pattern's config extends the fit's: conf/method/fourier_pattern.yaml merges its schema
+# after fourier.yaml, which OmegaConf allows for a subclass only.
+FOURIER_SCHEMA = schema(
+    FourierSettings, "FourierSchema", name="fourier", spec="", segmentation={}, figures={}
+)
+FOURIER_PATTERN_SCHEMA = dataclasses.make_dataclass(
+    "FourierPatternSchema", _open_maps("quilting", "pattern"), bases=(FOURIER_SCHEMA,)
+)
+
 FOURIER = Method(
     name="fourier",
     paper="C",
@@ -35,6 +52,9 @@ FOURIER = Method(
     ),
     headline=("rmse_test_fourier", "rmse_test_ptm", "rmse_test_hsh"),
     reports=("pipeline.fourier.report",),
+    schemas=(("schema", "fourier", FOURIER_SCHEMA),),
+    check=check,
+    settings=(("method", FourierSettings),),
 )
 FOURIER_PATTERN = Method(
     name="fourier_pattern",
@@ -46,4 +66,7 @@ FOURIER_PATTERN = Method(
     ),
     headline=("seam_cost_quilting", "seam_cost_random"),
     reports=("pipeline.fourier.report",),
+    schemas=(("schema", "fourier_pattern", FOURIER_PATTERN_SCHEMA),),
+    check=check,
+    settings=(("method", FourierSettings),),
 )

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
@@ -70,11 +71,10 @@ from pipeline.fourier.series import (
     resolve_solver,
     rms_error,
 )
+from pipeline.fourier.settings import fourier_settings
 from pipeline.fourier.stack import data_stage, shrink, unit_normals, view_of
 
 log = logging.getLogger(__name__)
-
-FIT_KEYS = ("M", "lam", "clamp_diffuse", "solver")
 
 
 # --------------------------------------------------------------------------- normals
@@ -139,16 +139,22 @@ def normals_stage(ctx: Context, data: Entry) -> Entry:
 
 def fit_settings(cfg) -> dict:
     """The eq. 19 settings of ``method.*`` (shared by method=fourier and fourier_pattern),
-    with the solver that runs (``auto`` resolved: the same fit gets the same key)."""
-    method = cfg.method
-    settings = {key: method[key] for key in FIT_KEYS}
-    settings["solver"] = resolve_solver(str(settings["solver"]), float(settings["lam"]))
+    checked (:class:`~pipeline.fourier.settings.FourierSettings`), with the solver that
+    runs (``auto`` resolved: the same fit gets the same key)."""
+    settings = asdict(fourier_settings(cfg))
+    settings["solver"] = resolve_solver(settings["solver"], float(settings["lam"]))
     return settings
 
 
 def fit_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
     """Eq. 19 at every pixel: coefficients (H, W, 3, 2M + 2), float64."""
     settings = fit_settings(ctx.cfg)
+    n_train = data.manifest["summary"]["n_train"]
+    if n_train < 2 * settings["M"] + 2:  # known once the stack is read: named as set
+        raise ConfigError(
+            f"method.M={settings['M']} needs N >= 2M + 2 = {2 * settings['M'] + 2} images, "
+            f"got N={n_train} training lights in {data.manifest['settings']['root']}"
+        )
 
     def compute(folder: Path) -> dict:
         start = time.perf_counter()

@@ -34,6 +34,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from pipeline.core.errors import ConfigError
+from pipeline.fourier.settings import COLOUR_SPACES  # declared with method.segmentation.*
 
 __all__ = [
     "mean_image",
@@ -44,7 +45,6 @@ __all__ = [
     "COLOUR_SPACES",
 ]
 
-COLOUR_SPACES = ("rgb", "chromaticity")
 _COLOUR_SPACES = COLOUR_SPACES
 
 
