@@ -58,9 +58,11 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
     ] == ["compressed/btf.safetensors"]
     for metric in ("rmse", "bytes_total", "compression_ratio", "rmse_mean_abrdf"):
         assert metric in run.data.metrics
-    # The smoke run holds 4 lights out: the headline RMSE is over the trained directions.
+    # The smoke run holds 4 lights out: rmse is over every direction, held-out ones too,
+    # and lies between the trained and the held-out directions' RMSE.
     metrics = run.data.metrics
-    assert metrics["rmse"] == metrics["rmse_train_dirs"] != metrics["rmse_all_dirs"]
+    low, high = sorted([metrics["rmse_train_dirs"], metrics["rmse_heldout_model"]])
+    assert low < metrics["rmse"] < high and "rmse_all_dirs" not in metrics
     assert metrics["rmse_ratio_to_mean_abrdf"] == pytest.approx(
         metrics["rmse"] / metrics["rmse_mean_abrdf"]
     )

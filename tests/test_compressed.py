@@ -422,7 +422,7 @@ def test_the_export_stage_holds_what_the_run_evaluated(tmp_path):
             np.mean(np.square(recon / np.float32(btf.alpha) - abrdf / btf.alpha, dtype=np.float64))
         )
     )
-    assert rmse == pytest.approx(metrics["rmse_all_dirs"], rel=1e-5)
+    assert rmse == pytest.approx(metrics["rmse"], rel=1e-5)
 
 
 @pytest.mark.parametrize("model", ["clustered", "pca"])

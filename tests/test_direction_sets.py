@@ -406,7 +406,7 @@ def test_the_whole_chain_runs_on_a_fibonacci_set(tmp_path, mlflow_template):
     assert metrics["rmse_data_vs_truth"] == 0  # the layout is lossless
     for name in (
         "rmse",
-        "rmse_all_dirs",
+        "rmse_train_dirs",
         "rmse_heldout_model",
         "rmse_heldout_linear",
         "rmse_heldout_nearest",

@@ -109,7 +109,7 @@ def test_the_scale_gets_its_bytes_and_is_compared_at_the_nearest_size():
     # k = 8 with its scale (1900 B) against k = 16 without (1900 B): the same bytes.
     assert grain.loc["k = 8", "bytes with scale"] == 1900
     assert grain.loc["k = 8", "nearest in bytes, no scale"] == "k = 16"
-    assert grain.loc["k = 8", "its RMSE, all dirs"] == "0.0700 (n=1)"
+    assert grain.loc["k = 8", "its RMSE"] == "0.0700 (n=1)"
     assert grain.loc["k = 16", "nearest in bytes, no scale"] == "k = 8"
 
 

@@ -83,9 +83,7 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
                 "stores it. 'nearest in bytes': the model of the same recipe but k, without a "
                 "scale, whose total bytes are closest to the scaled model's, so that the scale "
                 "is compared with spending its bytes on the model itself (more clusters). "
-                "Every RMSE here is over all the crop's directions, as the scaled one is "
-                "measured: where lights were held out of training, Table 2's are over the "
-                "trained directions only and differ in the last digits.",
+                "Every RMSE is over all the crop's directions, as Table 2's.",
             )
         )
     failed = tables.failed_runs(runs)

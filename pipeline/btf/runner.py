@@ -263,10 +263,8 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
                 recon.texel_scale,
             )
         )
-        if "rmse_train_dirs" in metrics:
-            # The headline is over the directions the model was trained on; the held-out
-            # ones are reported apart (rmse_heldout_*), all of them together in rmse_all_dirs.
-            metrics["rmse_all_dirs"], metrics["rmse"] = metrics["rmse"], metrics["rmse_train_dirs"]
+        # rmse is over every direction, held-out ones too; with lights held out the trained
+        # ones are rmse_train_dirs and the held-out ones rmse_heldout_model.
         save_arrays(folder, rmse_per_direction=recon.rmse_per_direction)
         if recon.texel_scale is not None:
             save_arrays(folder, texel_scale=recon.texel_scale)
@@ -274,7 +272,7 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
         return {"rmse": recon.rmse}
 
     inputs = {"crop": cropped, "preprocess": prep, "train": trained}
-    return ctx.run("evaluate", settings, inputs, compute, version="5")
+    return ctx.run("evaluate", settings, inputs, compute, version="6")
 
 
 def evaluated_dataset(dataset) -> dict:
@@ -360,11 +358,11 @@ def log_evaluation(entry: Entry, metrics: dict) -> None:
 
 
 def add_psnr(metrics: dict) -> None:
-    """``psnr_db``: 10 log10(1 / MSE) over every texel and every direction (held-out ones
-    too: ``rmse_all_dirs`` where lights were held out), in the normalised space where the
-    crop's maximum is 1 (peak 1). The per-image MSE of NeuMIP and Neural Biplane (each
-    direction's image over the texels) averages to this MSE: every image has M texels."""
-    rmse = metrics.get("rmse_all_dirs", metrics["rmse"])
+    """``psnr_db``: 10 log10(1 / MSE) of ``rmse`` (every texel and every direction, held-out
+    ones too), in the normalised space where the crop's maximum is 1 (peak 1). The per-image
+    MSE of NeuMIP and Neural Biplane (each direction's image over the texels) averages to
+    this MSE: every image has M texels."""
+    rmse = metrics["rmse"]
     metrics["psnr_db"] = float(-20 * np.log10(rmse)) if rmse > 0 else float("inf")
 
 

@@ -368,22 +368,13 @@ def _size_row(dataset: str, model: str, parts: dict, original: float, stored: st
 SCALE_SETTINGS = ["model.k", "model.texel_scale", "btf.sizes.extra_dtype"]
 
 
-def all_directions_rmse(runs: pd.DataFrame) -> pd.Series:
-    """Each run's RMSE over all the crop's directions: ``rmse_all_dirs`` where lights were
-    held out of training (``rmse`` then covers the trained ones only), else ``rmse``."""
-    every = runs.get("metrics.rmse_all_dirs", pd.Series(np.nan, index=runs.index))
-    return _num(every).fillna(_num(runs["metrics.rmse"]))
-
-
 def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
     """The graininess fix at equal bytes: each clustered model's RMSE without and with a
     per-texel scale, the bytes of each, and the unscaled model of the same recipe but k
     whose total bytes are nearest to the scaled one's, with its RMSE: does the scale beat
     spending its bytes on more clusters? Mean ± std over seeds.
 
-    Every RMSE here is over all the crop's directions, as the job logs the scaled one: with
-    lights held out of training, Table 2's RMSE covers the trained directions only and
-    differs in the last digits. A model that stores its scale has it in ``bytes_total``;
+    Every RMSE here is over all the crop's directions, as Table 2's. A model that stores its scale has it in ``bytes_total``;
     its "bytes" are those without it.
     """
     clustered = runs[
@@ -398,7 +389,7 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
         ["\x1f".join(row) for row in rest.itertuples(index=False)], index=runs.index
     )
     unscaled = runs[_clusters(runs) & (extra == 0)].assign(
-        _rest=recipe_but_scale, _rmse=all_directions_rmse(runs)
+        _rest=recipe_but_scale, _rmse=_num(runs["metrics.rmse"])
     )
     rows = []
     ordered = clustered.sort_values(["dataset", "order", "model"])
@@ -410,9 +401,9 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
         row = {
             "dataset": dataset,
             "model": model,
-            "without scale, all dirs": mean_std(_num(group["metrics.rmse_without_texel_scale"])),
+            "without scale": mean_std(_num(group["metrics.rmse_without_texel_scale"])),
             "bytes": without,
-            "with per-texel scale, all dirs": mean_std(
+            "with per-texel scale": mean_std(
                 _num(group["metrics.rmse_with_texel_scale"])
             ),
             "bytes with scale": with_scale,
@@ -427,7 +418,7 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
             nearest = (sizes - with_scale).abs().idxmin()
             row["nearest in bytes, no scale"] = nearest
             row["its bytes"] = int(sizes[nearest])
-            row["its RMSE, all dirs"] = mean_std(others.loc[others["model"] == nearest, "_rmse"])
+            row["its RMSE"] = mean_std(others.loc[others["model"] == nearest, "_rmse"])
         rows.append(row)
     return pd.DataFrame(rows)
 
