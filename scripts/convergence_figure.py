@@ -67,12 +67,13 @@ def main(runs_dir: str, figure: str) -> None:
     fig.savefig(figure, dpi=110)
     for (material, name), points in sorted(finals.items()):
         points.sort()
-        change = (
-            f", 2x changes it by {100 * (points[-1][1] / points[0][1] - 1):+.1f} %"
-            if len(points) > 1
-            else ""
-        )
-        print(f"{material} {name}: " + ", ".join(f"{s} steps {r:.5f}" for s, r in points) + change)
+        # Each doubling's change (the criterion compares a run with the one twice as long).
+        changes = [
+            f"{a} -> {b} steps {100 * (rb / ra - 1):+.1f} %"
+            for (a, ra), (b, rb) in zip(points, points[1:], strict=False)
+        ]
+        listed = ", ".join(f"{s} steps {r:.5f}" for s, r in points)
+        print(f"{material} {name}: {listed}" + (f"; {', '.join(changes)}" if changes else ""))
 
 
 if __name__ == "__main__":
