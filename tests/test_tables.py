@@ -514,6 +514,7 @@ def test_the_graininess_table_compares_rmse_over_the_same_directions(tmp_path, s
     assert grain.loc["k = 128", "nearest in bytes, no scale"] == "k = 256"
     assert grain.loc["k = 128", "its RMSE"] == "0.0410 (n=1)"
 
+
 def test_a_model_that_stores_its_scale_lists_its_bytes_without_and_with_it(tmp_path, settings):
     """A +scale run's bytes_total holds the scale (144 texels x float16 = 288 B): the
     'bytes' column is without it, 'bytes with scale' with it, never the same number; the

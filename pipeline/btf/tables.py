@@ -403,9 +403,7 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
             "model": model,
             "without scale": mean_std(_num(group["metrics.rmse_without_texel_scale"])),
             "bytes": without,
-            "with per-texel scale": mean_std(
-                _num(group["metrics.rmse_with_texel_scale"])
-            ),
+            "with per-texel scale": mean_std(_num(group["metrics.rmse_with_texel_scale"])),
             "bytes with scale": with_scale,
         }
         others = unscaled[
