@@ -34,15 +34,19 @@ def test_a_structured_file_repeats_its_patch_at_the_stated_rank(structured):
         assert singular[RANK] < 1e-5 * singular[0] and singular[RANK - 1] > 10 * singular[RANK]
 
 
-def test_the_readmes_command_runs_and_the_cache_holds_the_crop_once(structured, tmp_path):
-    """`python -m pipeline dataset=ubo2014 dataset.root=... btf.crop.size=...` with the
-    default offset, here with the PCA model (seconds). No data stage writes the decoded
-    crop: load reads the header, crop records its texels and directions, preprocess its
-    statistics; the ABRDFs are decoded from the file's factors where they are read."""
+def test_the_chain_holds_no_copy_of_the_crop_and_pca_at_the_files_rank_is_exact(
+    structured, tmp_path
+):
+    """The main job's command (`python -m pipeline dataset=ubo2014 dataset.root=...
+    btf.crop.size=...`, the default offset) with its PCA model, which the chain runs at the
+    file's own rank (3 channels x RANK components), in seconds. No data stage writes the
+    decoded crop: load reads the header, crop records its texels and directions,
+    preprocess its statistics; the ABRDFs are decoded from the file's factors where read."""
     size = 16
     rows = run_chain(structured, tmp_path / "runs", size, models=("pca",), offset=None)
     written = {row["stage"]: row["cache_bytes"] for row in rows}
     decoded = size * size * VIEWS * LIGHTS * 3 * 4
     # The model's own stages (linear, export) hold the model, which is not counted here.
     assert written["load"] + written["crop"] + written["preprocess"] < 0.2 * decoded
-    assert 0 < rows[0]["rmse"] < rows[0]["rmse_mean_abrdf"]
+    # Data of rank 3 x RANK: PCA with as many components reconstructs them up to rounding.
+    assert rows[0]["rmse"] < 1e-4 * rows[0]["rmse_mean_abrdf"]

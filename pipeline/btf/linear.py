@@ -41,7 +41,8 @@ def components_for_budget(budget: int, n_texels: int, n_directions: int, dtype: 
     if count < 1:
         raise ConfigError(
             f"a byte budget of {budget} B cannot hold one {dtype} component "
-            f"({fixed + per_component} B at M={n_texels}, N={n_directions})"
+            f"({fixed + per_component} B at M={n_texels}, N={n_directions}): give "
+            "model.match_clustered_k=null and model.n_components"
         )
     return int(count)
 
