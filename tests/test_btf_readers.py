@@ -358,6 +358,8 @@ def test_the_load_stage_shares_one_entry_between_a_zip_and_its_unzipped_folder(d
             "dataset=ubo2003",
             f"dataset.root={root}",
             "dataset.views=null",
+            "btf.crop.size=4",  # the crop must fit the 8 x 8 texture: checked as it loads
+            "btf.crop.offset=[0,0]",
         )
         return stages.load(Context.from_config(cfg))
 
