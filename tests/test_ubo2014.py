@@ -423,3 +423,30 @@ def test_loading_a_crop_of_a_paper_shaped_file_keeps_the_heap_below_the_decoded_
     result = bench_crop_load(path, tmp_path, crop=(100, 200, 100, 100), views=list(range(24)))
     assert result["n_images"] == 24 * 151
     assert result["heap_peak_bytes"] < result["out_bytes"] / 4
+
+
+def test_factors_that_give_nan_are_refused_naming_the_file(tmp_path):
+    from pipeline.data.ubo2014_decode import FactorABRDFs
+
+    factors = random_factors(0)
+    factors[1][1][5, 0] = np.nan  # one U entry of channel G: direction row 5
+    write(tmp_path / "m.btf", factors=factors)
+    served = FactorABRDFs(read_dfmf(tmp_path / "m.btf"), np.arange(ROWS), [0, 0, 2, 2])
+    served[:, :5]  # the rows before it decode
+    with pytest.raises(DataError, match=r"NaN or Inf at 1 direction rows \(first 5\).*m\.btf"):
+        served[:2]
+
+
+def test_values_below_minus_one_are_refused_naming_the_dataset(tmp_path):
+    """Eq. 1 takes log(x + 1): a file of noise factors (half its values negative) is not
+    radiance, and preprocessing says so instead of training on NaN."""
+    from pipeline.btf import stages
+    from pipeline.core.stage import Context
+
+    factors = [(s, u - 1.5, sv) for s, u, sv in random_factors(0)]  # values well below 0
+    write(tmp_path / "m.btf", factors=factors)
+    cfg = _load_config(tmp_path, tmp_path / "m.btf")
+    ctx = Context.from_config(cfg)
+    cropped = stages.crop(ctx, stages.load(ctx))
+    with pytest.raises(DataError, match=r"values down to .* x > -1.*m\.btf"):
+        stages.preprocess(ctx, cropped)
