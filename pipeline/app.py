@@ -21,7 +21,7 @@ from pipeline.core.errors import ConfigError
 from pipeline.core.memory import process_peak_mb
 from pipeline.core.methods import Method, method_of
 from pipeline.core.stage import Context
-from pipeline.core.tracking import SweepParentRun, job_run
+from pipeline.core.tracking import NOTE_TAG, SweepParentRun, job_run
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +62,10 @@ def run_job(cfg: DictConfig) -> float | None:
             first = {name: metrics[name] for name in method.headline if name in metrics}
             mlflow.log_metrics(first)
             mlflow.log_metrics({k: v for k, v in metrics.items() if k not in first})
+            if first and method.description:
+                # A run page shows its description before its metrics: lead with the result.
+                result = ", ".join(f"`{name}` {value:.4g}" for name, value in first.items())
+                mlflow.set_tag(NOTE_TAG, f"**Result:** {result}\n\n{method.description}")
         except BaseException:
             # The job's error is the answer, not a second one from logging (a full disk
             # fails both).
@@ -143,7 +147,6 @@ def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | Non
     lines (each method's verdict on its jobs: :func:`pipeline.tables.verdict`) and where
     the tables are; the parent run's description leads with the same lines."""
     from pipeline.core.report import fetch_runs
-    from pipeline.core.tracking import NOTE_TAG
     from pipeline.tables import build_tables, default_settings, verdict
 
     experiment = config.tracking.experiment

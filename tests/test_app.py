@@ -63,6 +63,10 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
     metrics = run.data.metrics
     low, high = sorted([metrics["rmse_train_dirs"], metrics["rmse_heldout_model"]])
     assert low < metrics["rmse"] < high and "rmse_all_dirs" not in metrics
+    # The run page shows the description before the metrics: it leads with the result.
+    assert run.data.tags["mlflow.note.content"].startswith(
+        f"**Result:** `rmse` {metrics['rmse']:.4g}"
+    )
     assert metrics["rmse_ratio_to_mean_abrdf"] == pytest.approx(
         metrics["rmse"] / metrics["rmse_mean_abrdf"]
     )

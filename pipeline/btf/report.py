@@ -55,9 +55,8 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
             out,
             "table2_rmse",
             "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
-            "Over the directions each model was trained on: all N, unless "
-            "lights were held out (btf.interpolation.holdout_lights; those "
-            "directions are in the interpolation table). "
+            "Over all N directions, held-out lights included "
+            "(btf.interpolation.holdout_lights; the interpolation table has them apart). "
             "n = number of seeds. Clustered runs use each texel's own values "
             "as the training target unless marked (rep. target). data vs "
             "truth (built-in data only): the data's own RMSE against the "
