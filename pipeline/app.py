@@ -8,12 +8,13 @@ metrics).
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import re
 import tempfile
 from pathlib import Path
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from threadpoolctl import threadpool_limits
 
 from pipeline.core import stopping
@@ -66,6 +67,7 @@ def run_job(cfg: DictConfig) -> float | None:
                 # A run page shows its description before its metrics: lead with the result.
                 result = ", ".join(f"`{name}` {value:.4g}" for name, value in first.items())
                 mlflow.set_tag(NOTE_TAG, f"**Result:** {result}\n\n{method.description}")
+            share_results_view(run.info.experiment_id, list(first), cfg)
         except BaseException:
             # The job's error is the answer, not a second one from logging (a full disk
             # fails both).
@@ -170,6 +172,8 @@ def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | Non
         f"Tables: {(tables / 'summary.html').resolve()} (this "
         f"experiment's: {(out / 'summary.html').resolve()})",
     ]
+    if "experiment_id" in runs and len(runs):
+        lines.append(f"In `mlflow ui`: {results_url(str(runs['experiment_id'].iloc[0]))}")
     print("\n".join(lines), flush=True)
     if parent_id is not None and uri is not None and found:
         from mlflow.tracking import MlflowClient
@@ -179,6 +183,41 @@ def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | Non
         client.set_tag(
             parent_id, NOTE_TAG, "**Result**\n\n```\n" + "\n".join(found) + "\n```\n\n" + note
         )
+
+
+# The runs table of the UI shows no metric by default; a shared view (an experiment tag the
+# UI reads for ?viewStateShareKey=...) shows the headline metrics as columns, best first.
+RESULTS_VIEW = "results"
+
+
+def share_results_view(experiment_id: str, headline: list[str], cfg: DictConfig) -> None:
+    """Set the experiment's shared view :data:`RESULTS_VIEW`: the runs table with the
+    headline metrics, the model and the seed as columns, sorted by the first headline
+    (:func:`results_url`)."""
+    import mlflow
+
+    if not headline:
+        return
+    columns = [f"metrics.`{name}`" for name in headline]
+    columns += [
+        f"params.`{key}`"
+        for key in ("model.name", "seed")
+        if OmegaConf.select(cfg, key) is not None
+    ]
+    state = {"selectedColumns": columns, "orderByKey": columns[0], "orderByAsc": True}
+    key = f"mlflow.sharedViewState.{RESULTS_VIEW}"
+    client = mlflow.MlflowClient()
+    if client.get_experiment(experiment_id).tags.get(key) != json.dumps(state):
+        client.set_experiment_tag(experiment_id, key, json.dumps(state))
+
+
+def results_url(experiment_id: str, port: int = 5000) -> str:
+    """The address of the results view in ``mlflow ui`` (MLflow 3 opens its GenAI pages
+    without ``workflowType``)."""
+    return (
+        f"http://127.0.0.1:{port}/#/experiments/{experiment_id}/runs"
+        f"?viewStateShareKey={RESULTS_VIEW}&workflowType=machine_learning"
+    )
 
 
 def log_headlines(uri: str, parent_id: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 from pathlib import Path
@@ -67,6 +68,11 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
     assert run.data.tags["mlflow.note.content"].startswith(
         f"**Result:** `rmse` {metrics['rmse']:.4g}"
     )
+    # The UI's runs table shows no metric unless asked: the shared view "results" asks.
+    view = MlflowClient(tracking_uri(cfg.paths.runs)).get_experiment(run.info.experiment_id)
+    state = json.loads(view.tags["mlflow.sharedViewState.results"])
+    assert state["orderByKey"] == "metrics.`rmse`"
+    assert "params.`model.name`" in state["selectedColumns"]
     assert metrics["rmse_ratio_to_mean_abrdf"] == pytest.approx(
         metrics["rmse"] / metrics["rmse_mean_abrdf"]
     )
@@ -246,7 +252,9 @@ def test_a_sweep_that_builds_tables_ends_with_a_short_verdict(
         f"Tables: {tmp_path / 'tables' / 'summary.html'} (this experiment's: "
         f"{tmp_path / 'tables' / 'btf' / 'summary.html'})"
     )
-    assert len(lines) == 6 and (tmp_path / "tables" / "btf" / "table2_rmse.md").is_file()
+    assert lines[6].startswith("In `mlflow ui`: http://127.0.0.1:5000/#/experiments/")
+    assert lines[6].endswith("/runs?viewStateShareKey=results&workflowType=machine_learning")
+    assert len(lines) == 7 and (tmp_path / "tables" / "btf" / "table2_rmse.md").is_file()
     note = client.get_run(parent).data.tags[NOTE_TAG]
     assert note.startswith("**Result**\n\n```\nsynthetic:knit 48²×6561")
     assert note.endswith("**Hydra sweep**")
