@@ -252,7 +252,7 @@ def train(
                 seconds += _elapsed(clock, device)
                 if count:
                     losses.append(float(running) / count)
-                    bar.set_postfix(epoch=epoch, loss=f"{losses[-1]:.3g}")
+                    bar.set_postfix(texel_pass=epoch, loss=f"{losses[-1]:.3g}")
                     if on_epoch is not None:
                         on_epoch(epoch, losses[-1], step)
                 if step >= total:
@@ -263,7 +263,7 @@ def train(
         step_fn.close()
         torch.set_num_threads(previous_threads)
     log.info(
-        "trained %d steps (%d epochs) in %.1f s, %.3f M queries/s, last loss %.4g",
+        "trained %d steps (%d passes over the texels) in %.1f s, %.3f M queries/s, last loss %.4g",
         step,
         len(losses),
         seconds,
