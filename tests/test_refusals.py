@@ -84,11 +84,22 @@ def test_a_sweep_checks_every_job_before_the_first_runs(tmp_path):
     assert not list((tmp_path / "runs" / "cache").glob("*/*"))  # job #0 did not train
 
 
-def test_a_setting_read_from_the_data_is_refused_naming_it(tmp_path):
-    """The crop must fit the texture: known once the data's header is read."""
-    done = _run(tmp_path, "experiment=smoke", "btf.crop.size=1000")
-    check_one_line_refusal(done, "btf.crop.size=1000")
+@pytest.mark.parametrize(
+    ("override", "named"),
+    [
+        ("btf.crop.size=1000", "btf.crop.size=1000"),  # the texture's size
+        ("btf.interpolation.holdout_lights=100", "btf.interpolation.holdout_lights=100"),
+    ],
+)
+def test_a_setting_read_from_the_data_is_refused_naming_it(tmp_path, override, named):
+    """Known once the data's header (or, for images, the load stage) is read: the crop must
+    fit the texture, the held-out lights leave lights to train on. Nothing after the load
+    stage is computed."""
+    done = _run(tmp_path, "experiment=smoke", override)
+    check_one_line_refusal(done, named)
     assert "Traceback" not in done.stdout + done.stderr
+    stages = {p.parent.name for p in (tmp_path / "runs" / "cache").glob("*/*")}
+    assert stages <= {"load"}, stages
 
 
 def _utia_file_with_nan(path):
