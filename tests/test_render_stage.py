@@ -269,6 +269,7 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
     grain = pd.read_csv(out / "render_graininess.csv")
     assert set(grain["model"]) == {"measured reference", "k = 8", "PCA c = 2"}
     assert "dark: HF energy / truth" in grain
+    assert grain["dark: HF RMSE"].notna().all()  # the detail in place, for every row
     figures = sorted(out.glob("fig8_*.png"))
     assert [p.name.endswith("_crops_per_spp.png") for p in figures] == [False, True]
     assert all(p.stat().st_size > 0 for p in figures)

@@ -90,6 +90,7 @@ def scored_runs(runs: pd.DataFrame) -> pd.DataFrame:
             (
                 "metrics.render_rmse_",
                 "metrics.render_hf_ratio_",
+                "metrics.render_hf_rmse_",
                 "metrics.render_flip",
                 "metrics.render_ssim",
                 "metrics.render_psnr_db",
