@@ -66,7 +66,8 @@ def test_a_method_added_by_config_alone_runs_and_reports(dummy_conf, tmp_path):
     assert "dummy s0: run" in done.stdout and "rmse" in done.stdout and "0.5" in done.stdout
     client = MlflowClient(tracking_uri(runs))
     [run] = client.search_runs([client.get_experiment_by_name("dummy").experiment_id])
-    assert run.data.metrics["rmse"] == 0.5 and run.data.tags[NOTE_TAG] == "**A dummy method**"
+    assert run.data.metrics["rmse"] == 0.5  # the description, led by the result:
+    assert run.data.tags[NOTE_TAG] == "**Result:** `rmse` 0.5\n\n**A dummy method**"
     assert run.info.run_name == "dummy s0"
 
     sys.path.insert(0, str(dummy_conf / "code"))

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 from omegaconf import DictConfig, OmegaConf
 
+from pipeline.btf.data_settings import GROUPS
 from pipeline.btf.models import MODELS, model_of, schemas
 from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.methods import Method
@@ -69,7 +70,11 @@ def run_name(cfg: DictConfig) -> str:
 
 # train.*: TrainSettings's fields and defaults; in the config, train.lr null means the
 # model's. model.*: each model's typed config (pipeline.btf.models).
-_SCHEMAS = (("schema", "train", schema(TrainSettings, "TrainSchema", lr=None)), *schemas())
+_SCHEMAS = (
+    ("schema", "train", schema(TrainSettings, "TrainSchema", lr=None)),
+    *schemas(),
+    *(("schema/btf", name, settings) for name, settings in GROUPS.items()),
+)
 
 
 BTF = Method(
@@ -96,5 +101,9 @@ BTF = Method(
     unused=unused,
     schemas=_SCHEMAS,
     check=check,
-    settings=(("train", TrainSettings), *(("model", model.config) for model in MODELS.values())),
+    settings=(
+        ("train", TrainSettings),
+        *(("model", model.config) for model in MODELS.values()),
+        *((f"btf.{name}", settings) for name, settings in GROUPS.items()),
+    ),
 )

@@ -20,46 +20,24 @@ import mlflow
 import numpy as np
 
 from pipeline.btf import interpolation, stages
+from pipeline.btf.data_settings import btf_constraints
 from pipeline.btf.export import export_stage, log_compressed
-from pipeline.btf.models import STORAGE_TYPES, Model, model_of
+from pipeline.btf.models import Model, model_of
 from pipeline.btf.stereographic import direction_features
 from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.cache import Entry, save_arrays, save_json
 from pipeline.core.methods import resolve
-from pipeline.core.settings import SPEED, Integer, ListOf, OneOf, check_settings, constraints, roles
+from pipeline.core.settings import SPEED, check_settings, constraints, roles
 from pipeline.core.stage import Context, plain_settings
 from pipeline.data.directions import direction_sets
 
 log = logging.getLogger(__name__)
 
 
-# Method A's settings and what each may be, checked before any stage runs (train.* is
-# checked by TrainSettings itself).
-CONSTRAINTS = {
-    "seed": Integer(0, 2**32 - 1),  # k-means' and PCA's random_state take 32 bits
-    "btf.crop.size": Integer(1),
-    "btf.crop.offset": ListOf(Integer(0), length=2),
-    "btf.pca.n_components": Integer(1),
-    "btf.pca.random_state": Integer(0, 2**32 - 1),
-    "btf.kmeans.n_init": Integer(1),
-    "btf.kmeans.max_iter": Integer(1),
-    "btf.network.encoder_channels": ListOf(Integer(1), at_least=1),
-    "btf.network.latent": Integer(2, 16),
-    "btf.network.hidden": Integer(1),
-    "btf.network.layers": Integer(1),
-    "btf.sizes.weight_dtype": OneOf(*STORAGE_TYPES),
-    "btf.sizes.list_dtype": OneOf("int32", "uint16"),
-    "btf.sizes.extra_dtype": OneOf(*STORAGE_TYPES),
-    "btf.interpolation.holdout_lights": Integer(0),
-    "btf.interpolation.offgrid": Integer(0),
-    "btf.interpolation.seed": Integer(0),
-}
-
-
 def check_settings_at_the_door(cfg, model: Model) -> None:
     """Refuse a bad method-A setting before any stage runs, naming it and what it may be:
-    ``btf.*`` from :data:`CONSTRAINTS`, ``model.*`` from the model's declaration."""
-    check_settings(cfg, {**CONSTRAINTS, **constraints(model.config, "model")})
+    ``btf.*`` from :mod:`pipeline.btf.data_settings`, ``model.*`` from the model's declaration."""
+    check_settings(cfg, {**btf_constraints(), **constraints(model.config, "model")})
     if model.trains:
         _train_settings(cfg)
     if model.clusters:
