@@ -163,11 +163,11 @@ def mean_abrdf_rmse(abrdf: np.ndarray, alpha: float, chunk: int = 256) -> float:
     """RMSE of the trivial model that predicts the mean ABRDF for every texel."""
     m = abrdf.shape[0]
     total = np.zeros(abrdf.shape[1:], dtype=np.float64)
-    for start in range(0, m, chunk):
+    for start in progress(range(0, m, chunk), "mean ABRDF", total=m, unit="texel", scale=chunk):
         total += np.asarray(abrdf[start : start + chunk], dtype=np.float64).sum(0)
     mean = total / m
     sq = 0.0
-    for start in range(0, m, chunk):
+    for start in progress(range(0, m, chunk), "its RMSE", total=m, unit="texel", scale=chunk):
         sq += float(np.square(np.asarray(abrdf[start : start + chunk]) - mean).sum())
     return float(np.sqrt(sq / abrdf.size)) / alpha
 
