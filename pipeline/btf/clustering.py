@@ -6,9 +6,12 @@ median ABRDF of every cluster as its representative.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from sklearn.cluster import KMeans
 from sklearn.decomposition import PCA
+from sklearn.exceptions import ConvergenceWarning
 
 from pipeline.core.errors import ConfigError
 from pipeline.core.progress import progress
@@ -87,7 +90,17 @@ def kmeans_pp(
     kmeans = KMeans(
         n_clusters=k, init="k-means++", n_init=n_init, max_iter=max_iter, random_state=seed
     )
-    labels = kmeans.fit_predict(scores).astype(np.int32)
+    with warnings.catch_warnings():  # the case is refused below, naming the setting
+        warnings.filterwarnings("ignore", "Number of distinct clusters", ConvergenceWarning)
+        labels = kmeans.fit_predict(scores).astype(np.int32)
+    found = len(np.unique(labels))
+    if found < k:
+        # Fewer distinct texels than k (a tiled or flat texture): some clusters stay empty
+        # and would have no representative. Said here, before the medians' pass.
+        raise ConfigError(
+            f"model.k={k}: k-means found only {found} non-empty clusters (the crop holds "
+            f"about that many distinct ABRDFs); lower model.k to at most {found}"
+        )
     return labels, kmeans.cluster_centers_.astype(np.float32), float(kmeans.inertia_)
 
 

@@ -81,7 +81,8 @@ def write_structured(
 ) -> Path:
     """A DFMF file of the UBO2014 shape whose values are a material's, not noise: the
     built-in ``material`` (:class:`~pipeline.btf.synthetic.SyntheticBTF`) at every
-    (view, light) of the file, on a ``tile`` x ``tile`` patch repeated over the texture,
+    (view, light) of the file, on a ``tile`` x ``tile`` patch repeated over the texture
+    with a smooth brightness gain that does not repeat (every texel distinct),
     factorised per channel to ``components`` (the file's values are exactly of that rank,
     so PCA of them is exact at ``components``). Colour model 0, cosine in the data.
 
@@ -92,14 +93,20 @@ def write_structured(
     views, lights = hemisphere_angles(n_views), hemisphere_angles(n_lights)
     patch = SyntheticBTF(size=tile, seed=0, material=material).evaluate(_pairs(views, lights))
     reps = -(-size // tile)
+    rows, cols = np.mgrid[0:size, 0:size] / size
+    gain = 1.0 + 0.15 * np.sin(2 * np.pi * (1.3 * rows + 0.7 * cols)) + 0.05 * np.cos(9.1 * rows)
+    gain *= 1.0 + 0.05 * np.sin(23.7 * cols + 5.3 * rows)
     factors = []
     for channel in range(3):
         s_values, u, coefficients = factorize(
             patch[..., channel].reshape(len(patch), -1).astype(np.float64), components
         )
-        # The patch's coefficients (image rows from the top) repeated over the texture, then
-        # put in the file's texel order (rows from the bottom).
+        # The patch's coefficients (image rows from the top) repeated over the texture, each
+        # texel scaled by a smooth gain that does not repeat with the patch (so that no two
+        # texels are equal, as in a measured material: k-means needs k distinct ABRDFs; a
+        # scale keeps the rank), then put in the file's texel order (rows from the bottom).
         texture = np.tile(coefficients.reshape(tile, tile, -1), (reps, reps, 1))[:size, :size]
+        texture = texture * gain[:, :, None]
         factors.append((s_values, u, texture[::-1].reshape(size * size, -1)))
     return write_dfmf(path, views, lights, size, size, factors=factors, dtype=dtype, sync=False)
 
