@@ -424,8 +424,7 @@ def test_clustered_encoder_sees_only_normalized_medians_while_training(smoke_run
 
 def test_k_beyond_the_distinct_abrdfs_is_refused_before_the_medians():
     """A tiled texture holds fewer distinct ABRDFs than texels: k-means leaves clusters
-    empty, which is named at once (it used to fail in the medians' pass, an hour later at
-    a whole material's size)."""
+    empty, which is named at once, not in the medians' pass after it."""
     scores = np.repeat(np.eye(3, dtype=np.float32), 20, axis=0)  # 60 texels, 3 distinct
     with pytest.raises(ConfigError, match=r"model.k=5: k-means found only 3 non-empty"):
         kmeans_pp(scores, 5, seed=0)

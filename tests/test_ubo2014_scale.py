@@ -41,7 +41,7 @@ def test_the_chain_holds_no_copy_of_the_crop_and_pca_at_the_files_rank_is_exact(
 ):
     """The main job's command (`python -m pipeline dataset=ubo2014 dataset.root=...
     btf.crop.size=...`, the default offset) with its PCA model, which the chain runs at the
-    file's own rank (3 channels x RANK components), in seconds. No data stage writes the
+    file's own rank (3 channels x RANK components). No data stage writes the
     decoded crop: load reads the header, crop records its texels and directions,
     preprocess its statistics; the ABRDFs are decoded from the file's factors where read."""
     size = 16

@@ -6,7 +6,7 @@ memory nor needs to: the randomized range finder with power iterations (Halko, M
 & Tropp 2011, algorithms 4.3-4.4, the method of scikit-learn's ``randomized_svd``) only
 multiplies the matrix by thin ones, so each product is one pass over its rows. scikit-learn's
 ``PCA``, ``randomized_svd`` and ``TruncatedSVD`` need the whole matrix in memory, and
-``IncrementalPCA`` takes an SVD of (batch + k) x 3N per batch (tens of TFLOP here), hence
+``IncrementalPCA`` takes a full SVD of (batch + k) x 3N per batch, hence
 this module. Below :data:`IN_MEMORY_BYTES` the stages keep scikit-learn's in-memory
 solvers, so that results of crops that fit stay as they were.
 

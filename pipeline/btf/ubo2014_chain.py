@@ -86,8 +86,8 @@ def write_structured(
     factorised per channel to ``components`` (the file's values are exactly of that rank,
     so PCA of them is exact at ``components``). Colour model 0, cosine in the data.
 
-    Only the patch is ever evaluated (n_views · n_lights x tile² values), so a whole
-    400 x 400 file takes seconds, not the 43.8 GB its values decode to."""
+    Only the patch is ever evaluated (n_views · n_lights x tile² values), never the
+    n_views · n_lights x size² values the file decodes to."""
     from pipeline.btf.synthetic import SyntheticBTF
 
     views, lights = hemisphere_angles(n_views), hemisphere_angles(n_lights)
