@@ -18,6 +18,7 @@ from pipeline.btf.evaluate import reconstruction_error
 from pipeline.btf.model import Decoder
 from pipeline.btf.stereographic import direction_features
 from pipeline.btf.synthetic import SyntheticBTF
+from pipeline.btf.ubo2014_chain import direction_pairs
 from pipeline.core.stage import Context
 from pipeline.data.ubo2014_bench import hemisphere_angles
 from pipeline.data.ubo2014_write import write_dfmf
@@ -26,19 +27,12 @@ N_VIEWS, N_LIGHTS, SIZE, CROP, OFFSET = 12, 20, 12, 6, (2, 3)  # 240 directions
 MATERIAL = SyntheticBTF(size=SIZE, seed=0, material="plain_weave")
 
 
-def _pairs(views: np.ndarray, lights: np.ndarray) -> np.ndarray:
-    """(θ_l, φ_l, θ_v, φ_v) of every (view, light), view-major: the file's row order."""
-    return np.concatenate(
-        [np.tile(lights, (len(views), 1)), np.repeat(views, len(lights), axis=0)], axis=1
-    )
-
-
 def _write(path, order_seed: int | None):
     views, lights = hemisphere_angles(N_VIEWS), hemisphere_angles(N_LIGHTS)
     if order_seed is not None:
         rng = np.random.default_rng(order_seed)
         views, lights = views[rng.permutation(N_VIEWS)], lights[rng.permutation(N_LIGHTS)]
-    values = MATERIAL.evaluate(_pairs(views, lights))
+    values = MATERIAL.evaluate(direction_pairs(views, lights))
     write_dfmf(path, views, lights, SIZE, SIZE, values=values, dtype="float32", sync=False)
     return path
 

@@ -48,10 +48,8 @@ def check_settings_at_the_door(cfg, model: Model) -> None:
 
 def check_settings_against_the_data(cfg, loaded: Entry) -> None:
     """Refuse settings that the data's shape rules out, as soon as the load stage knows it
-    (for a UBO2014 file: from its header, before anything is decoded): the crop must fit
-    the texture, the held-out lights must leave lights to train on."""
-    summary = loaded.manifest["summary"]
-    stages.check_crop_fits(cfg, summary["height"], summary["width"], summary.get("root"))
+    (for a UBO2014 file: from its header, before anything is decoded): the held-out lights
+    must leave lights to train on. (The crop stage, next, checks that the crop fits.)"""
     lights = direction_sets(loaded.array("directions", mmap=False)).lights
     interpolation.heldout_light_indices(cfg, lights)
 

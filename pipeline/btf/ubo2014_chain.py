@@ -62,7 +62,7 @@ KEYS = {
 COMMAND = cli.Command(PROG, KEYS, ChainSettings, "Method A's chain on a UBO2014-shaped file.")
 
 
-def _pairs(views: np.ndarray, lights: np.ndarray) -> np.ndarray:
+def direction_pairs(views: np.ndarray, lights: np.ndarray) -> np.ndarray:
     """(θ_l, φ_l, θ_v, φ_v) of every (view, light), view-major: a DFMF file's row order."""
     return np.concatenate(
         [np.tile(lights, (len(views), 1)), np.repeat(views, len(lights), axis=0)], axis=1
@@ -91,7 +91,9 @@ def write_structured(
     from pipeline.btf.synthetic import SyntheticBTF
 
     views, lights = hemisphere_angles(n_views), hemisphere_angles(n_lights)
-    patch = SyntheticBTF(size=tile, seed=0, material=material).evaluate(_pairs(views, lights))
+    patch = SyntheticBTF(size=tile, seed=0, material=material).evaluate(
+        direction_pairs(views, lights)
+    )
     reps = -(-size // tile)
     rows, cols = np.mgrid[0:size, 0:size] / size
     gain = 1.0 + 0.15 * np.sin(2 * np.pi * (1.3 * rows + 0.7 * cols)) + 0.05 * np.cos(9.1 * rows)
