@@ -288,13 +288,13 @@ class FactorABRDFs:
         d = np.arange(self.shape[1])[directions]
         if t.ndim > 1 or d.ndim > 1 or (_is_array(texels) and _is_array(directions)):
             raise IndexError("FactorABRDFs does not pair two index arrays: decode a block first")
-        f = self._factors
-        u = [factor[np.atleast_1d(d)] for factor in f.directions]
-        sv = [factor[np.atleast_1d(t)] for factor in f.texels]
+        f, rows, texel_rows = self._factors, np.atleast_1d(d), np.atleast_1d(t)
+        u = [factor[rows] for factor in f.directions]
+        sv = [factor[texel_rows] for factor in f.texels]
         block = decode_block(u, sv, self.color_model)  # (directions, texels, 3)
-        f.check_finite(block, f.rows[np.atleast_1d(d)], self.path)
+        f.check_finite(block, f.rows[rows], self.path)
         if f.cosine is not None:
-            block *= f.cosine[np.atleast_1d(d), None, None]
+            block *= f.cosine[rows, None, None]
         values = np.ascontiguousarray(block.transpose(1, 0, 2))
         if d.ndim == 0:
             values = values[:, 0]
