@@ -56,7 +56,7 @@ __version__ = "0.1.0"
 _PUBLIC = {
     "load_compressed": "pipeline.btf.compressed",
     "CompressedBTF": "pipeline.btf.compressed",
-    "tracking_uri": "pipeline.core.tracking",
+    "tracking_uri": "pipeline.core.store",
     "build_tables": "pipeline.tables",
     "load_btf": "pipeline.data.btf",
     "load_ubo2014": "pipeline.data.ubo2014",
@@ -78,7 +78,7 @@ __all__ = [  # the keys of _PUBLIC, spelled out for linters and star-imports
 
 if TYPE_CHECKING:  # what editors and type checkers see; at run time __getattr__ loads them
     from pipeline.btf.compressed import CompressedBTF, load_compressed
-    from pipeline.core.tracking import tracking_uri
+    from pipeline.core.store import tracking_uri
     from pipeline.data.brdf import read_merl_brdf, read_utia_brdf
     from pipeline.data.btf import load_btf
     from pipeline.data.light_stack import load_light_stack

@@ -8,21 +8,23 @@ metrics).
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import re
 import tempfile
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from threadpoolctl import threadpool_limits
 
 from pipeline.core import stopping
 from pipeline.core.errors import ConfigError
 from pipeline.core.memory import process_peak_mb
 from pipeline.core.methods import Method, method_of
+from pipeline.core.run import job_run
+from pipeline.core.run_log import RunLog
 from pipeline.core.stage import Context
-from pipeline.core.tracking import NOTE_TAG, SweepParentRun, job_run
+from pipeline.core.store import NOTE_TAG, results_url, share_results_view
+from pipeline.core.sweep_run import SweepParentRun
 
 log = logging.getLogger(__name__)
 
@@ -55,18 +57,18 @@ def run_job(cfg: DictConfig) -> float | None:
             unused=method.left_out(cfg),
         ) as run,
     ):
-        ctx = Context.from_config(cfg)
+        ctx = Context.from_config(cfg, log=RunLog(on=True))
         try:
             with threadpool_limits(cfg.get("threads")):  # numpy's BLAS and OpenMP pools
                 metrics = method.run(ctx)
             # The UI lists metrics in the order they were logged: the headline first.
             first = {name: metrics[name] for name in method.headline if name in metrics}
-            mlflow.log_metrics(first)
-            mlflow.log_metrics({k: v for k, v in metrics.items() if k not in first})
+            ctx.log.metrics(first)
+            ctx.log.metrics({k: v for k, v in metrics.items() if k not in first})
             if first and method.description:
                 # A run page shows its description before its metrics: lead with the result.
                 result = ", ".join(f"`{name}` {value:.4g}" for name, value in first.items())
-                mlflow.set_tag(NOTE_TAG, f"**Result:** {result}\n\n{method.description}")
+                ctx.log.tags({NOTE_TAG: f"**Result:** {result}\n\n{method.description}"})
             share_results_view(run.info.experiment_id, list(first), cfg)
         except BaseException:
             # The job's error is the answer, not a second one from logging (a full disk
@@ -76,7 +78,7 @@ def run_job(cfg: DictConfig) -> float | None:
             raise
         log_usage(ctx)
         if method.figures is not None:
-            log_job_figures(method, cfg, ctx.keys)
+            log_job_figures(ctx, method)
         print_result(
             method,
             method.name_run(cfg),
@@ -90,23 +92,19 @@ def run_job(cfg: DictConfig) -> float | None:
 
 
 def log_usage(ctx: Context) -> None:
-    """Log the stages' cache keys (tags), seconds and peak memory to the active run,
+    """Log the stages' cache keys (tags), seconds and peak memory to the job's run,
     grouped under "time/" and "memory/" (the UI folds names by their prefix)."""
-    import mlflow
-
-    mlflow.set_tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
-    mlflow.log_metrics({f"time/{s}_seconds": t for s, t in ctx.seconds.items()})
-    mlflow.log_metrics({f"memory/{s}_peak_rss_mb": v for s, v in ctx.peak_rss_mb.items()})
-    mlflow.log_metric("memory/peak_rss_mb", process_peak_mb())
+    ctx.log.tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
+    ctx.log.metrics({f"time/{s}_seconds": t for s, t in ctx.seconds.items()})
+    ctx.log.metrics({f"memory/{s}_peak_rss_mb": v for s, v in ctx.peak_rss_mb.items()})
+    ctx.log.metric("memory/peak_rss_mb", process_peak_mb())
 
 
-def log_job_figures(method: Method, cfg: DictConfig, cache_keys: dict[str, str]) -> None:
+def log_job_figures(ctx: Context, method: Method) -> None:
     """Draw the job's figures into a temporary folder and log them under ``figures/``."""
-    import mlflow
-
     with tempfile.TemporaryDirectory() as folder:
-        if method.figures(cfg, cache_keys, Path(folder)):
-            mlflow.log_artifacts(folder, "figures")
+        if method.figures(ctx.cfg, ctx.keys, Path(folder)):
+            ctx.log.folder(folder, "figures")
 
 
 def print_result(
@@ -183,41 +181,6 @@ def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | Non
         client.set_tag(
             parent_id, NOTE_TAG, "**Result**\n\n```\n" + "\n".join(found) + "\n```\n\n" + note
         )
-
-
-# The runs table of the UI shows no metric by default; a shared view (an experiment tag the
-# UI reads for ?viewStateShareKey=...) shows the headline metrics as columns, best first.
-RESULTS_VIEW = "results"
-
-
-def share_results_view(experiment_id: str, headline: list[str], cfg: DictConfig) -> None:
-    """Set the experiment's shared view :data:`RESULTS_VIEW`: the runs table with the
-    headline metrics, the model and the seed as columns, sorted by the first headline
-    (:func:`results_url`)."""
-    import mlflow
-
-    if not headline:
-        return
-    columns = [f"metrics.`{name}`" for name in headline]
-    columns += [
-        f"params.`{key}`"
-        for key in ("model.name", "seed")
-        if OmegaConf.select(cfg, key) is not None
-    ]
-    state = {"selectedColumns": columns, "orderByKey": columns[0], "orderByAsc": True}
-    key = f"mlflow.sharedViewState.{RESULTS_VIEW}"
-    client = mlflow.MlflowClient()
-    if client.get_experiment(experiment_id).tags.get(key) != json.dumps(state):
-        client.set_experiment_tag(experiment_id, key, json.dumps(state))
-
-
-def results_url(experiment_id: str, port: int = 5000) -> str:
-    """The address of the results view in ``mlflow ui`` (MLflow 3 opens its GenAI pages
-    without ``workflowType``)."""
-    return (
-        f"http://127.0.0.1:{port}/#/experiments/{experiment_id}/runs"
-        f"?viewStateShareKey={RESULTS_VIEW}&workflowType=machine_learning"
-    )
 
 
 def log_headlines(uri: str, parent_id: str) -> None:

@@ -76,7 +76,7 @@ def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
     RUNNING runs whose process is gone from this machine count as ended (``fail_dead``:
     they are marked FAILED in the store)."""
     from pipeline.core.errors import StoreError
-    from pipeline.core.tracking import (
+    from pipeline.core.store import (
         all_pages,
         check_sqlite_store,
         fail_dead_runs,

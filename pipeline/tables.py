@@ -37,7 +37,8 @@ from pipeline.core.report import (
     write_file,
 )
 from pipeline.core.report import tables_settings as default_settings
-from pipeline.core.tracking import NOTE_TAG, environment_tags, init_store, tracking_uri
+from pipeline.core.run import environment_tags
+from pipeline.core.store import NOTE_TAG, init_store, tracking_uri
 
 log = logging.getLogger(__name__)
 SUMMARY = "summary.md"

@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from mlflow.tracking import MlflowClient
 
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.store import tracking_uri
 
 
 def main(runs_dir: str, figure: str) -> None:

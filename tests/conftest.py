@@ -32,7 +32,7 @@ def _settings_schemas() -> None:
 @pytest.fixture(scope="session")
 def _empty_mlflow_db(tmp_path_factory) -> Path:
     """An MLflow SQLite store with its schema, created once (creating one takes seconds)."""
-    from pipeline.core.tracking import init_store
+    from pipeline.core.store import init_store
 
     folder = tmp_path_factory.mktemp("mlflow_template")
     init_store(folder, "Default")
@@ -69,6 +69,6 @@ def _no_store_left_from_another_test(monkeypatch):
 
     while mlflow.active_run() is not None:
         mlflow.end_run()
-    # The second: the store the pipeline itself chose (pipeline.core.tracking.use_store).
+    # The second: the store the pipeline itself chose (pipeline.core.store.use_store).
     for name in ("MLFLOW_TRACKING_URI", "PIPELINE_TRACKING_URI_SET_BY_PIPELINE"):
         monkeypatch.delenv(name, raising=False)

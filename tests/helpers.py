@@ -45,7 +45,7 @@ def check_one_line_refusal(done: subprocess.CompletedProcess, named: str) -> Non
 
 def recipe_tags(params: dict) -> dict[str, str]:
     """The ``recipe`` and ``render_recipe`` tags a job with these flattened settings logs
-    (:func:`pipeline.core.tracking.job_run`): hand-made runs need them to be tabled."""
+    (:func:`pipeline.core.run.job_run`): hand-made runs need them to be tabled."""
     from pipeline.core.recipe import recipe_id, render_recipe_id
 
     return {"recipe": recipe_id(params), "render_recipe": render_recipe_id(params)}

@@ -12,7 +12,7 @@ from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job
 from pipeline.core.errors import ConfigError, DataError
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.store import tracking_uri
 
 
 def _runs(cfg):
@@ -92,7 +92,7 @@ def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, cap
 
 def test_the_recipe_tag_ignores_the_seed_and_speed_settings_only(smoke_cfg):
     from pipeline.core.recipe import recipe_id
-    from pipeline.core.tracking import flatten
+    from pipeline.core.run import flatten
 
     recipe = recipe_id(flatten(smoke_cfg()))
     assert recipe == recipe_id(flatten(smoke_cfg("seed=3", "train.threads=1")))
@@ -198,7 +198,7 @@ def test_a_sweep_that_builds_tables_ends_with_a_short_verdict(
 
     import pipeline.tables
     from pipeline.app import print_sweep_result
-    from pipeline.core.tracking import NOTE_TAG, init_store
+    from pipeline.core.store import NOTE_TAG, init_store
 
     mlflow_template(tmp_path)
     experiment_id = init_store(tmp_path, "btf")

@@ -18,7 +18,7 @@ from pipeline.app import run_job
 from pipeline.brdf_map.runner import em_settings, load_reconstruction, merl_lookup
 from pipeline.brdf_map.settings import MicrofacetEMSettings
 from pipeline.core.errors import ConfigError, DataError
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.store import tracking_uri
 from pipeline.data.brdf import (
     MeasuredBRDF,
     half_diff_to_directions,

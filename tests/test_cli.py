@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from mlflow.tracking import MlflowClient
 
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.store import tracking_uri
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -353,7 +353,8 @@ def test_the_logged_pyfunc_model_answers_like_query(tmp_path, mlflow_template, m
     import mlflow
     import pandas as pd
 
-    from pipeline.core.tracking import init_store
+    from pipeline.core.run_log import RunLog
+    from pipeline.core.store import init_store
 
     # init_store points MLflow at the store (MLFLOW_TRACKING_URI too): restored afterwards.
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
@@ -365,7 +366,7 @@ def test_the_logged_pyfunc_model_answers_like_query(tmp_path, mlflow_template, m
     write_compressed(folder / FILE_NAME, **_model("clustered_scaled"))
     with mlflow.start_run(experiment_id=experiment) as run:
         start = time.perf_counter()
-        export.log_compressed(Entry("export", "key", folder))
+        export.log_compressed(RunLog(on=True), Entry("export", "key", folder))
         seconds = time.perf_counter() - start
     print(f"log_compressed took {seconds:.2f} s")
     run_id = run.info.run_id
@@ -435,7 +436,7 @@ def test_two_equal_runs_log_the_same_bytes(tmp_path, mlflow_template, model):
     from mlflow.tracking import MlflowClient
 
     from pipeline.app import run_job
-    from pipeline.core.tracking import tracking_uri
+    from pipeline.core.store import tracking_uri
 
     logged = []
     for name in ("first", "second"):

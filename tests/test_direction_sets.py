@@ -376,7 +376,7 @@ def test_the_default_direction_set_keeps_the_dataset_folder_and_the_cache_keys()
 
 
 def _only_run(runs_dir: Path, experiment: str):
-    from pipeline.core.tracking import tracking_uri
+    from pipeline.core.store import tracking_uri
 
     client = MlflowClient(tracking_uri(runs_dir))
     (run,) = client.search_runs([client.get_experiment_by_name(experiment).experiment_id])

@@ -20,9 +20,10 @@ from helpers import ROOT, check_one_line_refusal, compose_config
 from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
 from mlflow.tracking import MlflowClient
 
-from pipeline.core import files, tracking
+from pipeline.core import files, store
 from pipeline.core.errors import DataError
-from pipeline.core.tracking import ENDED_BY_TAG, ERROR_TAG, init_store, job_run, tracking_uri
+from pipeline.core.run import job_run
+from pipeline.core.store import ENDED_BY_TAG, ERROR_TAG, init_store, tracking_uri
 
 FREE = 24 << 10
 FULL = "database or disk is full"  # SQLite's SQLITE_FULL, all a full disk says to MLflow
@@ -87,7 +88,7 @@ def test_a_store_created_on_a_full_disk_is_named_with_the_space_left(tmp_path, m
         init_store(runs, "fourier_smoke")
     assert str(caught.value) == (
         f"no space left for {runs / 'mlflow.db'}: 24.0 KiB free in {runs}; "
-        f"{tracking.STORE_FULL_HINT}"
+        f"{store.STORE_FULL_HINT}"
     )
     assert [p.name for p in runs.iterdir()] == [".mlflow.lock"]  # no store, no partial one
 
@@ -146,7 +147,7 @@ def test_a_run_the_full_store_cannot_end_is_marked_failed_at_the_next_start(
     assert mlflow.active_run() is None
     assert _status(runs, run.info.run_id).info.status == "RUNNING"
     # Space freed, and the job's process gone (as it is once the command has exited).
-    monkeypatch.setattr(tracking, "process_alive", lambda pid: False)
+    monkeypatch.setattr(store, "process_alive", lambda pid: False)
     init_store(runs, "fourier_smoke")
     ended = _status(runs, run.info.run_id)
     assert ended.info.status == "FAILED" and ended.data.tags[ENDED_BY_TAG].startswith("its process")

@@ -9,7 +9,7 @@ from mlflow.tracking import MlflowClient
 from pipeline.app import run_job
 from pipeline.btf import tables
 from pipeline.btf.stages import data_truth_rmse
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.store import tracking_uri
 
 
 def _runs(cfg):

@@ -22,7 +22,7 @@ from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job
 from pipeline.core.errors import ConfigError
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.store import tracking_uri
 from pipeline.data.images import read_exr_channels
 from pipeline.fourier import report as fourier_tables
 from pipeline.fourier import segmentation
@@ -341,7 +341,7 @@ def _hand_made_runs() -> pd.DataFrame:
                         "tags.fourier_solver": "svd" if lam == 0 else "normal",
                     }
                 )
-    for row in rows:  # the recipe tag a job logs (pipeline.core.tracking.job_run)
+    for row in rows:  # the recipe tag a job logs (pipeline.core.run.job_run)
         params = {k[len("params.") :]: v for k, v in row.items() if k.startswith("params.")}
         row["tags.recipe"] = recipe_tags(params)["recipe"]
     runs = pd.DataFrame(rows)

@@ -13,7 +13,7 @@ from mlflow.tracking import MlflowClient
 
 from pipeline.core.errors import ConfigError
 from pipeline.core.methods import Method, method_of, registered, reports
-from pipeline.core.tracking import NOTE_TAG, tracking_uri
+from pipeline.core.store import NOTE_TAG, tracking_uri
 
 # A method that lives outside the package: the job must find it through its YAML only.
 DUMMY_MODULE = """

@@ -19,7 +19,7 @@ from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.recipe import left_out
 from pipeline.core.settings import RESULT, roles, setting
 from pipeline.core.sweeper import expand
-from pipeline.core.tracking import flatten
+from pipeline.core.run import flatten
 
 
 def _jobs(*command_line: str) -> list[list[str]]:
@@ -169,7 +169,7 @@ def test_the_latent_texture_model_runs_through_the_chain(smoke_cfg):
     from pipeline.btf.compressed import FILE_NAME, load_compressed, payload_bytes
     from pipeline.btf.model import load_decoder
     from pipeline.btf.stereographic import direction_features
-    from pipeline.core.tracking import tracking_uri
+    from pipeline.core.store import tracking_uri
 
     cfg = smoke_cfg("model=latent_texture")
     run_job(cfg)

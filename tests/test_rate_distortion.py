@@ -16,7 +16,7 @@ from mlflow.tracking import MlflowClient
 from scipy import stats
 
 from pipeline.btf.rate_distortion import RMSE_TIE
-from pipeline.core.tracking import init_store, tracking_uri
+from pipeline.core.store import init_store, tracking_uri
 from pipeline.tables import build_tables, default_settings
 
 DATASET = "synthetic:plain_weave"

@@ -14,7 +14,8 @@ from pipeline.brdf_map import report as brdf_report
 from pipeline.btf import tables
 from pipeline.btf.render import report as render_report
 from pipeline.core.recipe import NOT_RECIPE, left_out, recipe_id, render_recipe_id
-from pipeline.core.tracking import flatten, init_store
+from pipeline.core.run import flatten
+from pipeline.core.store import init_store
 
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
 

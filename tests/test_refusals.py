@@ -13,7 +13,7 @@ from helpers import ROOT, check_one_line_refusal
 from mlflow.tracking import MlflowClient
 
 from pipeline.core.errors import DataError
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.store import tracking_uri
 from pipeline.data.brdf import UTIA_N_BYTES, read_utia_brdf, utia_directions, write_utia_brdf
 
 # (experiment, override, what the one line must name); every one is refused before any

@@ -20,7 +20,8 @@ from pipeline.btf.render.stage import (
 )
 from pipeline.core.errors import ConfigError
 from pipeline.core.recipe import recipe_id
-from pipeline.core.tracking import flatten, tracking_uri
+from pipeline.core.run import flatten
+from pipeline.core.store import tracking_uri
 
 
 def test_window_sums_match_a_loop():

@@ -418,7 +418,7 @@ def test_a_stopped_sweep_leaves_no_worker_and_no_running_run(tmp_path, mlflow_te
 
 def test_a_stop_removes_this_process_temporaries_and_no_one_elses(tmp_path):
     """The names the cache, the data generators and the store give their temporaries
-    (pipeline.core.cache.temporary_name, pipeline.btf.synthetic, pipeline.core.tracking)."""
+    (pipeline.core.cache.temporary_name, pipeline.btf.synthetic, pipeline.core.store)."""
     from pipeline.core.cache import temporary_name
 
     me, other = os.getpid(), os.getpid() + 1

@@ -14,7 +14,7 @@ from helpers import compose_config
 from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job
-from pipeline.core.tracking import tracking_uri
+from pipeline.core.store import tracking_uri
 
 BAR = 0.5  # at most this fraction of the mean-ABRDF baseline's RMSE
 

@@ -16,7 +16,7 @@ from pipeline import cache as cache_command
 from pipeline.core.cache import StageCache, save_arrays
 from pipeline.core.errors import StoreError
 from pipeline.core.process import process_alive
-from pipeline.core.tracking import init_store, tracking_uri
+from pipeline.core.store import init_store, tracking_uri
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -132,7 +132,7 @@ def test_a_tracking_server_chosen_by_the_user_stays_chosen(tmp_path, monkeypatch
     """MLFLOW_TRACKING_URI (an `mlflow server`) wins over paths.runs, also after this
     process pointed MLflow at it (the sweep parent asks twice), and in its subprocesses;
     a SQLite store the pipeline chose itself never outlives its paths.runs."""
-    from pipeline.core.tracking import use_store
+    from pipeline.core.store import use_store
 
     server = "http://127.0.0.1:5055"
     monkeypatch.delenv("PIPELINE_TRACKING_URI_SET_BY_PIPELINE", raising=False)  # restored after
@@ -186,7 +186,7 @@ def test_each_experiment_gets_a_description_that_a_user_s_edit_replaces(tmp_path
     metrics to read first; a job of another method extends it; an edited note stays."""
     from helpers import compose_config
 
-    from pipeline.core.tracking import NOTE_TAG
+    from pipeline.core.store import NOTE_TAG
 
     mlflow_template(tmp_path)
     cfg = compose_config("experiment=smoke", f"paths.runs={tmp_path}")

@@ -14,7 +14,7 @@ import pytest
 
 from pipeline import cache as cache_command
 from pipeline.core.errors import StoreError
-from pipeline.core.tracking import init_store
+from pipeline.core.store import init_store
 
 
 def _dead_pid() -> int:

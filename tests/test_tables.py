@@ -10,7 +10,7 @@ from helpers import recipe_tags
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
-from pipeline.core.tracking import init_store, tracking_uri
+from pipeline.core.store import init_store, tracking_uri
 from pipeline.tables import build_tables, default_settings
 
 # (method, k, seed, rmse): k = 500 is clearly worse than k = 1000 beyond the seed spread.
@@ -287,12 +287,13 @@ def test_runs_near_the_mean_abrdf_baseline_are_flagged(tmp_path, settings):
 
 def test_a_failed_training_warns_and_reports_its_ratio(caplog):
     from pipeline.btf.runner import check_against_baseline
+    from pipeline.core.run_log import NO_RUN
 
     good = {"rmse": 0.03, "rmse_mean_abrdf": 0.15}
-    check_against_baseline(good)
+    check_against_baseline(NO_RUN, good)
     assert good["rmse_ratio_to_mean_abrdf"] == pytest.approx(0.2) and not caplog.records
     bad = {"rmse": 0.16, "rmse_mean_abrdf": 0.15}
-    check_against_baseline(bad)
+    check_against_baseline(NO_RUN, bad)
     assert "training failed" in caplog.text and "1.07 x the mean-ABRDF baseline" in caplog.text
 
 

@@ -29,7 +29,6 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
-import mlflow
 import numpy as np
 
 from pipeline.brdf_map.ashikhmin_shirley import AshikhminShirleyFit, fit_ashikhmin_shirley
@@ -407,34 +406,18 @@ def run(ctx: Context) -> dict[str, float]:
         n_measured=float(data.manifest["summary"]["n_measured"]),
         n_missing=float(data.manifest["summary"]["n_missing"]),
     )
-    if mlflow.active_run() is not None:
-        _log_objective(fitted.array("objective", mmap=False))
-        mlflow.log_artifacts(str(evaluated.path / "figures"), "figures")
-        for name in (
-            "parameters.json",
-            "objective.npy",
-            "objective_outer.npy",
-            "observed.npy",
-            "cell_measured.npy",
-        ):
-            mlflow.log_artifact(str(fitted.file(name)), "fit")
-        mlflow.log_artifact(str(baselines.file("ashikhmin_shirley.json")), "baselines")
-        mlflow.log_artifact(
-            str(baselines.path / "noprior" / "parameters.json"), "baselines/noprior"
-        )
-        mlflow.log_artifact(str(evaluated.file("reconstruction_utia.bin")), "fit")
+    # The objective J at every EM iteration as the metric ``objective`` (step = iteration).
+    ctx.log.series("objective", list(enumerate(fitted.array("objective", mmap=False))))
+    ctx.log.folder(evaluated.path / "figures", "figures")
+    for name in (
+        "parameters.json",
+        "objective.npy",
+        "objective_outer.npy",
+        "observed.npy",
+        "cell_measured.npy",
+        "reconstruction_utia.bin",
+    ):
+        ctx.log.file((evaluated if name.endswith(".bin") else fitted).file(name), "fit")
+    ctx.log.file(baselines.file("ashikhmin_shirley.json"), "baselines")
+    ctx.log.file(baselines.path / "noprior" / "parameters.json", "baselines/noprior")
     return metrics
-
-
-def _log_objective(objective: np.ndarray) -> None:
-    """The objective J at every EM iteration as the metric ``objective`` (step = iteration).
-
-    One batch instead of one ``mlflow.log_metric`` call per step: there are hundreds of
-    iterations and each call is a database transaction.
-    """
-    from mlflow.entities import Metric
-    from mlflow.tracking import MlflowClient
-
-    now = int(time.time() * 1000)
-    values = [Metric("objective", float(v), now, i) for i, v in enumerate(objective)]
-    MlflowClient().log_batch(mlflow.active_run().info.run_id, metrics=values)

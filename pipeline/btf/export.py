@@ -28,6 +28,7 @@ from pipeline.btf.compressed import (
 )
 from pipeline.btf.models import model_of
 from pipeline.core.cache import Entry
+from pipeline.core.run_log import RunLog
 from pipeline.core.stage import Context, plain_settings
 
 
@@ -135,8 +136,8 @@ def _checked_against_table1(path: Path, table1: dict) -> dict:
     }
 
 
-def log_compressed(entry: Entry, log_model: bool = True) -> None:
-    """Log the export stage's file to the active MLflow run as ``compressed/btf.safetensors``
+def log_compressed(log: RunLog, entry: Entry, log_model: bool = True) -> None:
+    """Log the export stage's file to the job's MLflow run as ``compressed/btf.safetensors``
     (the cached file as it is: equal models log equal bytes) and, with ``log_model``, an
     MLflow pyfunc model ``compressed_btf`` around it::
 
@@ -148,8 +149,8 @@ def log_compressed(entry: Entry, log_model: bool = True) -> None:
     The model needs this package (``pipeline``) importable where it is loaded.
     """
     path = entry.file(FILE_NAME)
-    mlflow.log_artifact(str(path), "compressed")
-    if not log_model:
+    log.file(path, "compressed")
+    if not (log.on and log_model):
         return
     with tempfile.TemporaryDirectory() as tmp:
         # "Models from code": the model is this short script, not a pickled object.

@@ -228,7 +228,7 @@ def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path)
     ``out`` (PNG and EXR); nothing for PCA, which has no decoder to query."""
     from pipeline.btf.fig7 import draw_fig7
     from pipeline.core.recipe import recipe_id
-    from pipeline.core.tracking import flatten
+    from pipeline.core.run import flatten
 
     if "train" not in cache_keys:
         return []

@@ -12,11 +12,9 @@ stages are all cached starts in a fraction of the time.
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
-import mlflow
 import numpy as np
 
 from pipeline.btf import interpolation, stages
@@ -27,11 +25,12 @@ from pipeline.btf.stereographic import direction_features
 from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.cache import Entry, save_arrays, save_json
 from pipeline.core.methods import resolve
+from pipeline.core.run_log import RunLog
 from pipeline.core.settings import SPEED, check_settings, constraints, roles
 from pipeline.core.stage import Context, plain_settings
 from pipeline.data.directions import direction_sets
 
-log = logging.getLogger(__name__)
+logger = logging.getLogger(__name__)
 
 
 def check_settings_at_the_door(cfg, model: Model) -> None:
@@ -108,14 +107,12 @@ def train_stage(
         train_dirs = interpolation.training_directions(directions, heldout)
 
         def on_epoch(epoch: int, loss: float, step: int) -> None:
-            if mlflow.active_run() is not None:
-                # Keyed by training step, like the curve_* metrics, so that the UI's "Step"
-                # axis means one thing; the epoch is the point's index.
-                mlflow.log_metric("loss", loss, step=step)
+            # Keyed by training step, like the curve_* metrics, so that the UI's "Step"
+            # axis means one thing; the epoch is the point's index.
+            ctx.log.metric("loss", loss, step=step)
 
         def on_curve(point: dict) -> None:
-            if mlflow.active_run() is not None:
-                log_curve_point(point)
+            log_curve_point(ctx.log, point)
 
         result = train(
             abrdf,
@@ -150,9 +147,9 @@ def train_stage(
     return ctx.run("train", stage_settings, inputs, compute, version="3")
 
 
-def log_curve_point(point: dict) -> None:
+def log_curve_point(log: RunLog, point: dict) -> None:
     """One point of the RMSE-versus-time curve, as MLflow metrics keyed by step."""
-    mlflow.log_metrics(
+    log.metrics(
         {
             "curve_rmse": point["rmse"],
             "curve_seconds": point["seconds"],
@@ -281,15 +278,15 @@ def run(ctx: Context) -> dict[str, float]:
         extra["pca_explained_variance"] = reduced.manifest["summary"]["explained_variance"]
         extra["kmeans_inertia"] = clusters.manifest["summary"]["inertia"]
     trained = resolve(model.stage)(ctx, cropped, prep, clusters, reps)
-    if trained.hit and model.trains and mlflow.active_run() is not None:
+    if trained.hit and model.trains:
         # A cached model: replay its loss curve so every run shows one, at the steps where
         # train() logged it (the end of each pass over the texels; the last may be cut).
         per_pass = cropped.manifest["summary"]["M"] // cfg.train.batch_size
         for epoch, loss in enumerate(trained.json("losses")):
             step = min((epoch + 1) * per_pass, trained.manifest["summary"]["steps"])
-            mlflow.log_metric("loss", loss, step=step)
+            ctx.log.metric("loss", loss, step=step)
         for point in trained.json("curve"):
-            log_curve_point(point)
+            log_curve_point(ctx.log, point)
     evaluated = evaluate_stage(ctx, cropped, prep, trained)
     exported = export_stage(ctx, cropped, prep, trained, evaluated)
     metrics = dict(evaluated.json("metrics"))
@@ -305,19 +302,17 @@ def run(ctx: Context) -> dict[str, float]:
         n_directions=cropped.manifest["summary"]["N"],
     )
     add_psnr(metrics)
-    check_against_baseline(metrics)
-    log_evaluation(evaluated, metrics)
-    log_stored_as(exported.manifest["summary"]["stored_as"])
-    if mlflow.active_run() is not None:
-        log_compressed(exported)
+    check_against_baseline(ctx.log, metrics)
+    log_evaluation(ctx.log, evaluated, metrics)
+    log_stored_as(ctx.log, exported.manifest["summary"]["stored_as"])
+    log_compressed(ctx.log, exported)
     return metrics
 
 
-def log_stored_as(stored_as: dict[str, str]) -> None:
+def log_stored_as(log: RunLog, stored_as: dict[str, str]) -> None:
     """Tags ``stored_as.<part>`` (decoder, latents, list, extra): the type each of Table 1's
     parts is stored in, read from what was written (Table 1's captions come from them)."""
-    if mlflow.active_run() is not None:
-        mlflow.set_tags({f"stored_as.{part}": dtype for part, dtype in stored_as.items()})
+    log.tags({f"stored_as.{part}": dtype for part, dtype in stored_as.items()})
 
 
 def truth_metrics(ctx: Context, cropped: Entry, prep: Entry) -> dict[str, float]:
@@ -326,11 +321,10 @@ def truth_metrics(ctx: Context, cropped: Entry, prep: Entry) -> dict[str, float]
     return {} if floor is None else dict(floor.manifest["summary"])
 
 
-def log_evaluation(entry: Entry, metrics: dict) -> None:
-    """The per-direction RMSE (``evaluate/``) and ``metrics.json`` on the active run."""
-    if mlflow.active_run() is not None:
-        mlflow.log_artifact(str(entry.file("rmse_per_direction.npy")), "evaluate")
-        mlflow.log_text(json.dumps(metrics, indent=1), "metrics.json")
+def log_evaluation(log: RunLog, entry: Entry, metrics: dict) -> None:
+    """The per-direction RMSE (``evaluate/``) and ``metrics.json`` on the job's run."""
+    log.file(entry.file("rmse_per_direction.npy"), "evaluate")
+    log.json(metrics, "metrics.json")
 
 
 def add_psnr(metrics: dict) -> None:
@@ -347,7 +341,7 @@ def add_psnr(metrics: dict) -> None:
 NEAR_BASELINE = 0.9
 
 
-def check_against_baseline(metrics: dict) -> None:
+def check_against_baseline(log: RunLog, metrics: dict) -> None:
     """Add ``rmse_ratio_to_mean_abrdf``; warn and tag the run when the model ends within
     10 % of the trivial mean-ABRDF baseline or above it (``tags.training_failed``)."""
     ratio = metrics["rmse"] / metrics["rmse_mean_abrdf"]
@@ -359,9 +353,8 @@ def check_against_baseline(metrics: dict) -> None:
         f"baseline ({metrics['rmse_mean_abrdf']:.4g}); check train.* (lr, steps) "
         f"against the crop size"
     )
-    log.warning(message)
-    if mlflow.active_run() is not None:
-        mlflow.set_tag("training_failed", message)
+    logger.warning(message)
+    log.tags({"training_failed": message})
 
 
 def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
@@ -442,9 +435,8 @@ def run_linear(ctx: Context) -> dict[str, float]:
         **truth_metrics(ctx, cropped, prep),
     }
     add_psnr(metrics)
-    check_against_baseline(metrics)
-    log_stored_as(exported.manifest["summary"]["stored_as"])
-    log_evaluation(fitted, metrics)
-    if mlflow.active_run() is not None:
-        log_compressed(exported)
+    check_against_baseline(ctx.log, metrics)
+    log_stored_as(ctx.log, exported.manifest["summary"]["stored_as"])
+    log_evaluation(ctx.log, fitted, metrics)
+    log_compressed(ctx.log, exported)
     return metrics

@@ -135,7 +135,7 @@ def run_chain(
     """
     import mlflow
 
-    from pipeline.core.tracking import use_store
+    from pipeline.core.store import use_store
 
     rows = []
     # PCA at the file's own rank (its components summed over the channels), in float32: the

@@ -95,7 +95,7 @@ def render_recipe_id(params: Mapping[str, object]) -> str:
 def with_recipe(runs: pd.DataFrame, tag: str = RECIPE_TAG) -> pd.DataFrame:
     """``runs`` less those without the recipe ``tag``, with one warning saying how many
     were left out. A job's run gets the tag when it starts
-    (:func:`pipeline.core.tracking.job_run`), so a run without it was logged into the store
+    (:func:`pipeline.core.run.job_run`), so a run without it was logged into the store
     by something else (by hand, another program): whether it may pool with others as a seed
     cannot be checked."""
     if runs.empty:

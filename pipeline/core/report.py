@@ -18,7 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from pipeline.core.errors import ConfigError
 from pipeline.core.files import write_atomic
 from pipeline.core.methods import CONF_DIR
-from pipeline.core.tracking import use_store
+from pipeline.core.store import use_store
 
 TABLES_EXPERIMENT = "tables"  # where `python -m pipeline.tables` logs what it writes
 TABLES_HINT = "free some space or point paths.runs elsewhere"

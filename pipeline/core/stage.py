@@ -16,24 +16,27 @@ from omegaconf import Container, DictConfig, OmegaConf
 
 from pipeline.core.cache import Entry, StageCache
 from pipeline.core.memory import stage_peak
+from pipeline.core.run_log import NO_RUN, RunLog
 
 
 @dataclass
 class Context:
-    """What every runner needs: the config, the cache, and the keys used so far."""
+    """What every runner needs: the config, the cache, the job's run to log to, and the
+    keys used so far."""
 
     cfg: DictConfig
     cache: StageCache
+    log: RunLog = NO_RUN
     keys: dict[str, str] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
     peak_rss_mb: dict[str, float] = field(default_factory=dict)
 
     @classmethod
-    def from_config(cls, cfg: DictConfig) -> Context:
+    def from_config(cls, cfg: DictConfig, log: RunLog = NO_RUN) -> Context:
         """The context of a job; opening its cache removes what killed jobs left there."""
         cache = StageCache(cfg.paths.cache)
         cache.remove_stale_temporaries()
-        return cls(cfg, cache)
+        return cls(cfg, cache, log)
 
     def run(
         self, stage: str, settings, inputs: dict[str, Entry], compute, *, version: str

@@ -22,7 +22,6 @@ import logging
 import time
 from pathlib import Path
 
-import mlflow
 import numpy as np
 
 from pipeline.core.cache import Entry, save_arrays
@@ -254,8 +253,7 @@ def run(ctx: Context) -> dict[str, float]:
     metrics = {k: float(v) for k, v in summary.items() if k != "regions"}
     metrics.update({k: float(v) for k, v in segmented.json("metrics").items()})
     metrics["pattern_mean"] = float(rendered.manifest["summary"]["mean"])
-    if mlflow.active_run() is not None:
-        mlflow.set_tag("mlflow.runName", fr.describe(ctx.cfg, data))
-        mlflow.log_artifacts(str(rendered.path / "pattern"), "pattern")
-        mlflow.log_artifact(str(segmented.file("segmentation.png")), "figures")
+    ctx.log.tags({"mlflow.runName": fr.describe(ctx.cfg, data)})
+    ctx.log.folder(rendered.path / "pattern", "pattern")
+    ctx.log.file(segmented.file("segmentation.png"), "figures")
     return metrics

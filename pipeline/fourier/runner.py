@@ -42,7 +42,6 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-import mlflow
 import numpy as np
 
 from pipeline.core.cache import Entry, save_arrays, save_json
@@ -423,10 +422,13 @@ def run(ctx: Context) -> dict[str, float]:
         n_validation_lights=summary["n_validation"],
         n_test_lights=summary["n_test"],
     )
-    if mlflow.active_run() is not None:
-        mlflow.set_tag("mlflow.runName", describe(ctx.cfg, data))
-        mlflow.set_tag("fourier_solver", fitted.manifest["settings"]["solver"])
-        mlflow.set_tag("heldout_reference", summary["reference"])
-        mlflow.log_artifacts(str(evaluated.path / "figures"), "figures")
-        mlflow.log_artifact(str(segmented.file("segmentation.png")), "figures")
+    ctx.log.tags(
+        {
+            "mlflow.runName": describe(ctx.cfg, data),
+            "fourier_solver": fitted.manifest["settings"]["solver"],
+            "heldout_reference": summary["reference"],
+        }
+    )
+    ctx.log.folder(evaluated.path / "figures", "figures")
+    ctx.log.file(segmented.file("segmentation.png"), "figures")
     return {k: float(v) for k, v in metrics.items()}

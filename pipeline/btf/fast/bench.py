@@ -198,7 +198,7 @@ def paper_run(runs: str, steps: int, threads: int, device: str = "cpu") -> dict:
     ``device`` (``train.device``; the backend: ``train.backend=auto``'s)."""
     import mlflow
 
-    from pipeline.core.tracking import use_store
+    from pipeline.core.store import use_store
 
     root = Path(runs) / "bench_paper"
     figures: dict = {}
@@ -661,7 +661,8 @@ def _flatten(figures: dict, prefix: str = "") -> dict:
 def _record(runs: str, figures: dict) -> None:
     import mlflow
 
-    from pipeline.core.tracking import environment_tags, init_store
+    from pipeline.core.run import environment_tags
+    from pipeline.core.store import init_store
 
     experiment_id = init_store(runs, "bench")
     with mlflow.start_run(experiment_id=experiment_id, tags=environment_tags()):

@@ -58,10 +58,8 @@ own units (the data's linear RGB), and the RMSE is comparable with eq. 10's un-n
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -497,10 +495,8 @@ def run(ctx: Context) -> dict[str, float]:
     """The render stages for a method A job that has just run: a compressed model (its
     ``crop`` and ``export`` stages are in ``ctx.keys``) or the PCA baseline (``crop``,
     ``preprocess``, ``linear``), with the reference and, for the built-in material, the
-    truth; logs the images and crops under ``render/`` of the active MLflow run and returns
+    truth; logs the images and crops under ``render/`` of the job's MLflow run and returns
     the ``render_*`` metrics."""
-    import mlflow
-
     from pipeline.btf.models import model_of
 
     if model_of(ctx.cfg).stage is None:  # the linear chain
@@ -520,20 +516,21 @@ def run(ctx: Context) -> dict[str, float]:
     truth = truth_stage(ctx, cropped) if has_truth(ctx.cfg) else None
     rendered = model_stage(ctx, cropped, inputs, material, reference, truth)
     metrics = rendered.json("metrics")
-    if mlflow.active_run() is not None:
-        top = render_settings(ctx.cfg)["spp"][-1]
-        shown = [("model", rendered), ("reference", reference)]
-        if truth is not None:
-            shown.append(("truth", truth))
-        with tempfile.TemporaryDirectory() as tmp:
-            for name, entry in shown:
-                for suffix in (".png", ".exr"):
-                    source = entry.file(f"image_spp{top}{suffix}")
-                    (Path(tmp) / f"{name}_spp{top}{suffix}").write_bytes(source.read_bytes())
-            for path in rendered.path.glob("image_spp*.png"):
-                (Path(tmp) / f"model_{path.stem[len('image_') :]}.png").write_bytes(
-                    path.read_bytes()
-                )
-            (Path(tmp) / "crops.json").write_text(json.dumps(rendered.json("crops")))
-            mlflow.log_artifacts(tmp, "render")
+    top = render_settings(ctx.cfg)["spp"][-1]
+    shown = [("model", rendered), ("reference", reference)]
+    if truth is not None:
+        shown.append(("truth", truth))
+    named = {
+        f"{name}_spp{top}{suffix}": entry.file(f"image_spp{top}{suffix}")
+        for name, entry in shown
+        for suffix in (".png", ".exr")
+    }
+    named.update(
+        {
+            f"model_{path.stem[len('image_') :]}.png": path
+            for path in rendered.path.glob("image_spp*.png")
+        }
+    )
+    ctx.log.files(named, "render")
+    ctx.log.json(rendered.json("crops"), "render/crops.json")
     return metrics

@@ -1,4 +1,4 @@
-"""MLflow tracking: one run per Hydra job, a parent run per sweep.
+"""The MLflow store: where it is, its creation, its checks, and the runs whose process died.
 
 The store is SQLite at ``${paths.runs}/mlflow.db`` with artifacts in
 ``${paths.runs}/artifacts`` unless ``MLFLOW_TRACKING_URI`` points at a shared server.
@@ -10,44 +10,38 @@ A run records who runs it (tags ``host`` and ``pid``): any later start, ``cache 
 stopping sweep mark FAILED the RUNNING runs whose process is gone from this machine.
 
 A full disk met while the store is created or a run writes to it is one error naming the
-store's ``mlflow.db`` and the space left (:func:`store_full`); the run ends FAILED, or,
-when the store cannot take even that, is left RUNNING for the next start to mark FAILED.
+store's ``mlflow.db`` and the space left (:func:`store_full`).
+
+The job's run is :mod:`pipeline.core.run`; a sweep's parent run
+:mod:`pipeline.core.sweep_run`.
 """
 
 from __future__ import annotations
 
-import atexit
 import contextlib
 import errno
 import fcntl
+import json
 import logging
 import os
 import re
 import socket
 import sqlite3
-import subprocess
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from importlib import metadata
 from pathlib import Path
-from typing import Any
 
-from hydra.experimental.callback import Callback
-from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from pipeline.core import stopping
-from pipeline.core.errors import DataError, PipelineError, StoreError
+from pipeline.core.errors import DataError, StoreError
 from pipeline.core.files import DiskFullError, is_disk_full, no_space
-from pipeline.core.process import process_alive, stop_children
-from pipeline.core.recipe import recipe_id, render_recipe_id
+from pipeline.core.process import process_alive
 
 log = logging.getLogger(__name__)
 
 _OWN_URI = "PIPELINE_TRACKING_URI_SET_BY_PIPELINE"
-PARENT_RUN_FILE = "mlflow_parent_run_id"
 DB_NAME = "mlflow.db"
-PACKAGES = ("torch", "numpy", "scikit-learn", "mlflow", "hydra-core", "OpenEXR", "pandas")
 # MLflow 3's UI opens an experiment of this kind on its runs view (not the GenAI overview).
 EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
 EXPERIMENT_KIND = (EXPERIMENT_KIND_TAG, "custom_model_development")
@@ -259,7 +253,7 @@ def experiment_note(name: str, described: Mapping) -> str:
 def _experiment_preset(job: DictConfig) -> str | None:
     """The ``experiment=`` preset of a job (or of a sweep's config, which holds its
     ``hydra`` node), None outside Hydra."""
-    hydra_cfg = job.get("hydra") or _hydra_config()
+    hydra_cfg = job.get("hydra") or hydra_config()
     choices = OmegaConf.select(hydra_cfg, "runtime.choices") if hydra_cfg is not None else None
     preset = choices.get("experiment") if choices is not None else None
     return None if preset in (None, "none") else str(preset)
@@ -495,164 +489,14 @@ def _fail_runs_when_stopped(uri: str) -> None:
 _STOP_CLEANUPS: dict[str, int] = {}  # tracking URI -> its cleanup's token (one per store)
 
 
-def _on_stop_fail_runs(uri: str) -> None:
+def fail_runs_at_stop(uri: str) -> None:
+    """At a stop, end FAILED the runs of this store that this process (or a dead one) left
+    RUNNING; registered once per store."""
     if uri not in _STOP_CLEANUPS:
         _STOP_CLEANUPS[uri] = stopping.on_stop(lambda: _fail_runs_when_stopped(uri))
 
 
-def flatten(config: Mapping | DictConfig, prefix: str = "") -> dict[str, Any]:
-    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``; lists are kept whole as strings."""
-    if isinstance(config, DictConfig):
-        config = OmegaConf.to_container(config, resolve=True)
-    flat: dict[str, Any] = {}
-    for key, value in config.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, Mapping):
-            flat.update(flatten(value, name + "."))
-        else:
-            flat[name] = value
-    return flat
-
-
-def environment_tags() -> dict[str, str]:
-    """Git commit of the code and the versions of the packages that shape results."""
-    tags = {"git.commit": _git_commit()}
-    for package in PACKAGES:
-        try:
-            tags[f"version.{package}"] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            tags[f"version.{package}"] = "absent"
-    return tags
-
-
-def _git_commit() -> str:
-    here = Path(__file__).resolve().parent
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10
-        )
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=here,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-    except (OSError, subprocess.TimeoutExpired):
-        return "unknown"
-    if out.returncode != 0:
-        return "unknown"
-    return out.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
-
-
-def _sweep_dir() -> Path | None:
-    """The sweep folder when this process is a job of a Hydra multirun, else None."""
-    hydra_cfg = _hydra_config()
-    if hydra_cfg is None or hydra_cfg.mode != RunMode.MULTIRUN:
-        return None
-    return Path(hydra_cfg.sweep.dir)
-
-
-def _parent_run_id() -> str | None:
-    sweep = _sweep_dir()
-    if sweep is None:
-        return None
-    marker = sweep / PARENT_RUN_FILE
-    return marker.read_text().strip() if marker.is_file() else None
-
-
-@contextmanager
-def job_run(
-    cfg: DictConfig,
-    run_name: str | None = None,
-    description: str = "",
-    unused: Sequence[str] = (),
-) -> Iterator[Any]:
-    """Start the MLflow run of one job; it ends FAILED if the body raises.
-
-    Besides the flattened config as params, the run holds the resolved config
-    (``config/resolved.yaml``), the command-line overrides (``config/overrides.yaml`` and
-    the tag ``overrides``), ``description`` as its note in the UI and, when the job runs
-    under Hydra, Hydra's own files and the job's log (``hydra/``), logged as it ends.
-
-    The body's error is the one raised: logging those files and ending the run FAILED
-    must not replace it when they fail too (on a full disk, say; the run is then left
-    RUNNING for the next start to mark FAILED). A full disk met writing the store, in
-    the body or here, is raised as :func:`store_full`'s error.
-    """
-    import mlflow
-
-    experiment_id = init_store(cfg.paths.runs, cfg.tracking.experiment, job=cfg)
-    uri = tracking_uri(cfg.paths.runs)
-    _on_stop_fail_runs(uri)
-    tags = environment_tags()
-    tags.update({str(k): str(v) for k, v in (cfg.tracking.get("tags") or {}).items()})
-    params = {k: v for k, v in flatten(cfg).items() if k not in set(unused)}
-    tags["recipe"] = recipe_id(params)  # equal for seeds of one model (pipeline.core.recipe)
-    if any(key.startswith("btf.render.") for key in params):
-        tags["render_recipe"] = render_recipe_id(params)  # and rendered alike
-    # Who runs it: a later start marks it FAILED if this process dies without ending it.
-    tags.update(host=socket.gethostname(), pid=str(os.getpid()))
-    overrides = _task_overrides()
-    tags["overrides"] = " ".join(overrides)
-    if description:
-        tags[NOTE_TAG] = description
-    run_id = status = None  # the run, and the status it is left with when the job fails
-    try:
-        with mlflow.start_run(
-            experiment_id=experiment_id,
-            run_name=run_name,
-            parent_run_id=_parent_run_id(),
-            tags=tags,
-        ) as run:
-            run_id = run.info.run_id
-            try:
-                # Every setting, unset ones (model.k of Neural BTF) as "None": a null is a
-                # value that the tables compare like any other (pipeline.core.recipe).
-                mlflow.log_params({k: _param_value(v) for k, v in params.items()})
-                mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
-                mlflow.log_text(OmegaConf.to_yaml(overrides), "config/overrides.yaml")
-                log.info("MLflow run %s in %s", run_id, uri)
-                yield run
-                stopping.check()  # a stop the job's code swallowed: the run ends FAILED
-                _log_hydra_output()
-            except BaseException as error:
-                # A refused setting or file, a full disk: the run says which (if it can).
-                named = error if isinstance(error, PipelineError) else store_full(error, uri)
-                if named is not None:
-                    with contextlib.suppress(Exception):
-                        mlflow.set_tag(ERROR_TAG, " ".join(str(named).split())[:5000])
-                if stopping.requested() is not None:
-                    with contextlib.suppress(Exception):
-                        mlflow.set_tag(ENDED_BY_TAG, f"stopped by {stopping.describe()}")
-                with contextlib.suppress(Exception):
-                    _log_hydra_output()
-                status = _end_failed_run(run_id)
-                raise
-    except Exception as error:
-        # Here too when the run could not be created, or not ended FINISHED (left RUNNING).
-        full = store_full(error, uri, run_id, status)
-        if full is None:
-            raise
-        raise full from error
-
-
-def _end_failed_run(run_id: str) -> str:
-    """End the active run FAILED, before mlflow.start_run's exit would (whose error, when
-    the store cannot take it, would replace the job's); returns the status it is left
-    with: FAILED, or RUNNING for the next start to mark FAILED (:func:`fail_dead_runs`)."""
-    import mlflow
-
-    try:
-        mlflow.end_run("FAILED")  # takes it off MLflow's stack first, whatever follows
-    except Exception as error:
-        why = "the disk is full" if is_disk_full(error) else type(error).__name__
-        log.warning("run %s is left RUNNING (%s): the next start marks it FAILED", run_id, why)
-        return "RUNNING"
-    return "FAILED"
-
-
-def _hydra_config():
+def hydra_config():
     """Hydra's config of this job, or None outside a Hydra app (a test, a notebook)."""
     try:
         from hydra.core.hydra_config import HydraConfig
@@ -662,119 +506,36 @@ def _hydra_config():
         return None
 
 
-def _task_overrides() -> list[str]:
-    hydra_cfg = _hydra_config()
-    return list(hydra_cfg.overrides.task) if hydra_cfg is not None else []
+# The runs table of the UI shows no metric by default; a shared view (an experiment tag the
+# UI reads for ?viewStateShareKey=...) shows the headline metrics as columns, best first.
+RESULTS_VIEW = "results"
 
 
-def _log_hydra_output() -> None:
-    """Log the job's Hydra folder (``.hydra/``: config, overrides; the job's ``.log``)."""
+def share_results_view(experiment_id: str, headline: list[str], cfg: DictConfig) -> None:
+    """Set the experiment's shared view :data:`RESULTS_VIEW`: the runs table with the
+    headline metrics, the model and the seed as columns, sorted by the first headline
+    (:func:`results_url`)."""
     import mlflow
 
-    hydra_cfg = _hydra_config()
-    if hydra_cfg is None or not hydra_cfg.runtime.output_dir:
+    if not headline:
         return
-    output = Path(hydra_cfg.runtime.output_dir)
-    for handler in logging.getLogger().handlers:
-        handler.flush()  # the job's .log file holds every line written so far
-    for path in sorted(output.glob(".hydra/*.yaml")) + sorted(output.glob("*.log")):
-        mlflow.log_artifact(str(path), "hydra")
+    columns = [f"metrics.`{name}`" for name in headline]
+    columns += [
+        f"params.`{key}`"
+        for key in ("model.name", "seed")
+        if OmegaConf.select(cfg, key) is not None
+    ]
+    state = {"selectedColumns": columns, "orderByKey": columns[0], "orderByAsc": True}
+    key = f"mlflow.sharedViewState.{RESULTS_VIEW}"
+    client = mlflow.MlflowClient()
+    if client.get_experiment(experiment_id).tags.get(key) != json.dumps(state):
+        client.set_experiment_tag(experiment_id, key, json.dumps(state))
 
 
-def _param_value(value: Any) -> str:
-    text = str(value)
-    return text if len(text) <= 6000 else text[:5997] + "..."
-
-
-def swept_settings(config: DictConfig) -> dict[str, str]:
-    """The multirun's settings from its config's sweeper and its command line, in order:
-    ``{"variant": "neural_btf,k128", "seed": "0", ...}`` (the command line wins)."""
-    settings = {str(k): str(v) for k, v in (config.hydra.sweeper.get("params") or {}).items()}
-    for override in config.hydra.overrides.task:
-        key, _, value = override.partition("=")
-        settings[key.lstrip("+~")] = value
-    return settings
-
-
-class SweepParentRun(Callback):
-    """Hydra callback: one MLflow parent run per multirun, its jobs as children.
-
-    Registered in ``conf/config.yaml`` under ``hydra.callbacks``. The parent's id is
-    written into the sweep folder, where every job (joblib worker or SLURM task) reads it.
-    When the launching process is stopped by a signal (:mod:`pipeline.core.stopping`), the
-    parent run ends FAILED at once, then the joblib workers are stopped (their runs end
-    FAILED too); workers also stop by themselves when the launcher is killed outright.
-    """
-
-    def __init__(self) -> None:
-        self.run_id: str | None = None
-        self.uri: str | None = None
-        self._on_stop: list[int] = []  # tokens of pipeline.core.stopping.on_stop
-
-    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from mlflow.tracking import MlflowClient
-
-        from pipeline.core.refusal import debugging, refuse
-
-        try:
-            experiment_id = init_store(config.paths.runs, config.tracking.experiment, job=config)
-        except PipelineError as error:  # a damaged store, a full disk: one line, no job runs
-            if debugging():
-                raise
-            refuse(error)  # Hydra would only warn of an error and start the jobs
-        self.uri = tracking_uri(config.paths.runs)
-        client = MlflowClient(self.uri)
-        sweep_dir = Path(config.hydra.sweep.dir)
-        sweep_dir.mkdir(parents=True, exist_ok=True)
-        tags = environment_tags()
-        tags["sweep.dir"] = str(sweep_dir)
-        swept = swept_settings(config)
-        tags["sweep.overrides"] = " ".join(f"{k}={v}" for k, v in swept.items())
-        # As for a job's run: a later start marks the parent FAILED if this process dies.
-        tags.update(host=socket.gethostname(), pid=str(os.getpid()))
-        tags[NOTE_TAG] = (
-            f"**Hydra sweep** over `{tags['sweep.overrides'] or 'one job'}`. Its jobs are the "
-            "child runs below; each one's headline metrics are logged here as "
-            "`<job>/<metric>` when the sweep ends, and the tables (when the experiment "
-            "builds them) under `tables/`."
-        )
-        run = client.create_run(experiment_id, run_name=f"sweep {sweep_dir.name}", tags=tags)
-        self.run_id = run.info.run_id
-        # What the sweep varies (each job's value is among its own params) and what it fixes.
-        for key, value in swept.items():
-            client.log_param(self.run_id, key, _param_value(value))
-        (sweep_dir / PARENT_RUN_FILE).write_text(self.run_id)
-        # If a job fails, Hydra exits without on_multirun_end: mark the parent FAILED then.
-        atexit.register(self._end, "FAILED")
-        # At a stop signal: the parent first, then the workers, then their runs (LIFO).
-        _on_stop_fail_runs(self.uri)
-        os.environ[stopping.LAUNCHER_ENV] = f"{os.getpid()}@{socket.gethostname()}"
-        folders = [config.paths.get(name) for name in ("runs", "cache", "data")]
-        self._on_stop = [
-            stopping.on_stop(lambda: stop_children([f for f in folders if f])),
-            stopping.on_stop(self._stopped),
-        ]
-        log.info("MLflow parent run %s for sweep %s", self.run_id, sweep_dir)
-
-    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        for token in self._on_stop:
-            stopping.forget(token)
-        self._end("FINISHED")
-
-    def _stopped(self) -> None:
-        run_id = self.run_id
-        if run_id is not None:
-            from mlflow.tracking import MlflowClient
-
-            why = f"stopped by {stopping.describe()}"
-            MlflowClient(self.uri).set_tag(run_id, ENDED_BY_TAG, why)
-            self._end("FAILED")
-            log.error("sweep run %s ends FAILED; stopping its workers", run_id)
-
-    def _end(self, status: str) -> None:
-        if self.run_id is None:
-            return
-        from mlflow.tracking import MlflowClient
-
-        MlflowClient(self.uri).set_terminated(self.run_id, status=status)
-        self.run_id = None
+def results_url(experiment_id: str, port: int = 5000) -> str:
+    """The address of the results view in ``mlflow ui`` (MLflow 3 opens its GenAI pages
+    without ``workflowType``)."""
+    return (
+        f"http://127.0.0.1:{port}/#/experiments/{experiment_id}/runs"
+        f"?viewStateShareKey={RESULTS_VIEW}&workflowType=machine_learning"
+    )
