@@ -263,8 +263,9 @@ def test_linear_baseline_recovers_low_rank_data_and_counts_its_bytes():
     # At the paper's size the bytes of clustered k = 1000 (169,532 B) hold two float16
     # components but not one float32 component.
     assert components_for_budget(169_532, 10_000, 6561, "float16") == 2
-    with pytest.raises(ConfigError, match="cannot hold one float32 component"):
-        components_for_budget(169_532, 10_000, 6561, "float32")
+    assert pca_bytes(2, 10_000, 6561, "float16") <= 169_532 < pca_bytes(3, 10_000, 6561, "float16")
+    assert components_for_budget(169_532, 10_000, 6561, "float32") == 0
+    assert pca_bytes(1, 10_000, 6561, "float32") > 169_532
 
 
 def test_texel_scale_is_in_every_figure_of_the_run():

@@ -87,8 +87,7 @@ def test_a_store_created_on_a_full_disk_is_named_with_the_space_left(tmp_path, m
     with pytest.raises(DataError) as caught:
         init_store(runs, "fourier_smoke")
     assert str(caught.value) == (
-        f"no space left for {runs / 'mlflow.db'}: 24.0 KiB free in {runs}; "
-        f"{store.STORE_FULL_HINT}"
+        f"no space left for {runs / 'mlflow.db'}: 24.0 KiB free in {runs}; {store.STORE_FULL_HINT}"
     )
     assert [p.name for p in runs.iterdir()] == [".mlflow.lock"]  # no store, no partial one
 

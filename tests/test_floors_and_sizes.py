@@ -57,6 +57,25 @@ def test_table1_reads_the_stored_types(smoke_cfg):
     assert pca.data.tags["stored_as.decoder"] == pca.data.params["model.dtype"]
 
 
+def test_pca_at_a_budget_below_one_component_runs_one_and_says_so(smoke_cfg, caplog):
+    """The main job's PCA arm at many directions (a UBO2014 file's 22,801): the bytes of a
+    small clustered model hold no component, so it runs the smallest PCA model, one
+    component, warns and tags the run; its bytes_total is what it really stores."""
+    from pipeline.btf.linear import pca_bytes
+
+    run_job(
+        smoke_cfg(
+            "dataset.views=null", "model=pca", "model.match_clustered_k=1", "model.dtype=float32"
+        )
+    )
+    run = _runs(smoke_cfg())[-1]
+    m, n = int(run.data.metrics["n_texels"]), int(run.data.metrics["n_directions"])
+    assert run.data.metrics["n_components"] == 1
+    assert run.data.metrics["bytes_total"] == pca_bytes(1, m, n, "float32")
+    assert "cannot hold one float32 component" in run.data.tags["over_budget"]
+    assert "PCA runs with 1 component, over the budget" in caplog.text
+
+
 def _row(model: str, k, total: int, rmse: float, seed=0, scaled=None, unscaled=None) -> dict:
     return {
         "dataset": "d",

@@ -17,9 +17,9 @@ from pipeline.btf.models import MODELS, model_of
 from pipeline.btf.runner import SPEED_ONLY
 from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.recipe import left_out
+from pipeline.core.run import flatten
 from pipeline.core.settings import RESULT, roles, setting
 from pipeline.core.sweeper import expand
-from pipeline.core.run import flatten
 
 
 def _jobs(*command_line: str) -> list[list[str]]:

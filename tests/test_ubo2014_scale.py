@@ -52,3 +52,34 @@ def test_the_chain_holds_no_copy_of_the_crop_and_pca_at_the_files_rank_is_exact(
     assert written["load"] + written["crop"] + written["preprocess"] < 0.2 * decoded
     # Data of rank 3 x RANK: PCA with as many components reconstructs them up to rounding.
     assert rows[0]["rmse"] < 1e-4 * rows[0]["rmse_mean_abrdf"]
+
+
+def test_the_readmes_ubo2014_command_runs_its_three_models(structured, tmp_path):
+    """The README's UBO2014 line as written, on a small file, with a short training (the
+    only override besides the file and the store): the main job's three arms finish."""
+    import re
+    import subprocess
+    import sys
+
+    from mlflow.tracking import MlflowClient
+
+    from pipeline.core.store import tracking_uri
+
+    root = Path(__file__).resolve().parents[1]
+    line = next(
+        line.strip()
+        for line in (root / "README.md").read_text().splitlines()
+        if line.strip().startswith("python -m pipeline dataset=ubo2014")
+    )
+    words = re.sub(r"dataset\.root=\S+", f"dataset.root={structured}", line).split()
+    words = [w.replace("btf.crop.size=100", "btf.crop.size=16") for w in words[1:]]
+    short = ["train.epochs=1", "train.epoch_texels=64", f"paths.runs={tmp_path / 'runs'}"]
+    done = subprocess.run(
+        [sys.executable, *words, *short], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    client = MlflowClient(tracking_uri(tmp_path / "runs"))
+    experiment = client.get_experiment_by_name("btf")
+    runs = client.search_runs([experiment.experiment_id], "attributes.status = 'FINISHED'")
+    models = sorted(r.data.params["model.name"] for r in runs if "model.name" in r.data.params)
+    assert models == ["clustered", "neural_btf", "pca"]

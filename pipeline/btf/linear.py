@@ -34,17 +34,11 @@ def pca_bytes(n_components: int, n_texels: int, n_directions: int, dtype: str) -
 
 
 def components_for_budget(budget: int, n_texels: int, n_directions: int, dtype: str) -> int:
-    """The most components whose stored bytes stay within ``budget``."""
+    """The most components whose stored bytes stay within ``budget``; 0 when even one
+    takes more (with many directions the basis alone outgrows a small clustered model)."""
     per_component = DTYPE_BYTES[dtype] * (3 * n_directions + n_texels)
     fixed = DTYPE_BYTES[dtype] * 3 * n_directions
-    count = (budget - fixed) // per_component
-    if count < 1:
-        raise ConfigError(
-            f"a byte budget of {budget} B cannot hold one {dtype} component "
-            f"({fixed + per_component} B at M={n_texels}, N={n_directions}): give "
-            "model.match_clustered_k=null and model.n_components"
-        )
-    return int(count)
+    return max(int((budget - fixed) // per_component), 0)
 
 
 def fit_linear(targets: np.ndarray, n_components: int, dtype: str, seed: int = 0) -> LinearModel:

@@ -380,6 +380,18 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
             latent_dim=latent,
         )["bytes_total"]
         n_components = components_for_budget(budget, m, n, pca.dtype)
+        if n_components == 0:
+            # The smallest PCA model, one component, is over the budget: run it, and say so
+            # (its bytes_total is what the tables compare at).
+            n_components = 1
+            message = (
+                f"model.match_clustered_k={pca.match_clustered_k}: its {budget:,} B cannot hold "
+                f"one {pca.dtype} component at {m:,} texels x {n:,} directions "
+                f"({pca_bytes(1, m, n, pca.dtype):,} B); PCA runs with 1 component, over "
+                f"the budget"
+            )
+            logger.warning(message)
+            ctx.log.tags({"over_budget": message})
     settings = {"n_components": n_components, "dtype": pca.dtype, "seed": ctx.cfg.seed}
 
     def compute(folder: Path) -> dict:
