@@ -360,7 +360,7 @@ def _train_arguments(monkeypatch, runs, method: str, run_training: bool = False)
             runner.train_stage(ctx, cropped, prep, clusters, reps)
     captured.update(
         cfg=cfg,
-        crop=np.array(cropped.array("abrdf")),
+        crop=np.array(stages.abrdf(cropped)),
         labels=None if clusters is None else clusters.array("labels", mmap=False),
     )
     return captured

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.btf import compressed, export
+from pipeline.btf import compressed, export, stages
 from pipeline.btf.compressed import (
     FILE_NAME,
     header_bytes,
@@ -416,7 +416,7 @@ def test_the_export_stage_holds_what_the_run_evaluated(tmp_path):
     btf = load_compressed(path)
     assert btf.crop_size == (8, 8) and btf.k == 8 and btf.metadata["texel_scale"] == "lstsq"
     assert payload_bytes(path) == metrics["bytes_total"]
-    abrdf = np.load(crop / "abrdf.npy")
+    abrdf = np.asarray(stages.abrdf(ctx.cache.lookup("crop", ctx.keys["crop"])))
     recon = btf.reconstruct(np.load(crop / "directions.npy"))
     rmse = float(
         np.sqrt(

@@ -15,6 +15,7 @@ from helpers import ROOT, compose_config, recipe_tags
 from mlflow.tracking import MlflowClient
 from scipy import stats
 
+from pipeline.btf import stages
 from pipeline.btf.rate_distortion import RMSE_TIE
 from pipeline.core.store import init_store, tracking_uri
 from pipeline.tables import build_tables, default_settings
@@ -343,7 +344,8 @@ def test_bytes_and_rmse_are_those_of_the_stored_file(tmp_path, method, latent, w
     assert btf.latents.shape[1] == latent == btf.decoder.latent
 
     crop = cache / "crop" / ctx.keys["crop"]
-    abrdf, directions = np.load(crop / "abrdf.npy"), np.load(crop / "directions.npy")
+    abrdf = np.asarray(stages.abrdf(ctx.cache.lookup("crop", ctx.keys["crop"])))
+    directions = np.load(crop / "directions.npy")
     target = abrdf / np.float32(btf.alpha)
     stored = btf.reconstruct(directions) / np.float32(btf.alpha)
     rmse_stored = float(np.sqrt(np.mean(np.square(stored - target, dtype=np.float64))))

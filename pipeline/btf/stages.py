@@ -18,7 +18,6 @@ from pipeline.btf.preprocess import Normalization, encoder_inputs, fit_normaliza
 from pipeline.core.cache import Entry, canonical_json, save_arrays, save_json
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.files import reserved_memmap
-from pipeline.core.progress import progress
 from pipeline.core.stage import Context, folder_fingerprint, plain_settings
 
 log = logging.getLogger(__name__)
@@ -190,13 +189,12 @@ def check_crop_fits(cfg: DictConfig, height: int, width: int, root) -> None:
 
 
 def crop(ctx: Context, loaded: Entry) -> Entry:
-    """Cut a ``btf.crop.size`` square at ``btf.crop.offset`` and lay it out as ABRDFs (M, N, 3),
-    read with :func:`abrdf`.
+    """Choose a ``btf.crop.size`` square at ``btf.crop.offset``, read as ABRDFs (M, N, 3)
+    with :func:`abrdf`.
 
-    From image formats the crop is copied out of the load stage's images into
-    ``abrdf.npy``. A UBO2014 file already holds the crop, compressed: the entry records
-    only which texels and direction rows it is, and :func:`abrdf` decodes them from the
-    file's factors when read."""
+    Nothing is copied: the entry records which texels (and, for a UBO2014 file, which
+    direction rows) the crop is. :func:`abrdf` reads them from the load stage's decoded
+    images, or decodes them from a UBO2014 file's factors."""
     settings = plain_settings(ctx.cfg.btf.crop)
     size = int(settings["size"])
     y0, x0 = (int(v) for v in settings["offset"])
@@ -207,44 +205,48 @@ def crop(ctx: Context, loaded: Entry) -> Entry:
 
     def compute(folder: Path) -> dict:
         save_arrays(folder, directions=loaded.array("directions", mmap=False))
-        if from_file:
-            save_arrays(folder, rows=loaded.array("rows", mmap=False))
-            return {
-                "M": size * size,
-                "N": n,
-                "root": summary["root"],
-                "texels": [y0, x0, size, size],
-                "fingerprint": loaded.manifest["settings"]["fingerprint"],
-            }
-        images = loaded.array("images")
-        abrdf = reserved_memmap(folder / "abrdf.npy", (size * size, n, 3), np.float32)
-        # Image by image: the crop of one image is one column of the ABRDF matrix.
-        for i in progress(range(n), "crop", unit="image"):
-            abrdf[:, i, :] = images[i, y0 : y0 + size, x0 : x0 + size, :].reshape(-1, 3)
-        abrdf.flush()
-        del abrdf
-        return {"M": size * size, "N": n}
+        crop = {"M": size * size, "N": n, "texels": [y0, x0, size, size]}
+        if not from_file:
+            return {**crop, "source": "images"}
+        save_arrays(folder, rows=loaded.array("rows", mmap=False))
+        return {
+            **crop,
+            "source": "factors",
+            "root": summary["root"],
+            "fingerprint": loaded.manifest["settings"]["fingerprint"],
+        }
 
-    return ctx.run("crop", settings, {"load": loaded}, compute, version="1")
+    return ctx.run("crop", settings, {"load": loaded}, compute, version="2")
 
 
 def abrdf(cropped: Entry):
-    """The crop's ABRDFs, shape (M, N, 3), float32: the crop stage's memory-mapped
-    ``abrdf.npy``, or for a UBO2014 file a
+    """The crop's ABRDFs, shape (M, N, 3), float32: from image formats, read from the load
+    stage's ``images.npy`` (:func:`pipeline.data.image_abrdfs.crop_abrdfs`: in memory, or
+    gathered where read for a crop too large to hold); for a UBO2014 file a
     :class:`~pipeline.data.ubo2014_decode.FactorABRDFs` that decodes what is indexed.
 
     Raises
     ------
     DataError
-        Naming the UBO2014 file, when it is gone or no longer the file the entry was made
-        from (its size or modification time changed).
+        Naming what is missing: the load stage's images (removed from the cache since), or
+        the UBO2014 file, when it is gone or no longer the file the entry was made from
+        (its size or modification time changed).
     """
-    if "texels" not in cropped.manifest["summary"]:
-        return cropped.array("abrdf")
+    summary = cropped.manifest["summary"]
+    if summary["source"] == "images":
+        from pipeline.data.image_abrdfs import crop_abrdfs
+
+        load_key = cropped.manifest["inputs"]["load"]
+        images = cropped.path.parents[1] / "load" / load_key / "images.npy"
+        if not images.is_file():
+            raise DataError(
+                f"the images the cached crop {cropped.key} reads are gone from the cache "
+                f"({images}): run the job again to decode them"
+            )
+        return crop_abrdfs(images, summary["texels"])
     from pipeline.data.ubo2014_decode import FactorABRDFs
     from pipeline.data.ubo2014_header import read_dfmf
 
-    summary = cropped.manifest["summary"]
     path = Path(summary["root"])
     if not path.is_file() or file_fingerprint(path) != summary["fingerprint"]:
         raise DataError(

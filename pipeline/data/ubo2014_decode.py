@@ -283,10 +283,10 @@ class FactorABRDFs:
         return self.shape[0]
 
     def __getitem__(self, key) -> np.ndarray:
-        texels, directions = _texels_and_directions(key)
+        texels, directions = texels_and_directions(key)
         t = np.arange(self.shape[0])[texels]
         d = np.arange(self.shape[1])[directions]
-        if t.ndim > 1 or d.ndim > 1 or (_is_array(texels) and _is_array(directions)):
+        if t.ndim > 1 or d.ndim > 1 or (is_index_array(texels) and is_index_array(directions)):
             raise IndexError("FactorABRDFs does not pair two index arrays: decode a block first")
         f, rows, texel_rows = self._factors, np.atleast_1d(d), np.atleast_1d(t)
         u = [factor[rows] for factor in f.directions]
@@ -307,16 +307,18 @@ class FactorABRDFs:
         return values if dtype is None else values.astype(dtype, copy=False)
 
 
-def _texels_and_directions(key):
-    """``abrdf[key]``'s texel and direction indices (the colour axis only as ``:``)."""
+def texels_and_directions(key):
+    """``abrdf[key]``'s texel and direction indices (the colour axis only as ``:``), for
+    the array-likes that serve a crop's ABRDFs (:class:`FactorABRDFs`,
+    :class:`~pipeline.data.image_abrdfs.ImageABRDFs`)."""
     if not isinstance(key, tuple):
         return key, slice(None)
     if len(key) == 1:
         return key[0], slice(None)
     if len(key) == 2 or (len(key) == 3 and key[2] == slice(None)):
         return key[0], key[1]
-    raise IndexError("FactorABRDFs takes [texels] or [texels, directions]")
+    raise IndexError("a crop's ABRDFs take [texels] or [texels, directions]")
 
 
-def _is_array(index) -> bool:
+def is_index_array(index) -> bool:
     return not isinstance(index, (slice, int, np.integer)) and np.ndim(index) > 0

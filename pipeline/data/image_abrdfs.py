@@ -1,0 +1,86 @@
+"""A crop's ABRDFs (texels × directions × 3) served from the load stage's decoded images
+(N, height, width, 3), never copied into the cache a second time.
+
+A crop that fits in :data:`IN_MEMORY_BYTES` is read once into memory, as the (M, N, 3)
+array the stages expect (the texel-major layout makes a training batch one contiguous
+read); the last such crop is kept for the process, so the stages of one job read the
+images once. A larger crop is an :class:`ImageABRDFs` that gathers what is indexed.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.data.ubo2014_decode import is_index_array, texels_and_directions
+
+# Crops up to this size are held in memory: a job's stages read every texel many times.
+IN_MEMORY_BYTES = 4 * 2**30
+
+
+def crop_abrdfs(images_path: Path, texels) -> np.ndarray | ImageABRDFs:
+    """The ``texels`` crop ``[row, col, height, width]`` (texel ``r · width + c``) of the
+    images in ``images_path`` (a ``.npy`` of shape (N, H, W, 3)) as (M, N, 3) float32:
+    a read-only array when it fits in :data:`IN_MEMORY_BYTES`, else an
+    :class:`ImageABRDFs`."""
+    images = np.load(images_path, mmap_mode="r")
+    row, col, height, width = (int(v) for v in texels)
+    if height * width * images.shape[0] * 3 * 4 > IN_MEMORY_BYTES:
+        return ImageABRDFs(images, (row, col, height, width))
+    stat = os.stat(images_path)
+    return _in_memory(str(images_path), stat.st_size, stat.st_mtime_ns, row, col, height, width)
+
+
+@functools.lru_cache(maxsize=1)
+def _in_memory(path: str, size: int, mtime_ns: int, row: int, col: int, height: int, width: int):
+    """The crop, texel-major, read once (keyed by the file's size and time as well, so a
+    rewritten file is read again)."""
+    images = np.load(path, mmap_mode="r")
+    n = images.shape[0]
+    crop = np.empty((height * width, n, 3), dtype=np.float32)
+    for i in range(n):  # image by image: the crop of one image is one column of the ABRDFs
+        crop[:, i, :] = images[i, row : row + height, col : col + width, :].reshape(-1, 3)
+    crop.flags.writeable = False
+    return crop
+
+
+class ImageABRDFs:
+    """A crop of decoded images (N, H, W, 3) as the (M, N, 3) float32 array-like method A's
+    stages read: ``shape``, ``len``, ``abrdf[texels]``, ``abrdf[texels, directions]`` (ints,
+    slices or one index array) and ``np.asarray``; each read gathers the texels asked for
+    from every image (for crops too large to hold: :func:`crop_abrdfs`)."""
+
+    dtype = np.dtype(np.float32)
+    ndim = 3
+
+    def __init__(self, images: np.ndarray, texels: tuple[int, int, int, int]):
+        self.images = images
+        self.row, self.col, self.height, self.width = texels
+        self.shape = (self.height * self.width, images.shape[0], 3)
+        self.size = int(np.prod(self.shape))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        texels, directions = texels_and_directions(key)
+        t = np.arange(self.shape[0])[texels]
+        d = np.arange(self.shape[1])[directions]
+        if t.ndim > 1 or d.ndim > 1 or (is_index_array(texels) and is_index_array(directions)):
+            raise IndexError("ImageABRDFs does not pair two index arrays: read a block first")
+        rows = self.row + np.atleast_1d(t) // self.width
+        cols = self.col + np.atleast_1d(t) % self.width
+        picked = self.images[directions if isinstance(directions, slice) else np.atleast_1d(d)]
+        values = np.ascontiguousarray(picked[:, rows, cols, :].transpose(1, 0, 2), np.float32)
+        if d.ndim == 0:
+            values = values[:, 0]
+        if t.ndim == 0:
+            values = values[0]
+        return values
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        values = self[:]
+        return values if dtype is None else values.astype(dtype, copy=False)
