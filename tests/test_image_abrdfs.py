@@ -59,6 +59,7 @@ def test_a_crop_too_large_to_hold_is_gathered_where_read(images, monkeypatch):
         (np.array([1, 4]), slice(2, 5)),
         (slice(0, 20, 3), np.array([6, 0])),
         (4, 6),
+        np.ix_([9, 2, 2], [5, 0]),
     ):
         np.testing.assert_array_equal(served[key], want[key], err_msg=str(key))
     with pytest.raises(IndexError, match="does not pair two index arrays"):

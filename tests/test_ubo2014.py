@@ -353,11 +353,40 @@ def test_the_crop_stage_decodes_the_crop_from_the_factors_as_abrdfs(tmp_path):
     # values up to the last bit, which depends on the block's shape in the product).
     served = stages.abrdf(cropped)
     whole = np.asarray(served)
-    for key in ([1, 4], (slice(2, 5), [0, 3]), (slice(None), 2), 3):
+    for key in ([1, 4], (slice(2, 5), [0, 3]), (slice(None), 2), 3, np.ix_([4, 1], [3, 0, 3])):
         assert served[key].shape == whole[key].shape
         np.testing.assert_allclose(served[key], whole[key], rtol=1e-6)
     with pytest.raises(IndexError, match="pair"):
         served[[0, 1], [0, 1]]
+    # The latent texture reads its batches so (np.ix_ of the drawn texels and directions):
+    # trained on the served crop it follows the same path as on the decoded one.
+    from pipeline.btf.latent_texture import train_latent_texture
+    from pipeline.btf.stereographic import direction_features
+
+    norm = stages.normalization(stages.preprocess(ctx, cropped))
+    size = int(cfg.btf.crop.size)
+    features = direction_features(cropped.array("directions", mmap=False)).astype(np.float32)
+    runs = [
+        train_latent_texture(
+            targets,
+            features,
+            np.arange(whole.shape[1]),
+            (size, size),
+            latent=2,
+            levels=1,
+            hidden=8,
+            layers=1,
+            steps=4,
+            batch_texels=2,
+            queries_per_texel=3,
+            lr=1e-2,
+            seed=0,
+        ).curve
+        for targets in (norm.targets(served), norm.target(whole))
+    ]
+    np.testing.assert_allclose(
+        [point["loss"] for point in runs[0]], [point["loss"] for point in runs[1]], rtol=1e-5
+    )
 
 
 def test_a_cached_crop_whose_file_changed_is_refused_naming_it(tmp_path):

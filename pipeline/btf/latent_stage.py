@@ -51,7 +51,7 @@ def train_stage(
         norm = stages.normalization(prep)
         size = int(cfg.btf.crop.size)
         result = train_latent_texture(
-            np.asarray(norm.target(abrdf), dtype=np.float32),
+            norm.targets(abrdf),  # normalised where read, a batch at a time
             direction_features(directions).astype(np.float32),
             interpolation.training_directions(directions, heldout),
             (size, size),

@@ -257,7 +257,9 @@ def train_latent_texture(
 
     Parameters
     ----------
-    targets : ndarray of shape (M, N, 3), normalised targets, texels in row-major order.
+    targets : (M, N, 3) normalised targets, texels in row-major order: an array, or an
+        array-like read a batch at a time (``targets[np.ix_(texels, directions)]``), such
+        as :meth:`~pipeline.btf.preprocess.Normalization.targets` of a crop's ABRDFs.
     features : ndarray of shape (N, 4), the direction features.
     train_directions : ndarray of ints, the directions trained on (held-out ones excluded).
     crop_size : (rows, cols) with rows * cols = M.
@@ -266,7 +268,6 @@ def train_latent_texture(
     curve_every : steps per point of the loss curve (0: steps / 100); ``on_curve`` is
         called with each point.
     """
-    targets = np.asarray(targets)
     features = np.asarray(features, dtype=np.float32)
     train_directions = np.asarray(train_directions)
     rows, cols = (int(v) for v in crop_size)
@@ -316,7 +317,11 @@ def train_latent_texture(
             directions = train_directions[
                 rng.integers(0, len(train_directions), (batch_texels, queries_per_texel))
             ]
-            target = np.asarray(targets[texels[:, None], directions], dtype=np.float32)
+            # The batch's directions for its texels, read as one block of the directions
+            # drawn (a crop's ABRDFs served from a file decode only those).
+            drawn, column = np.unique(directions, return_inverse=True)
+            read = np.asarray(targets[np.ix_(texels, drawn)], dtype=np.float32)
+            target = read[np.arange(batch_texels)[:, None], column.reshape(directions.shape)]
             prediction = module(
                 torch.from_numpy(np.repeat(texels, queries_per_texel)).to(device),
                 features[torch.from_numpy(directions.ravel()).to(device)],

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.data.ubo2014_decode import is_index_array, texels_and_directions
+from pipeline.data.ubo2014_decode import is_index_array, outer_index, texels_and_directions
 
 # Crops up to this size are held in memory: a job's stages read every texel many times.
 IN_MEMORY_BYTES = 4 * 2**30
@@ -50,7 +50,7 @@ def _in_memory(path: str, size: int, mtime_ns: int, row: int, col: int, height: 
 class ImageABRDFs:
     """A crop of decoded images (N, H, W, 3) as the (M, N, 3) float32 array-like method A's
     stages read: ``shape``, ``len``, ``abrdf[texels]``, ``abrdf[texels, directions]`` (ints,
-    slices or one index array) and ``np.asarray``; each read gathers the texels asked for
+    slices, one index array, or ``np.ix_(texels, directions)``) and ``np.asarray``; each read gathers the texels asked for
     from every image (for crops too large to hold: :func:`crop_abrdfs`)."""
 
     dtype = np.dtype(np.float32)
@@ -69,17 +69,27 @@ class ImageABRDFs:
         texels, directions = texels_and_directions(key)
         t = np.arange(self.shape[0])[texels]
         d = np.arange(self.shape[1])[directions]
+        if outer_index(t, d):  # abrdf[np.ix_(texels, directions)]: (texels, directions, 3)
+            return self._gather(t[:, 0], d[0])
         if t.ndim > 1 or d.ndim > 1 or (is_index_array(texels) and is_index_array(directions)):
-            raise IndexError("ImageABRDFs does not pair two index arrays: read a block first")
-        rows = self.row + np.atleast_1d(t) // self.width
-        cols = self.col + np.atleast_1d(t) % self.width
-        picked = self.images[directions if isinstance(directions, slice) else np.atleast_1d(d)]
-        values = np.ascontiguousarray(picked[:, rows, cols, :].transpose(1, 0, 2), np.float32)
+            raise IndexError(
+                "ImageABRDFs does not pair two index arrays: read a block first, or index "
+                "with np.ix_(texels, directions)"
+            )
+        values = self._gather(
+            np.atleast_1d(t), directions if isinstance(directions, slice) else np.atleast_1d(d)
+        )
         if d.ndim == 0:
             values = values[:, 0]
         if t.ndim == 0:
             values = values[0]
         return values
+
+    def _gather(self, t: np.ndarray, directions) -> np.ndarray:
+        """(len(t), directions, 3): texels ``t`` in the images ``directions`` selects."""
+        rows, cols = self.row + t // self.width, self.col + t % self.width
+        picked = self.images[directions]
+        return np.ascontiguousarray(picked[:, rows, cols, :].transpose(1, 0, 2), np.float32)
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         values = self[:]

@@ -256,7 +256,8 @@ class FactorABRDFs:
 
     It stands in for the (M, N, 3) float32 array method A's stages read: ``shape``,
     ``len``, ``abrdf[texels]`` and ``abrdf[texels, directions]`` with ints, slices or index
-    arrays (one array at most: numpy's paired indexing of two arrays is refused), and
+    arrays (one array at most: numpy's paired indexing of two arrays is refused, but
+    ``np.ix_(texels, directions)``, every texel at every direction, is served), and
     ``np.asarray(abrdf)`` (everything, decoded: only for crops that fit in memory).
 
     Parameters
@@ -286,21 +287,30 @@ class FactorABRDFs:
         texels, directions = texels_and_directions(key)
         t = np.arange(self.shape[0])[texels]
         d = np.arange(self.shape[1])[directions]
+        if outer_index(t, d):  # abrdf[np.ix_(texels, directions)]: (texels, directions, 3)
+            return self._decode(t[:, 0], d[0])
         if t.ndim > 1 or d.ndim > 1 or (is_index_array(texels) and is_index_array(directions)):
-            raise IndexError("FactorABRDFs does not pair two index arrays: decode a block first")
-        f, rows, texel_rows = self._factors, np.atleast_1d(d), np.atleast_1d(t)
+            raise IndexError(
+                "FactorABRDFs does not pair two index arrays: decode a block first, or "
+                "index with np.ix_(texels, directions)"
+            )
+        values = self._decode(np.atleast_1d(t), np.atleast_1d(d))
+        if d.ndim == 0:
+            values = values[:, 0]
+        if t.ndim == 0:
+            values = values[0]
+        return values
+
+    def _decode(self, texel_rows: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(len(texel_rows), len(rows), 3): those texels at those direction rows."""
+        f = self._factors
         u = [factor[rows] for factor in f.directions]
         sv = [factor[texel_rows] for factor in f.texels]
         block = decode_block(u, sv, self.color_model)  # (directions, texels, 3)
         f.check_finite(block, f.rows[rows], self.path)
         if f.cosine is not None:
             block *= f.cosine[rows, None, None]
-        values = np.ascontiguousarray(block.transpose(1, 0, 2))
-        if d.ndim == 0:
-            values = values[:, 0]
-        if t.ndim == 0:
-            values = values[0]
-        return values
+        return np.ascontiguousarray(block.transpose(1, 0, 2))
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         values = self[:]
@@ -322,3 +332,10 @@ def texels_and_directions(key):
 
 def is_index_array(index) -> bool:
     return not isinstance(index, (slice, int, np.integer)) and np.ndim(index) > 0
+
+
+def outer_index(t: np.ndarray, d: np.ndarray) -> bool:
+    """Whether texel and direction indices are ``np.ix_``'s (B, 1) and (1, D): numpy's
+    broadcast of them is every texel at every direction, a block that a crop's ABRDFs can
+    read without the directions not asked for."""
+    return t.ndim == 2 and d.ndim == 2 and t.shape[1] == 1 and d.shape[0] == 1
