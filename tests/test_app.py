@@ -7,12 +7,14 @@ import logging
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.store import tracking_uri
+from pipeline.data.images import read_exr
 
 
 def _runs(cfg):
@@ -164,16 +166,34 @@ def test_pca_baseline_runs_through_the_app(smoke_cfg):
     assert run.data.metrics["bytes_total"] == 4 * (4 * 3 * n + m * 3)
 
 
-def test_tables_draw_fig7_from_the_cached_models(smoke_cfg):
+def test_tables_draw_fig7_from_what_the_runs_logged_without_the_cache(smoke_cfg):
+    import shutil
+
     from pipeline.tables import build_tables
 
     cfg = smoke_cfg()
     run_job(cfg)
+    run_job(smoke_cfg("model=pca"))  # logs no Fig. 7 data: left out of the figure
+    shutil.rmtree(cfg.paths.cache)  # the cache is a memo: the figure comes from the runs
     out = build_tables(cfg.paths.runs)
     pngs = sorted(p.name for p in out.glob("fig7_*.png"))
     assert pngs == ["fig7_synthetic_plain_weave_12__729.png"]
-    # One EXR per pair and panel: reference + the one model, two direction pairs.
-    assert len(list(out.glob("fig7_*.exr"))) == 4
+    # One EXR per pair and panel: reference + the one model, two direction pairs; the
+    # model's panels are what the job drew and logged.
+    exrs = sorted(out.glob("fig7_*.exr"))
+    assert len(exrs) == 4
+    client = MlflowClient(tracking_uri(cfg.paths.runs))
+    run = client.search_runs(
+        [client.get_experiment_by_name(cfg.tracking.experiment).experiment_id],
+        "params.`model.name` = 'clustered'",
+    )[0]
+    logged = Path(client.download_artifacts(run.info.run_id, "figures"))
+    for exr in exrs:  # the job's file names its dataset without the crop's shape
+        (mine,) = logged.glob("fig7_*" + exr.name[exr.name.index("_pair") :])
+        tables, job = read_exr(exr), read_exr(mine)
+        assert tables.keys() == job.keys()
+        for channel in tables:
+            np.testing.assert_array_equal(tables[channel], job[channel])
 
 
 @pytest.mark.parametrize(

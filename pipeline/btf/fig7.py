@@ -4,8 +4,9 @@ For each (light, view) pair from the settings, the measured pair nearest to it (
 may hold any direction set: the UBO2003 81-grid has the paper's pairs, a UBO2014 file or
 a Fibonacci set has others), and at that pair the reference image of the crop next to the
 reconstruction of every model (Neural BTF and each k). The reference's title gives the
-pair used and, where it is not the one asked for, the pair asked for. Models are read
-back from the stage cache through the cache keys that each MLflow run recorded as tags.
+pair used and, where it is not the one asked for, the pair asked for. Each job logs its
+panels (:func:`job_data`, ``figures/fig7_data.npz``) and the tables draw from what the
+runs logged: the cache may be cleared without losing the figure.
 """
 
 from __future__ import annotations
@@ -14,18 +15,18 @@ import json
 import logging
 from pathlib import Path
 
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
+import numpy as np
+import pandas as pd
 from matplotlib.figure import Figure
 
-from pipeline.btf import stages  # noqa: E402
-from pipeline.btf.evaluate import decode_all  # noqa: E402
-from pipeline.btf.model import load_decoder  # noqa: E402
-from pipeline.btf.stereographic import direction_features  # noqa: E402
-from pipeline.core.cache import StageCache  # noqa: E402
-from pipeline.core.report import safe_stem, save_figure, write_file  # noqa: E402
-from pipeline.data.directions import unit_vectors  # noqa: E402
-from pipeline.data.images import gamma_encode, write_exr  # noqa: E402
+from pipeline.btf import stages
+from pipeline.btf.evaluate import decode_all
+from pipeline.btf.model import load_decoder
+from pipeline.btf.stereographic import direction_features
+from pipeline.core.cache import Entry
+from pipeline.core.report import safe_stem, save_figure, write_file
+from pipeline.data.directions import unit_vectors
+from pipeline.data.images import gamma_encode, write_exr
 
 log = logging.getLogger(__name__)
 
@@ -57,30 +58,76 @@ def pair_label(pair: np.ndarray) -> str:
     return f"l=({_degrees(theta_l)},{_degrees(phi_l)}) v=({_degrees(theta_v)},{_degrees(phi_v)})"
 
 
-def _reconstruct(cache: StageCache, run: pd.Series, query: np.ndarray) -> np.ndarray | None:
-    """(size, size, 3) reconstruction of one run at one direction, in normalized units."""
-    trained = cache.lookup("train", str(run.get("tags.cache.train")))
-    if trained is None:
-        return None
+DATA_NAME = "fig7_data.npz"  # what a job logs under figures/ and the tables draw from
+
+
+def _reconstruct(trained: Entry, evaluated: Entry | None, query: np.ndarray) -> np.ndarray:
+    """(size, size, 3) reconstruction of a trained model at one direction, normalized."""
     decoded = decode_all(
         load_decoder(trained.file("decoder.pt")),
         trained.array("latents", mmap=False),
         direction_features(query),
     )
     values = decoded[trained.array("latent_of_texel", mmap=False), 0]
-    evaluated = cache.lookup("evaluate", str(run.get("tags.cache.evaluate")))
     if evaluated is not None and (evaluated.path / "texel_scale.npy").is_file():
         values = values * evaluated.array("texel_scale", mmap=False)[:, None]
     size = int(round(np.sqrt(len(values))))
     return values.reshape(size, size, 3)
 
 
-def draw_fig7(runs: pd.DataFrame, pairs_degrees: list, out_dir: Path) -> list[Path]:
-    """Draw one figure per dataset; returns the written files (PNG, EXR and JSON).
+def job_data(
+    cropped: Entry, prep: Entry, trained: Entry, evaluated: Entry | None, pairs_degrees: list
+) -> dict[str, np.ndarray]:
+    """One job's Fig. 7: at the measured pair nearest each pair asked for (degrees), the
+    reference crop and the model's reconstruction, normalized (divided by ``alpha``).
 
-    runs : labelled runs (see :func:`pipeline.btf.tables.label_runs`), one model per column is drawn
-        (the run with the lowest seed).
-    pairs_degrees : list of [theta_l, phi_l, theta_v, phi_v] in degrees.
+    Returns ``asked``, ``used`` (P, 4 degrees), ``column`` (P,: the pair's index in the
+    data), ``reference`` and ``model`` (P, size, size, 3) and ``alpha``: what the job logs as
+    :data:`DATA_NAME`, so the tables draw Fig. 7 from the runs, not from the cache."""
+    abrdf, directions = stages.abrdf(cropped), cropped.array("directions", mmap=False)
+    alpha = float(prep.json("alpha"))
+    size = int(round(np.sqrt(abrdf.shape[0])))
+    queries = np.radians(np.asarray(pairs_degrees, dtype=np.float64).reshape(-1, 4))
+    columns = np.array([nearest_direction(directions, q) for q in queries], dtype=np.int64)
+    reference = np.stack(
+        [np.asarray(abrdf[:, c]).reshape(size, size, 3) / np.float32(alpha) for c in columns]
+    )
+    model = np.stack([_reconstruct(trained, evaluated, directions[c][None]) for c in columns])
+    return {
+        "asked": np.degrees(queries),
+        "used": np.degrees(directions[columns]),
+        "column": columns,
+        "reference": reference.astype(np.float32),
+        "model": model.astype(np.float32),
+        "alpha": np.float64(alpha),
+    }
+
+
+def logged_data(run_id: str) -> dict[str, np.ndarray] | None:
+    """The Fig. 7 data a run logged (``figures/fig7_data.npz``), or None."""
+    import tempfile
+
+    import mlflow
+
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            path = mlflow.artifacts.download_artifacts(
+                run_id=run_id, artifact_path=f"figures/{DATA_NAME}", dst_path=tmp
+            )
+        except Exception:  # MLflow raises its own and OSError kinds for a missing artifact
+            return None
+        with np.load(path) as data:
+            return {name: data[name] for name in data.files}
+
+
+def draw_fig7(runs: pd.DataFrame, out_dir: Path, data_of=logged_data) -> list[Path]:
+    """Draw one figure per dataset from what the runs logged (:func:`job_data`); returns
+    the written files (PNG, EXR and JSON).
+
+    runs : labelled runs (see :func:`pipeline.btf.tables.label_runs`), one model per column
+        is drawn (the run with the lowest seed); runs that logged no Fig. 7 data (PCA, a
+        run of older code) or other pairs than the first one's are left out, with a warning.
+    data_of : run id -> its data (:func:`logged_data`); a job passes its own.
 
     Beside each figure, ``fig7_<dataset>_pairs.json`` lists per row the pair asked for and
     the measured pair used (``asked``, ``used``: degrees; ``column``: its index in the data).
@@ -88,46 +135,40 @@ def draw_fig7(runs: pd.DataFrame, pairs_degrees: list, out_dir: Path) -> list[Pa
     written: list[Path] = []
     for stale in out_dir.glob("fig7_*"):  # figures of runs that are gone must not linger
         stale.unlink()
-    queries = np.radians(np.asarray(pairs_degrees, dtype=np.float64).reshape(-1, 4))
     for dataset, group in runs.groupby("dataset"):
         group = group.sort_values(["order", "model", "seed"]).drop_duplicates("model")
-        first = group.iloc[0]
-        cache = StageCache(first["params.paths.cache"])
-        crop = cache.lookup("crop", str(first.get("tags.cache.crop")))
-        prep = cache.lookup("preprocess", str(first.get("tags.cache.preprocess")))
-        if crop is None or prep is None:
-            log.warning("fig7: cache entries of %s are gone; skipping its figure", dataset)
+        shown: list[tuple[str, dict]] = []
+        for _, run in group.iterrows():
+            data = data_of(str(run["run_id"]))
+            if data is None:
+                continue
+            if shown and not np.array_equal(data["asked"], shown[0][1]["asked"]):
+                log.warning("fig7: run %s asked for other pairs; left out", run["run_id"])
+                continue
+            shown.append((str(run["model"]), data))
+        if not shown:
+            log.warning("fig7: no run of %s logged its Fig. 7 data; skipping it", dataset)
             continue
-        abrdf, directions = stages.abrdf(crop), crop.array("directions", mmap=False)
-        alpha = float(prep.json("alpha"))
-        size = int(round(np.sqrt(abrdf.shape[0])))
-        panels: list[list[tuple[str, np.ndarray]]] = []
-        rows: list[dict] = []
-        for query in queries:
-            nearest = nearest_direction(directions, query)
-            used = directions[nearest]
-            rows.append(
-                {
-                    "asked": np.degrees(query).tolist(),
-                    "used": np.degrees(used).tolist(),
-                    "column": nearest,
-                }
+        first = shown[0][1]
+        rows = [
+            {"asked": asked.tolist(), "used": used.tolist(), "column": int(column)}
+            for asked, used, column in zip(
+                first["asked"], first["used"], first["column"], strict=True
             )
-            reference = np.asarray(abrdf[:, nearest]).reshape(size, size, 3) / alpha
+        ]
+        panels: list[list[tuple[str, np.ndarray]]] = []
+        for i, row in enumerate(rows):
+            used = np.radians(row["used"])
             label = f"reference\n{pair_label(used)}"
-            if pair_label(used) != pair_label(query):
-                label += f"\n(asked {pair_label(query)})"
-            row = [(label, reference)]
-            for _, run in group.iterrows():
-                # At the pair the reference shows, so that the panels compare one image.
-                image = _reconstruct(cache, run, used[None])
-                if image is not None:
-                    row.append((run["model"], image))
-            panels.append(row)
+            if pair_label(used) != pair_label(np.radians(row["asked"])):
+                label += f"\n(asked {pair_label(np.radians(row['asked']))})"
+            # At the pair the reference shows, so that the panels compare one image.
+            panels.append([(label, first["reference"][i])] + [(m, d["model"][i]) for m, d in shown])
         safe = safe_stem(dataset)
         written.append(_plot(panels, out_dir / f"fig7_{safe}.png", dataset))
         written.append(out_dir / f"fig7_{safe}_pairs.json")
         write_file(written[-1], json.dumps(rows, indent=1))
+        alpha = float(first["alpha"])
         for i, row in enumerate(panels):
             for label, image in row:
                 name = safe_stem(label.split("\n")[0])

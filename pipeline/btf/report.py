@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
-from omegaconf import OmegaConf
 
 from pipeline.btf import rate_distortion, tables
 from pipeline.btf.curves import curves_section
@@ -160,7 +159,7 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
     if settings.fig7.enabled:
         from pipeline.btf.fig7 import draw_fig7
 
-        files = draw_fig7(runs, OmegaConf.to_container(settings.fig7.pairs), out)
+        files = draw_fig7(runs, out)
         found.append(
             "## Fig. 7\n\n"
             + "\n\n".join(f"![{p.stem}]({p.name})" for p in files if p.suffix == ".png")
@@ -225,18 +224,32 @@ def _verdict_row(model: str, runs: pd.DataFrame, baseline: float) -> list[str]:
 
 def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path) -> list[Path]:
     """Fig. 7 of one finished job (the reference crops and its reconstruction), drawn into
-    ``out`` (PNG and EXR); nothing for PCA, which has no decoder to query."""
-    from pipeline.btf.fig7 import draw_fig7
+    ``out`` (PNG and EXR) with its data (``fig7_data.npz``, which the tables draw from);
+    nothing for PCA, which has no decoder to query."""
+    import numpy as np
+
+    from pipeline.btf.fig7 import DATA_NAME, draw_fig7, job_data
+    from pipeline.core.cache import StageCache
     from pipeline.core.recipe import recipe_id
     from pipeline.core.run import flatten
 
     if "train" not in cache_keys:
         return []
+    cache = StageCache(cfg.paths.cache)
+    cropped, prep, trained = (
+        cache.lookup(stage, cache_keys[stage]) for stage in ("crop", "preprocess", "train")
+    )
+    evaluated = (
+        cache.lookup("evaluate", cache_keys["evaluate"]) if "evaluate" in cache_keys else None
+    )
+    data = job_data(cropped, prep, trained, evaluated, pairs_degrees)
     settings = flatten(cfg)
     row = {f"params.{k}": str(v) for k, v in settings.items()}
     row["tags.recipe"] = recipe_id(settings)
-    row.update({f"tags.cache.{stage}": key for stage, key in cache_keys.items()})
-    return draw_fig7(tables.label_runs(pd.DataFrame([row])), pairs_degrees, out)
+    row["run_id"] = "this job"
+    written = draw_fig7(tables.label_runs(pd.DataFrame([row])), out, data_of=lambda _: data)
+    np.savez(out / DATA_NAME, **data)
+    return [*written, out / DATA_NAME]
 
 
 def plot_rmse_vs_k(runs: pd.DataFrame, out: Path) -> str:

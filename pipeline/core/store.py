@@ -92,6 +92,9 @@ def use_store(runs: str | os.PathLike, must_exist: bool = True) -> str:
     uri = tracking_uri(runs, must_exist)
     mlflow.set_tracking_uri(uri)
     logging.getLogger("mlflow.store.db.utils").addFilter(_no_full_disk_traceback)  # once
+    # MLflow draws a bar for every artifact it copies (a model logged, a figure's data
+    # read back), which buries the job's own progress; set it to true to see them.
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     if uri == _sqlite_uri(runs):
         os.environ[_OWN_URI] = uri
     else:  # the user's server: it stays the choice for every later call and subprocess
