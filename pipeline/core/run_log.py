@@ -78,6 +78,20 @@ class RunLog:
 
             mlflow.log_artifacts(str(path), folder)
 
+    def arrays(self, values: Mapping[str, Any], name: str) -> None:
+        """Arrays as one ``.npz`` file, ``name`` its path in the run (``folder/file.npz``)."""
+        if not self.on:
+            return
+        import tempfile
+
+        import mlflow
+        import numpy as np
+
+        folder, _, file = name.rpartition("/")
+        with tempfile.TemporaryDirectory() as tmp:
+            np.savez(os.path.join(tmp, file), **values)
+            mlflow.log_artifact(os.path.join(tmp, file), folder or None)
+
     def text(self, text: str, name: str) -> None:
         if self.on:
             import mlflow

@@ -14,9 +14,8 @@ table says which in its caption and a ``scored against`` column, and gives the s
 samples beyond the measured grid (``render_beyond_grid_share*``).
 
 Fig. 8 is the grid of renders (truth when there is one, reference, Neural BTF, each k, PCA)
-of one seed with both crops marked, and the crops enlarged below. Images are read back from
-the stage cache through the cache keys the MLflow runs recorded (``tags.cache.render``,
-``tags.cache.render_reference``, ``tags.cache.render_truth``).
+of one seed with both crops marked, and the crops enlarged below. Images are what the runs
+logged (``render/fig8_data.npz``), so the cache may be cleared without losing the figure.
 """
 
 from __future__ import annotations
@@ -32,7 +31,6 @@ from matplotlib.patches import Rectangle
 from pipeline.btf import tables
 from pipeline.btf.render import RENDERED
 from pipeline.btf.render.stage import REGIONS
-from pipeline.core.cache import StageCache
 from pipeline.core.report import runs_of, safe_stem, save_figure, write_table
 from pipeline.data.images import gamma_encode, write_exr
 
@@ -364,49 +362,60 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
     return found
 
 
-def draw_fig8(runs: pd.DataFrame, out: Path) -> list[Path]:
+def logged_renders(run_id: str) -> dict[str, np.ndarray] | None:
+    """The Fig. 8 data a run logged (``render/fig8_data.npz``:
+    :func:`pipeline.btf.render.stage.fig8_data`), or None."""
+    import tempfile
+
+    import mlflow
+
+    from pipeline.btf.render.stage import FIG8_DATA
+
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            path = mlflow.artifacts.download_artifacts(
+                run_id=run_id, artifact_path=f"render/{FIG8_DATA}", dst_path=tmp
+            )
+        except Exception:  # MLflow raises its own and OSError kinds for a missing artifact
+            return None
+        with np.load(path) as data:
+            return {name: data[name] for name in data.files}
+
+
+def draw_fig8(runs: pd.DataFrame, out: Path, data_of=logged_renders) -> list[Path]:
     """One figure per dataset (the lowest seed's renders at the largest spp: the truth when
     the runs have one, the reference, then each model): PNG, and an EXR of each render;
-    returns the written files. Images come from the runs' stage cache
-    (``params.paths.cache``), the crops from the models' renders (the ones they were scored
-    in); a dataset whose entries are gone is skipped with a warning."""
+    returns the written files. Images are what the runs logged (``data_of``: run id -> its
+    :func:`~pipeline.btf.render.stage.fig8_data`), the truth and reference the first
+    model's; a dataset none of whose runs logged them is skipped with a warning."""
     for stale in out.glob("fig8_*"):
         stale.unlink()
     written = []
     for dataset, group in runs.groupby("dataset"):
         group = group.sort_values(["seed"]).drop_duplicates("model")
         group = group.sort_values("order")
-        cache = StageCache(group["params.paths.cache"].iloc[0])
-        first = group.iloc[0]
-        reference = cache.lookup("render_reference", str(first["tags.cache.render_reference"]))
-        if reference is None:
-            log.warning("Fig. 8 of %s: its reference render is not in the cache", dataset)
+        logged = [(run["model"], data_of(str(run["run_id"]))) for _, run in group.iterrows()]
+        logged = [(name, data) for name, data in logged if data is not None]
+        if not logged:
+            log.warning("Fig. 8 of %s: none of its runs logged its renders", dataset)
             continue
-        entries = [("reference", reference)]
-        truth_key = first.get("tags.cache.render_truth")
-        if isinstance(truth_key, str):
-            truth = cache.lookup("render_truth", truth_key)
-            if truth is None:
-                log.warning("Fig. 8 of %s: its truth render is not in the cache", dataset)
-                continue
-            entries.insert(0, ("truth", truth))
-        models = [
-            (run["model"], cache.lookup("render", str(run.get("tags.cache.render"))))
-            for _, run in group.iterrows()
-        ]
-        models = [(name, entry) for name, entry in models if entry is not None]
-        if not models:
-            log.warning("Fig. 8 of %s: none of its model renders is in the cache", dataset)
-            continue
-        crops = models[0][1].json("crops")
-        entries += models
-        levels = sorted(int(s) for s in reference.manifest["summary"]["spp"])
-        spp = levels[-1]
-        size = int(float(group["params.btf.render.crop_size"].iloc[0]))
-        by_spp = {
-            s: [(name, e.array(f"image_spp{s}", mmap=False)) for name, e in entries] for s in levels
+        first = logged[0][1]
+        names = [("truth", "truth")] if "truth_image" in first else []
+        names.append(("reference", "reference"))
+        # (label, the data holding it, its name there): the truth and reference once.
+        entries = [(label, first, name) for label, name in names]
+        entries += [(model, data, "model") for model, data in logged]
+        levels = [int(s) for s in first["spp"]]
+        crops = {
+            region: tuple(int(v) for v in first["crops"][i]) for i, region in enumerate(REGIONS)
         }
-        panels = by_spp[spp]
+        size = int(float(group["params.btf.render.crop_size"].iloc[0]))
+        spp = levels[-1]
+        panels = [(label, data[f"{name}_image"]) for label, data, name in entries]
+        by_spp = {
+            s: [(label, data[f"{name}_crops"][i]) for label, data, name in entries]
+            for i, s in enumerate(levels)
+        }
         stem = "fig8_" + safe_stem(dataset)
         exposure = float(group["params.btf.render.exposure"].iloc[0])
         seed = int(group["seed"].min())
@@ -421,9 +430,7 @@ def draw_fig8(runs: pd.DataFrame, out: Path) -> list[Path]:
             )
         )
         written.append(
-            _crops_per_spp(
-                by_spp, crops, size, f"{dataset}, seed {seed}", out / f"{stem}_crops_per_spp.png"
-            )
+            _crops_per_spp(by_spp, f"{dataset}, seed {seed}", out / f"{stem}_crops_per_spp.png")
         )
         for name, image in panels:
             path = out / f"{stem}_{safe_stem(name)}.exr"
@@ -466,24 +473,24 @@ def _grid(panels, crops: dict, size: int, exposure: float, title: str, path: Pat
     return path
 
 
-def _crops_per_spp(by_spp: dict, crops: dict, size: int, title: str, path: Path) -> Path:
+def _crops_per_spp(by_spp: dict, title: str, path: Path) -> Path:
     """Both crops of every render at every spp, side by side: one row per (region, spp),
     one column per render, to see whether a model's grain outlives the pixel's samples.
-    Each region is exposed so that the first render's crop (the truth, else the reference)
-    at the largest spp has its 99th percentile at white (the dark crop would be black at the frame's exposure); a row's
-    renders share it."""
+    ``by_spp``: spp -> [(render, its crops (regions, size, size, 3))]. Each region is
+    exposed so that the first render's crop (the truth, else the reference) at the largest
+    spp has its 99th percentile at white (the dark crop would be black at the frame's
+    exposure); a row's renders share it."""
     levels = sorted(by_spp)
     columns = len(by_spp[levels[-1]])
     fig = Figure(figsize=(1.6 * columns + 0.6, 1.6 * 2 * len(levels) + 0.4))
     axes = fig.subplots(2 * len(levels), columns, squeeze=False)
     for block, region in enumerate(REGIONS):
-        r, c = crops[region]
-        reference = by_spp[levels[-1]][0][1][r : r + size, c : c + size]
+        reference = by_spp[levels[-1]][0][1][block]
         exposure = 1.0 / max(float(np.percentile(reference, 99)), 1e-6)
         for offset, spp in enumerate(levels):
             row = block * len(levels) + offset
-            for column, (name, image) in enumerate(by_spp[spp]):
-                shown = gamma_encode(image[r : r + size, c : c + size] * np.float32(exposure))
+            for column, (name, crops) in enumerate(by_spp[spp]):
+                shown = gamma_encode(crops[block] * np.float32(exposure))
                 axes[row, column].imshow(np.clip(shown, 0, 1), interpolation="nearest")
                 if row == 0:
                     axes[row, column].set_title(name, fontsize=8)

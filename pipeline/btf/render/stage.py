@@ -533,4 +533,32 @@ def run(ctx: Context) -> dict[str, float]:
     )
     ctx.log.files(named, "render")
     ctx.log.json(rendered.json("crops"), "render/crops.json")
+    ctx.log.arrays(fig8_data(shown, rendered.json("crops"), ctx.cfg), f"render/{FIG8_DATA}")
     return metrics
+
+
+FIG8_DATA = "fig8_data.npz"  # logged under render/: what the tables draw Fig. 8 from
+
+
+def fig8_data(shown: list[tuple[str, Entry]], crops: dict, cfg) -> dict[str, np.ndarray]:
+    """What Fig. 8 shows of one job's renders: ``<name>_image`` (H, W, 3) at the largest spp
+    and ``<name>_crops`` (spp levels, regions, size, size, 3), for ``shown``'s names (model,
+    reference, truth); ``spp``; ``crops`` (regions, 2: the top-left pixels)."""
+    settings = render_settings(cfg)
+    levels, size = list(settings["spp"]), int(settings["crop_size"])
+    corners = np.array([crops[region] for region in REGIONS], dtype=np.int64)
+    data = {"spp": np.array(levels, dtype=np.int64), "crops": corners}
+    for name, entry in shown:
+        data[f"{name}_image"] = entry.array(f"image_spp{levels[-1]}", mmap=False)
+        data[f"{name}_crops"] = np.stack(
+            [
+                np.stack(
+                    [
+                        entry.array(f"image_spp{spp}", mmap=False)[r : r + size, c : c + size]
+                        for r, c in corners
+                    ]
+                )
+                for spp in levels
+            ]
+        ).astype(np.float32)
+    return data
