@@ -3,6 +3,8 @@
     python -m pipeline.cache ls [entries=true]    # entries and size per stage (entries: each)
     python -m pipeline.cache verify [fix=true]    # every file's hash; exit status 1 if any damaged
     python -m pipeline.cache gc [dry_run=true]    # remove what no finished run uses
+    python -m pipeline.cache gc unused_days=30    # remove what no job used for 30 days
+    python -m pipeline.cache gc max_gb=50         # the least recently used, down to 50 GB
 
 Settings are ``key=value`` after the command (:data:`KEYS`; :mod:`pipeline.core.cli` reads
 them): ``paths.runs`` (default ``runs``) says where the MLflow store is
@@ -22,6 +24,13 @@ cannot be read, nor when the store knows none of the entries (the wrong ``paths.
 A RUNNING run whose process is gone from this machine (killed with ``kill -9``) is not
 running: ``gc`` marks it FAILED first (``ls`` and ``dry_run`` only leave it out).
 
+The cache is a memo: every table and figure is drawn from what the runs logged, and a job
+recomputes what it misses. So ``gc unused_days=D`` and ``gc max_gb=G`` clear it by age
+or size without reading the store: entries no job has used for ``D`` days, or the least
+recently used until at most ``G`` GB remain; an entry goes with every entry computed from
+it (a crop without its decoded images is of no use), and never one a job used or holds
+meanwhile.
+
 The command line is read before anything heavy (MLflow, Hydra, pandas) is imported, so
 that a mistyped setting is answered at once.
 """
@@ -37,7 +46,7 @@ from typing import TYPE_CHECKING
 
 from pipeline.core import cli
 from pipeline.core.errors import ConfigError
-from pipeline.core.settings import OneOf
+from pipeline.core.settings import OneOf, Real
 
 if TYPE_CHECKING:
     from pipeline.core.cache import StageCache
@@ -263,6 +272,68 @@ def verify(cache: StageCache, fix: bool) -> int:
     return 1 if damaged else 0
 
 
+def stale(
+    rows: list[Row], unused_days: float | None, max_gb: float | None, now: float
+) -> dict[str, str]:
+    """``{key: why}`` of the entries to remove by age (not used for ``unused_days``) or by
+    size (the least recently used first, until at most ``max_gb`` remain), each with the
+    entries computed from it."""
+    children: dict[str, list[Row]] = {}
+    for row in rows:
+        for key in row.inputs:
+            children.setdefault(key, []).append(row)
+    why: dict[str, str] = {}
+
+    def remove(row: Row, reason: str) -> None:
+        todo = [(row, reason)]
+        while todo:
+            found, because = todo.pop()
+            if found.key in why:
+                continue
+            why[found.key] = because
+            todo += [(child, f"computed from {found.key}") for child in children.get(found.key, [])]
+
+    oldest_first = sorted(rows, key=lambda r: r.used)
+    if unused_days is not None:
+        for row in oldest_first:
+            if now - row.used > unused_days * 86400:
+                remove(row, f"not used for {(now - row.used) / 86400:.0f} days")
+    if max_gb is not None:
+        for row in oldest_first:
+            left = sum(r.bytes for r in rows if r.key not in why)
+            if left <= max_gb * 1e9:
+                break
+            remove(row, f"least recently used ({_when(row.used)}), the cache above {max_gb:g} GB")
+    return why
+
+
+def gc_by_age_or_size(
+    cache: StageCache, unused_days: float | None, max_gb: float | None, dry_run: bool
+) -> int:
+    """``gc unused_days=… max_gb=…``: the store is not read (see the module's docstring)."""
+    from pipeline.core.files import human
+
+    started = time.time()
+    rows = scan(cache)
+    why = stale(rows, unused_days, max_gb, started)
+    verb = "would remove" if dry_run else "removed"
+    freed, n_removed = 0, 0
+    for row in sorted(rows, key=lambda r: r.used):
+        if row.key not in why:
+            continue
+        if dry_run or cache.remove(row.stage, row.key, unless_used_since=started):
+            print(f"{verb} {row.path} ({human(row.bytes)}; {why[row.key]})")
+            freed, n_removed = freed + row.bytes, n_removed + 1
+        else:
+            print(f"kept {row.path}: used or locked by a job meanwhile")
+    kept_bytes = sum(r.bytes for r in rows if r.key not in why)
+    print(
+        f"{verb} {n_removed} entries: {human(freed)} {'would be ' if dry_run else ''}freed; "
+        f"{len(rows) - len(why)} entries ({human(kept_bytes)}) kept"
+    )
+    return 0
+
+
 def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
     from pipeline.core.cache import folder_bytes
     from pipeline.core.errors import StoreError
@@ -326,7 +397,7 @@ PROG = "python -m pipeline.cache"
 COMMANDS = {
     "ls": "entries and size per stage",
     "verify": "check every file's hash",
-    "gc": "remove entries no finished run uses",
+    "gc": "remove entries no finished run uses (or by unused_days, max_gb)",
 }
 
 
@@ -340,6 +411,8 @@ class CacheSettings:
     entries: bool = False
     fix: bool = False
     dry_run: bool = False
+    unused_days: float | None = None
+    max_gb: float | None = None
 
     @property
     def cache_dir(self) -> Path:
@@ -363,8 +436,19 @@ KEYS = {
     ),
     "fix": ("fix", BOOLEAN, "verify: remove the damaged entries"),
     "dry_run": ("dry_run", BOOLEAN, "gc: list what would be removed, remove nothing"),
+    "unused_days": (
+        "unused_days",
+        Real(0, optional=True),
+        "gc: remove entries no job used for this many days (the store is not read)",
+    ),
+    "max_gb": (
+        "max_gb",
+        Real(0, optional=True),
+        "gc: remove the least recently used entries down to this many GB (the store is not read)",
+    ),
 }
-ONLY_FOR = {"entries": "ls", "fix": "verify", "dry_run": "gc"}  # key -> its one command
+# key -> its one command
+ONLY_FOR = {"entries": "ls", "fix": "verify", "dry_run": "gc", "unused_days": "gc", "max_gb": "gc"}
 
 COMMAND = cli.Command(
     PROG,
@@ -398,6 +482,8 @@ def main(argv: list[str] | None = None) -> int:
         return ls(cache, Path(args.runs), args.entries)
     if args.command == "verify":
         return verify(cache, args.fix)
+    if args.unused_days is not None or args.max_gb is not None:
+        return gc_by_age_or_size(cache, args.unused_days, args.max_gb, args.dry_run)
     return gc(cache, Path(args.runs), args.dry_run)
 
 

@@ -409,3 +409,53 @@ def test_command_runs_as_a_module(tmp_path):
     )
     assert done.returncode == 0, done.stderr
     assert re.search(r"^load\s+1\s", done.stdout, re.MULTILINE)
+
+
+def _age(entry, days: float) -> None:
+    """Make ``entry`` last used ``days`` ago (its manifest's mtime)."""
+    when = time.time() - days * 86400
+    os.utime(entry.path / cache_module.MANIFEST, (when, when))
+
+
+def test_gc_by_age_reads_no_store_and_takes_what_was_computed_from_an_entry(tmp_path, capsys):
+    cache = StageCache(tmp_path / "cache")
+    entries = _chain(cache)
+    _age(entries["a"], 40)  # b was computed from a: without it b is of no use
+    for name, days in (("b", 1), ("c", 2), ("d", 3)):
+        _age(entries[name], days)
+    settings = [f"paths.runs={tmp_path / 'no_store_here'}", f"paths.cache={tmp_path / 'cache'}"]
+    assert command.main(["gc", "unused_days=30", "dry_run=true", *settings]) == 0
+    out = capsys.readouterr().out
+    assert "not used for 40 days" in out and f"computed from {entries['a'].key}" in out
+    assert all(e.path.is_dir() for e in entries.values())
+    assert command.main(["gc", "unused_days=30", *settings]) == 0
+    assert [name for name, e in entries.items() if e.path.is_dir()] == ["c", "d"]
+    assert "removed 2 entries" in capsys.readouterr().out
+
+
+def test_gc_by_size_removes_the_least_recently_used_first(tmp_path, capsys):
+    from pipeline.cache import scan
+
+    cache = StageCache(tmp_path / "cache")
+    entries = _chain(cache)
+    for name, days in (("a", 2), ("b", 1), ("c", 5), ("d", 4)):
+        _age(entries[name], days)
+    rows = {row.key: row for row in scan(cache)}
+    keep = rows[entries["a"].key].bytes + rows[entries["b"].key].bytes
+    assert command.main(["gc", f"max_gb={keep / 1e9}", f"paths.cache={tmp_path / 'cache'}"]) == 0
+    assert [name for name, e in entries.items() if e.path.is_dir()] == ["a", "b"]
+    assert "least recently used" in capsys.readouterr().out
+    assert command.main(["gc", "max_gb=0", f"paths.cache={tmp_path / 'cache'}"]) == 0
+    assert not any(e.path.is_dir() for e in entries.values())
+
+
+def test_gc_by_age_keeps_an_entry_a_job_holds(tmp_path, capsys):
+    cache = StageCache(tmp_path / "cache")
+    entries = _chain(cache)
+    for entry in entries.values():
+        _age(entry, 40)
+    c = entries["c"]
+    with open(c.path.parent / f".lock-{c.key}", "w") as lock:  # a job computing c
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        assert command.main(["gc", "unused_days=30", f"paths.cache={tmp_path / 'cache'}"]) == 0
+    assert c.path.is_dir() and f"kept {c.path}: used or locked" in capsys.readouterr().out
