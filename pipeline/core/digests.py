@@ -41,12 +41,9 @@ def first_changed(
 def listed_files(manifest: Mapping) -> dict[str, dict]:
     """``{relative path: record}`` of an entry's manifest. A record is ``{"bytes": n,
     "sha256": hex}``, or for files above :data:`CHUNK_BYTES` ``{"bytes": n, "chunk_bytes":
-    c, "sha256_chunks": [hex of bytes 0..c-1, of c..2c-1, ...]}``; entries written before
-    sizes and hashes were recorded list names only (``{name: {}}``)."""
-    files = manifest.get("files", {})
-    if isinstance(files, list):
-        return {name: {} for name in files}
-    return dict(files)
+    c, "sha256_chunks": [hex of bytes 0..c-1, of c..2c-1, ...]}`` (a manifest without them
+    is refused as incomplete: :class:`~pipeline.core.cache.StageCache`)."""
+    return dict(manifest.get("files", {}))
 
 
 def is_hashed(record: Mapping) -> bool:
