@@ -21,7 +21,7 @@ demo: $(STAMP)  ## the main job: default experiment on the built-in synthetic BT
 test: $(STAMP)  ## the default (fast) test suite: lint, format, pytest
 	$(PY) -m ruff check pipeline tests hydra_plugins scripts
 	$(PY) -m ruff format --check pipeline tests hydra_plugins scripts
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2  # two workers (pytest-xdist): the machine's two cores
 
 tables: $(STAMP)
 	$(PY) -m pipeline.tables
