@@ -465,9 +465,8 @@ def _check_sweep(runs: Path, n_jobs: int) -> pd.DataFrame:
     for run in children:
         params = run.data.params
         if params["model.name"] == "neural_btf":
-            trained.setdefault(params["btf.network.latent"], set()).add(
-                run.data.tags["cache.train"]
-            )
+            size = (params["btf.network.latent"], params["btf.network.hidden"])
+            trained.setdefault(size, set()).add(run.data.tags["cache.train"])
     assert trained and all(len(keys) == 1 for keys in trained.values()), trained
 
     out = build_tables(runs)
@@ -491,15 +490,18 @@ def _check_sweep(runs: Path, n_jobs: int) -> pd.DataFrame:
 
 def test_rate_distortion_smoke_runs_end_to_end_on_the_neural_arms(tmp_path, mlflow_template):
     """``model=neural_btf`` keeps the experiment's two Neural BTF arms (float32, float16),
-    each over its two sizes: 4 jobs, the float16 ones reusing the float32 training."""
+    each over its two sizes, and the wider decoder's arm: 5 jobs, the float16 ones of the
+    first two arms reusing the float32 training."""
     runs = tmp_path / "runs"
     mlflow_template(runs)
     done = _sweep(runs, "model=neural_btf", "train.max_steps=4")
     assert done.returncode == 0, done.stderr[-3000:]
-    assert "keeps 2 of the experiment's 7 arms" in done.stdout + done.stderr
-    points = _check_sweep(runs, 4)
+    assert "keeps 3 of the experiment's 10 arms" in done.stdout + done.stderr
+    points = _check_sweep(runs, 5)
     assert set(points["setting"]) == {"latent 2", "latent 8"}
     assert set(points["arm"]) == {"Neural BTF (float32)", "Neural BTF (float16)"}
+    wide = points[points["line"].str.contains("212")]  # its own line: the width differs
+    assert len(wide) == 1 and wide["bytes"].item() > points["bytes"].max() / 2
 
 
 @pytest.mark.slow
@@ -508,5 +510,5 @@ def test_rate_distortion_smoke_runs_end_to_end(tmp_path, mlflow_template):
     mlflow_template(runs)
     done = _sweep(runs)
     assert done.returncode == 0, done.stderr[-3000:]
-    points = _check_sweep(runs, 7 * 2)
-    assert points["arm"].nunique() == 7 and len(points) == 7 * 2
+    points = _check_sweep(runs, 7 * 2 + 4)
+    assert points["arm"].nunique() == 8 and len(points) == 7 * 2 + 4

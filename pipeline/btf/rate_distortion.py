@@ -37,6 +37,7 @@ AXES = {
     "pca": ["model.n_components", "model.match_clustered_k"],
     "clustered": ["model.k"],
     "neural_btf": ["btf.network.latent"],
+    "latent_texture": ["btf.network.latent"],
 }
 # A Neural BTF run logged before its latent size was a setting had the paper's 8.
 DEFAULT_SIZE = {"neural_btf": 8}
