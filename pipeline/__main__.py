@@ -7,15 +7,15 @@ from pipeline.core import stopping
 if __name__ == "__main__":  # the command only: importing this module installs nothing
     stopping.install()
 
-import sys  # noqa: E402
+import sys
 
-import hydra  # noqa: E402
-from omegaconf import DictConfig  # noqa: E402
+import hydra
+from omegaconf import DictConfig
 
-from pipeline.core.errors import ConfigError, PipelineError  # noqa: E402
-from pipeline.core.methods import CONF_DIR, register_schemas  # noqa: E402
-from pipeline.core.refusal import check_command_line, debugging, refuse  # noqa: E402
-from pipeline.core.settings import check_added_keys  # noqa: E402
+from pipeline.core.errors import ConfigError, PipelineError
+from pipeline.core.methods import CONF_DIR, register_schemas
+from pipeline.core.refusal import check_command_line, debugging, refuse
+from pipeline.core.settings import check_added_keys
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")

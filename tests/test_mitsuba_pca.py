@@ -10,7 +10,7 @@ import pytest
 
 pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba)")
 
-from test_mitsuba import (  # noqa: E402
+from test_mitsuba import (
     SIZE,
     agreement,
     assert_agree,
@@ -18,9 +18,9 @@ from test_mitsuba import (  # noqa: E402
     project_renders,
 )
 
-from pipeline.btf.compressed import FILE_NAME, load_compressed  # noqa: E402
-from pipeline.btf.render import mitsuba_scene  # noqa: E402
-from pipeline.render import mitsuba_bsdf  # noqa: E402
+from pipeline.btf.compressed import FILE_NAME, load_compressed
+from pipeline.btf.render import mitsuba_scene
+from pipeline.render import mitsuba_bsdf
 
 
 @pytest.fixture(scope="module")

@@ -19,13 +19,13 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import matplotlib
-import numpy as np  # noqa: E402
+import numpy as np
 from matplotlib.colors import PowerNorm
 from matplotlib.figure import Figure
 
-from pipeline.core.errors import ConfigError, DataError  # noqa: E402
+from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.report import save_figure
-from pipeline.data.brdf import to_angles  # noqa: E402
+from pipeline.data.brdf import to_angles
 
 MISSING_RGB = (1.0, 0.0, 1.0)  # magenta: no value can be computed there
 BACKGROUND_RGB = (0.35, 0.35, 0.35)

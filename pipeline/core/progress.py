@@ -32,7 +32,7 @@ def _clock(seconds: float) -> str:
     return f"{hours}:{minutes:02d}:{seconds:02d}" if hours else f"{minutes}:{seconds:02d}"
 
 
-class progress:  # noqa: N801 - used like tqdm, a function-like name
+class progress:
     """Iterate ``iterable`` (or count to ``total`` with :meth:`update`) showing progress.
 
     Parameters

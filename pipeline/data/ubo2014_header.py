@@ -89,7 +89,7 @@ def read_dfmf(path: str | PathLike) -> DFMFFile:
     path = Path(path)
     try:
         size = path.stat().st_size
-        handle = open(path, "rb")  # noqa: SIM115 - closed by the with below
+        handle = open(path, "rb")
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
         raise DataError(f"UBO2014 file missing (or not a file): {path}") from None
     with handle:
