@@ -125,16 +125,21 @@ def draw_fig7(runs: pd.DataFrame, out_dir: Path, data_of=logged_data) -> list[Pa
     the written files (PNG, EXR and JSON).
 
     runs : labelled runs (see :func:`pipeline.btf.tables.label_runs`), one model per column
-        is drawn (the run with the lowest seed); runs that logged no Fig. 7 data (PCA, a
-        run of older code) or other pairs than the first one's are left out, with a warning.
+        is drawn (the run with the lowest seed); PCA's runs (no decoder) are left out, and
+        so, with a warning, are runs that logged no Fig. 7 data (older code) or other pairs
+        than the first one's.
     data_of : run id -> its data (:func:`logged_data`); a job passes its own.
 
     Beside each figure, ``fig7_<dataset>_pairs.json`` lists per row the pair asked for and
     the measured pair used (``asked``, ``used``: degrees; ``column``: its index in the data).
     """
+    from pipeline.btf.models import models_of
+
     written: list[Path] = []
     for stale in out_dir.glob("fig7_*"):  # figures of runs that are gone must not linger
         stale.unlink()
+    # Models with a decoder to query: PCA has none, and draws no panel.
+    runs = runs[[m is not None and m.stage is not None for m in models_of(runs)]]
     for dataset, group in runs.groupby("dataset"):
         group = group.sort_values(["order", "model", "seed"]).drop_duplicates("model")
         shown: list[tuple[str, dict]] = []
