@@ -28,8 +28,9 @@ The cache is a memo: every table and figure is drawn from what the runs logged, 
 recomputes what it misses. So ``gc unused_days=D`` and ``gc max_gb=G`` clear it by age
 or size without reading the store: entries no job has used for ``D`` days, or the least
 recently used until at most ``G`` GB remain; an entry goes with every entry computed from
-it (a crop without its decoded images is of no use), and never one a job used or holds
-meanwhile.
+it (a crop without its decoded images is of no use), and never one a running job holds
+(every entry a job was handed stays held until it ends: :class:`~pipeline.core.cache.StageCache`)
+or used since ``gc`` started.
 
 The command line is read before anything heavy (MLflow, Hydra, pandas) is imported, so
 that a mistyped setting is answered at once.
@@ -263,7 +264,7 @@ def verify(cache: StageCache, fix: bool) -> int:
     for stage, key in damaged:
         print(f"damaged {cache.entry_path(stage, key)}: {problems[key]}")
         if fix:
-            removed = cache.remove(stage, key, unless_used_since=started)
+            removed = cache.remove(stage, key, unless_used_since=started, even_in_use=True)
             print("  removed" if removed else "  kept: a job is computing it again")
     print(
         f"verified {len(folders)} entries ({human(total)}) in {time.time() - started:.1f} s: "
@@ -300,8 +301,7 @@ def stale(
                 remove(row, f"not used for {(now - row.used) / 86400:.0f} days")
     if max_gb is not None:
         for row in oldest_first:
-            left = sum(r.bytes for r in rows if r.key not in why)
-            if left <= max_gb * 1e9:
+            if sum(r.bytes for r in rows if r.key not in why) <= max_gb * 1e9:
                 break
             remove(row, f"least recently used ({_when(row.used)}), the cache above {max_gb:g} GB")
     return why
@@ -321,7 +321,8 @@ def gc_by_age_or_size(
     for row in sorted(rows, key=lambda r: r.used):
         if row.key not in why:
             continue
-        if dry_run or cache.remove(row.stage, row.key, unless_used_since=started):
+        # Used since gc started (on any host whose clock is within CLOCK_SKEW_S): kept.
+        if dry_run or cache.remove(row.stage, row.key, unless_used_since=started - CLOCK_SKEW_S):
             print(f"{verb} {row.path} ({human(row.bytes)}; {why[row.key]})")
             freed, n_removed = freed + row.bytes, n_removed + 1
         else:

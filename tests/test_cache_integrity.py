@@ -325,6 +325,7 @@ def _chain(cache: StageCache) -> dict[str, Path]:
     b, _ = _entry(cache, "b", {"a": a.key})
     c, _ = _entry(cache, "c", value=3.0)
     d, _ = _entry(cache, "d", {"c": c.key})
+    cache.release()  # as a job does when it ends: nothing is held in use
     return {"a": a, "b": b, "c": c, "d": d}
 
 
@@ -449,13 +450,24 @@ def test_gc_by_size_removes_the_least_recently_used_first(tmp_path, capsys):
     assert not any(e.path.is_dir() for e in entries.values())
 
 
-def test_gc_by_age_keeps_an_entry_a_job_holds(tmp_path, capsys):
+def test_gc_keeps_what_a_running_job_was_handed_and_a_lock_being_computed(tmp_path, capsys):
+    """A job handed c (a hit) holds it until it ends, however old its last use; d is
+    being computed (its key's lock); a's age alone would have it go."""
     cache = StageCache(tmp_path / "cache")
     entries = _chain(cache)
     for entry in entries.values():
         _age(entry, 40)
-    c = entries["c"]
-    with open(c.path.parent / f".lock-{c.key}", "w") as lock:  # a job computing c
+    job = StageCache(tmp_path / "cache")  # a running job's cache
+    _entry(job, "c", value=3.0)
+    _age(entries["c"], 40)  # the hit touched it: old again, and still held
+    d = entries["d"]
+    settings = ["unused_days=30", f"paths.cache={tmp_path / 'cache'}"]
+    with open(d.path.parent / f".lock-{d.key}", "w") as lock:  # a job computing d
         fcntl.flock(lock, fcntl.LOCK_EX)
-        assert command.main(["gc", "unused_days=30", f"paths.cache={tmp_path / 'cache'}"]) == 0
-    assert c.path.is_dir() and f"kept {c.path}: used or locked" in capsys.readouterr().out
+        assert command.main(["gc", *settings]) == 0
+    out = capsys.readouterr().out
+    assert [name for name, e in entries.items() if e.path.is_dir()] == ["c", "d"]
+    assert f"kept {entries['c'].path}: used or locked" in out
+    job.release()  # the job ends: its entries may go
+    assert command.main(["gc", *settings]) == 0
+    assert not any(e.path.is_dir() for e in entries.values())

@@ -284,7 +284,8 @@ def test_the_best_of_many_arms_is_also_chosen_on_one_seed_and_scored_on_the_othe
     assert row["arms compared"] == 11
     by_seed = [r["rmse_by_seed"] for r in rows]
     chosen = int(np.argmin([seeds[0] for seeds in by_seed]))
-    assert row["chosen on seed 0"] == rows[chosen]["label"]
+    assert row["chosen on one seed"] == rows[chosen]["label"]
+    assert (row["the seed"], row["chosen among"]) == (0, 11)
     held_out = np.mean(list(by_seed[chosen].values())[1:])
     assert row["its RMSE on the other seeds"] == pytest.approx(held_out, abs=1e-6)
     # Here the winner by mean is lucky: below the arms' common level, which the figure
@@ -294,7 +295,11 @@ def test_the_best_of_many_arms_is_also_chosen_on_one_seed_and_scored_on_the_othe
     single = best_at_budgets(
         pd.DataFrame([_point("a", "pca", "c = 1", 1, [0.05])]), budgets_kb=(1,)
     )
-    assert "chosen on seed 0" not in single
+    assert "chosen on one seed" not in single
+    # An arm with one seed is left out of the choice, not the whole row.
+    rows.append(_point("a", "pca", "c = 2", 95_000, [0.01]))
+    again = best_at_budgets(pd.DataFrame(rows), budgets_kb=(128,)).iloc[0]
+    assert again["chosen on one seed"] == row["chosen on one seed"] and again["chosen among"] == 11
 
 
 def test_a_float32_copy_better_by_rounding_loses_to_its_float16_model():

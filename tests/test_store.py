@@ -109,6 +109,7 @@ def test_cache_gc_ends_dead_runs_and_no_longer_keeps_what_they_used(
     experiment = client.create_experiment("smoke")
     cache = StageCache(runs / "cache")
     kept, unused = _entry(cache, "a", 1.0), _entry(cache, "b", 2.0)
+    cache.release()  # as the job that made them does when it ends
     finished = client.create_run(experiment, tags={"cache.a": kept.key})
     client.set_terminated(finished.info.run_id, "FINISHED")
     killed = client.create_run(

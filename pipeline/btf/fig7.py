@@ -24,7 +24,7 @@ from pipeline.btf.evaluate import decode_all
 from pipeline.btf.model import load_decoder
 from pipeline.btf.stereographic import direction_features
 from pipeline.core.cache import Entry
-from pipeline.core.report import safe_stem, save_figure, write_file
+from pipeline.core.report import first_with_data, logged_arrays, safe_stem, save_figure, write_file
 from pipeline.data.directions import unit_vectors
 from pipeline.data.images import gamma_encode, write_exr
 
@@ -105,19 +105,7 @@ def job_data(
 
 def logged_data(run_id: str) -> dict[str, np.ndarray] | None:
     """The Fig. 7 data a run logged (``figures/fig7_data.npz``), or None."""
-    import tempfile
-
-    import mlflow
-
-    with tempfile.TemporaryDirectory() as tmp:
-        try:
-            path = mlflow.artifacts.download_artifacts(
-                run_id=run_id, artifact_path=f"figures/{DATA_NAME}", dst_path=tmp
-            )
-        except Exception:  # MLflow raises its own and OSError kinds for a missing artifact
-            return None
-        with np.load(path) as data:
-            return {name: data[name] for name in data.files}
+    return logged_arrays(run_id, f"figures/{DATA_NAME}")
 
 
 def draw_fig7(runs: pd.DataFrame, out_dir: Path, data_of=logged_data) -> list[Path]:
@@ -141,16 +129,13 @@ def draw_fig7(runs: pd.DataFrame, out_dir: Path, data_of=logged_data) -> list[Pa
     # Models with a decoder to query: PCA has none, and draws no panel.
     runs = runs[[m is not None and m.stage is not None for m in models_of(runs)]]
     for dataset, group in runs.groupby("dataset"):
-        group = group.sort_values(["order", "model", "seed"]).drop_duplicates("model")
+        group = group.sort_values(["order", "model", "seed"])
         shown: list[tuple[str, dict]] = []
-        for _, run in group.iterrows():
-            data = data_of(str(run["run_id"]))
-            if data is None:
-                continue
+        for model, data in first_with_data(group, data_of, f"fig7 of {dataset}", log):
             if shown and not np.array_equal(data["asked"], shown[0][1]["asked"]):
-                log.warning("fig7: run %s asked for other pairs; left out", run["run_id"])
+                log.warning("fig7: %s was drawn at other pairs; left out", model)
                 continue
-            shown.append((str(run["model"]), data))
+            shown.append((model, data))
         if not shown:
             log.warning("fig7: no run of %s logged its Fig. 7 data; skipping it", dataset)
             continue

@@ -239,20 +239,23 @@ def best_at_budgets(
 def selected_on_one_seed(fits: pd.DataFrame) -> dict:
     """The best of many arms is chosen by the same seeds it is scored on, so its mean is
     biased low (the more arms, the more). The honest figure: choose on one seed, score on
-    the others. For arms that share their lowest seed and at least one more: the arm with
-    the lowest RMSE on that seed (``chosen on seed s``) and its mean RMSE over the other
-    seeds (``its RMSE on the other seeds``); {} when the arms have no such seeds."""
-    by_seed = list(fits["rmse_by_seed"])
-    common = set.intersection(*(set(seeds) for seeds in by_seed))
-    if len(common) < 2:
+    the others. Among the arms with the lowest seed any arm has and at least one more:
+    the arm with the lowest RMSE on that seed (``chosen on one seed``, with ``the seed``
+    and ``chosen among`` arms) and its mean RMSE over its other seeds (``its RMSE on the
+    other seeds``); {} when no arm has two seeds."""
+    by_seed = [dict(seeds) for seeds in fits["rmse_by_seed"]]
+    usable = [i for i, seeds in enumerate(by_seed) if len(seeds) >= 2]
+    if not usable:
         return {}
-    first = min(common)
-    rest = sorted(common - {first})
-    choice = int(np.argmin([seeds[first] for seeds in by_seed]))
-    chosen = fits.iloc[choice]
+    first = min(min(by_seed[i]) for i in usable)
+    among = [i for i in usable if first in by_seed[i]]
+    choice = min(among, key=lambda i: by_seed[i][first])
+    rest = [value for seed, value in by_seed[choice].items() if seed != first]
     return {
-        f"chosen on seed {first}": chosen["label"],
-        "its RMSE on the other seeds": float(np.mean([by_seed[choice][s] for s in rest])),
+        "chosen on one seed": fits.iloc[choice]["label"],
+        "the seed": first,
+        "chosen among": len(among),
+        "its RMSE on the other seeds": float(np.mean(rest)),
     }
 
 

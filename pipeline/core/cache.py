@@ -202,13 +202,19 @@ def folder_bytes(folder: Path) -> int:
 
 
 class StageCache:
-    """The on-disk cache: ``root/<stage>/<key>/``."""
+    """The on-disk cache: ``root/<stage>/<key>/``.
+
+    Every entry it hands out is held in use, for as long as this object lives or until
+    :meth:`release`: a shared lock on ``<stage>/.inuse-<key>``, which :meth:`remove` (``gc``)
+    respects, so that a job's inputs stay while it runs (on this host, and on file
+    systems whose locks reach other hosts)."""
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
         # The entries run() returned, by key: a stage computed from them records the ids
         # they had when they were handed out (their files are what it read).
         self._handed_out: dict[str, Entry] = {}
+        self._in_use: dict[str, Any] = {}  # key -> the open file holding its shared lock
 
     def entry_path(self, stage: str, key: str) -> Path:
         return self.root / stage / key
@@ -356,7 +362,21 @@ class StageCache:
 
     def _hand_out(self, entry: Entry) -> Entry:
         self._handed_out[entry.key] = entry
+        if entry.key not in self._in_use:
+            # Held open: the lock lasts as long as the file does.
+            handle = open(entry.path.parent / f".inuse-{entry.key}", "a")
+            try:
+                fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                self._in_use[entry.key] = handle
+            except OSError:  # a gc is removing it this very moment: nothing to hold
+                handle.close()
         return entry
+
+    def release(self) -> None:
+        """Stop holding the entries handed out (:class:`StageCache`): a job has ended."""
+        for handle in self._in_use.values():
+            handle.close()
+        self._in_use.clear()
 
     def _lineage(self, inputs: Mapping[str, str]) -> dict[str, dict]:
         """``{key: {"stage", "id"}}`` of the entries behind ``inputs``: those this cache
@@ -414,16 +434,31 @@ class StageCache:
         log.info("stage %-16s computed key=%s (%.2f s)", stage, key, seconds)
         return Entry(stage, key, final, hit=False, seconds=seconds, manifest=manifest)
 
-    def remove(self, stage: str, key: str, unless_used_since: float | None = None) -> bool:
-        """Delete an entry unless a job holds its key's lock (computing it) or, with
-        ``unless_used_since`` (a time.time()), it was used or rewritten since then.
-        Returns whether it was removed."""
+    def remove(
+        self,
+        stage: str,
+        key: str,
+        unless_used_since: float | None = None,
+        even_in_use: bool = False,
+    ) -> bool:
+        """Delete an entry unless a job holds its key's lock (computing it) or holds it in
+        use (:class:`StageCache`; ``even_in_use``: a damaged entry, of no use to anyone, goes
+        all the same) or, with ``unless_used_since`` (a time.time()), it was used or
+        rewritten since then. Returns whether it was removed."""
         path = self.entry_path(stage, key)
         if not path.parent.is_dir():
             return False
-        with open(path.parent / f".lock-{key}", "a") as lock:
+        held = self._in_use.pop(key, None)
+        if held is not None:  # this cache's own hold does not keep the entry from itself
+            held.close()
+        with (
+            open(path.parent / f".lock-{key}", "a") as lock,
+            open(path.parent / f".inuse-{key}", "a") as in_use,
+        ):
             try:
                 fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                if not even_in_use:
+                    fcntl.flock(in_use, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 return False
             if unless_used_since is not None and last_used(path) >= unless_used_since:

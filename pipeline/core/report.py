@@ -64,6 +64,45 @@ def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> 
     return runs.assign(experiment=runs["experiment_id"].map(names_of))
 
 
+def logged_arrays(run_id: str, artifact_path: str) -> dict | None:
+    """The ``.npz`` a run logged at ``artifact_path`` as ``{name: array}``; None when the
+    run has no such file (a run of older code, a model that logs none). Any other failure
+    (a tracking server out of reach) is raised."""
+    import tempfile
+
+    import mlflow
+    import numpy as np
+    from mlflow.exceptions import MlflowException
+
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            path = mlflow.artifacts.download_artifacts(
+                run_id=run_id, artifact_path=artifact_path, dst_path=tmp
+            )
+        except MlflowException as error:
+            if error.error_code == "RESOURCE_DOES_NOT_EXIST":
+                return None
+            raise
+        with np.load(path) as data:
+            return {name: data[name] for name in data.files}
+
+
+def first_with_data(group: pd.DataFrame, data_of, what: str, log) -> list[tuple[str, dict]]:
+    """Per model of ``group`` (labelled runs, sorted), the first run whose data
+    ``data_of(run_id)`` returns (the lowest seed that logged it), as ``(model, data)``;
+    a model none of whose runs logged it is named in a warning."""
+    found = []
+    for model, runs in group.groupby("model", sort=False):
+        for _, run in runs.iterrows():
+            data = data_of(str(run["run_id"]))
+            if data is not None:
+                found.append((str(model), data))
+                break
+        else:
+            log.warning("%s: no run of %s logged its data (rerun it); left out", what, model)
+    return found
+
+
 def safe_stem(text: str) -> str:
     """ASCII letters and digits only, the rest "_" (a label like "synthetic 48²×6561" is
     not a file name)."""

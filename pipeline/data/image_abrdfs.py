@@ -17,8 +17,10 @@ import numpy as np
 
 from pipeline.data.ubo2014_decode import is_index_array, outer_index, texels_and_directions
 
-# Crops up to this size are held in memory: a job's stages read every texel many times.
-IN_MEMORY_BYTES = 4 * 2**30
+# Crops up to this size are held in memory (a job's stages read every texel many times):
+# 4 GiB, or an eighth of the machine's memory where that is less (each process of a sweep
+# holds its own).
+IN_MEMORY_BYTES = min(4 * 2**30, os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") // 8)
 
 
 def crop_abrdfs(images_path: Path, texels) -> np.ndarray | ImageABRDFs:
@@ -86,10 +88,14 @@ class ImageABRDFs:
         return values
 
     def _gather(self, t: np.ndarray, directions) -> np.ndarray:
-        """(len(t), directions, 3): texels ``t`` in the images ``directions`` selects."""
+        """(len(t), directions, 3): texels ``t`` in the images ``directions`` selects (a
+        slice, or an index array: only those texels of those images are read)."""
         rows, cols = self.row + t // self.width, self.col + t % self.width
-        picked = self.images[directions]
-        return np.ascontiguousarray(picked[:, rows, cols, :].transpose(1, 0, 2), np.float32)
+        if isinstance(directions, slice):
+            values = self.images[directions][:, rows, cols, :]
+        else:
+            values = self.images[directions[:, None], rows[None, :], cols[None, :], :]
+        return np.ascontiguousarray(values.transpose(1, 0, 2), np.float32)
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         values = self[:]

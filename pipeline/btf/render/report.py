@@ -31,7 +31,14 @@ from matplotlib.patches import Rectangle
 from pipeline.btf import tables
 from pipeline.btf.render import RENDERED
 from pipeline.btf.render.stage import REGIONS
-from pipeline.core.report import runs_of, safe_stem, save_figure, write_table
+from pipeline.core.report import (
+    first_with_data,
+    logged_arrays,
+    runs_of,
+    safe_stem,
+    save_figure,
+    write_table,
+)
 from pipeline.data.images import gamma_encode, write_exr
 
 log = logging.getLogger(__name__)
@@ -365,21 +372,9 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
 def logged_renders(run_id: str) -> dict[str, np.ndarray] | None:
     """The Fig. 8 data a run logged (``render/fig8_data.npz``:
     :func:`pipeline.btf.render.stage.fig8_data`), or None."""
-    import tempfile
-
-    import mlflow
-
     from pipeline.btf.render.stage import FIG8_DATA
 
-    with tempfile.TemporaryDirectory() as tmp:
-        try:
-            path = mlflow.artifacts.download_artifacts(
-                run_id=run_id, artifact_path=f"render/{FIG8_DATA}", dst_path=tmp
-            )
-        except Exception:  # MLflow raises its own and OSError kinds for a missing artifact
-            return None
-        with np.load(path) as data:
-            return {name: data[name] for name in data.files}
+    return logged_arrays(run_id, f"render/{FIG8_DATA}")
 
 
 def draw_fig8(runs: pd.DataFrame, out: Path, data_of=logged_renders) -> list[Path]:
@@ -392,10 +387,8 @@ def draw_fig8(runs: pd.DataFrame, out: Path, data_of=logged_renders) -> list[Pat
         stale.unlink()
     written = []
     for dataset, group in runs.groupby("dataset"):
-        group = group.sort_values(["seed"]).drop_duplicates("model")
-        group = group.sort_values("order")
-        logged = [(run["model"], data_of(str(run["run_id"]))) for _, run in group.iterrows()]
-        logged = [(name, data) for name, data in logged if data is not None]
+        group = group.sort_values(["order", "seed"])
+        logged = first_with_data(group, data_of, f"Fig. 8 of {dataset}", log)
         if not logged:
             log.warning("Fig. 8 of %s: none of its runs logged its renders", dataset)
             continue

@@ -533,7 +533,8 @@ def run(ctx: Context) -> dict[str, float]:
     )
     ctx.log.files(named, "render")
     ctx.log.json(rendered.json("crops"), "render/crops.json")
-    ctx.log.arrays(fig8_data(shown, rendered.json("crops"), ctx.cfg), f"render/{FIG8_DATA}")
+    if ctx.log.on:  # reads every spp's image: only for a run to keep
+        ctx.log.arrays(fig8_data(shown, rendered.json("crops"), ctx.cfg), f"render/{FIG8_DATA}")
     return metrics
 
 
