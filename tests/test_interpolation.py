@@ -62,3 +62,27 @@ def test_heldout_lights_are_removed_from_training_for_every_view():
     directions = btf_directions(views=[(0, 0), (30, 90)])
     train = training_directions(directions, heldout)
     assert len(train) == 2 * (81 - 5)
+
+
+def test_the_held_out_rmse_in_blocks_equals_the_rmse_at_once():
+    """A block of texels at a time (the memory of a whole UBO2014 material's evaluation)
+    gives the RMSE of all texels at once."""
+    from pipeline.btf.interpolation import ProductInterpolator, heldout_rmse, training_directions
+
+    rng = np.random.default_rng(0)
+    angles = np.radians([[0, 0], [30, 0], [30, 120], [30, 240], [60, 60], [60, 180], [60, 300]])
+    directions = np.array([[*light, *view] for view in angles for light in angles])
+    abrdf = rng.random((37, len(directions), 3)).astype(np.float32)
+    heldout = np.array([2])
+    train = training_directions(directions, heldout)
+    test = np.setdiff1d(np.arange(len(directions)), train)
+    interp = ProductInterpolator(directions, train)
+    alpha = np.float32(0.7)
+    nearest, linear = interp.predict(abrdf, directions[test])
+    target = abrdf[:, test] / alpha
+    want = [
+        np.sqrt(np.mean(np.square(p / alpha - target, dtype=np.float64))) for p in (nearest, linear)
+    ]
+    for block_bytes in (1, 5 * len(directions) * 12, 1 << 30):  # 1 texel, 5 texels, all
+        got = heldout_rmse(interp, abrdf, directions[test], test, alpha, block_bytes=block_bytes)
+        np.testing.assert_allclose(got, want, rtol=1e-12)
