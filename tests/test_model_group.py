@@ -52,6 +52,20 @@ def test_a_k_by_seed_sweep_composes_nine_jobs_not_twenty_seven():
     assert found == {(k, s) for k in (500, 1000, 2000) for s in (0, 1, 2)}
 
 
+def test_the_sweep_says_how_many_arms_the_command_line_keeps():
+    """An arm whose every key the command line replaces is kept (1 of 3), and a model no
+    arm has keeps none (0 of 3)."""
+    sweeper = compose_config(return_hydra_config=True).hydra.sweeper
+    arms = OmegaConf.to_container(sweeper.arms)
+    said: list[str] = []
+    expand(arms, None, ["model=clustered", "model.k=2000"], announce=said.append)
+    expand(arms, None, ["model=latent_texture"], announce=said.append)
+    assert said == [
+        "model=clustered on the command line keeps 1 of the experiment's 3 arms",
+        "model=latent_texture on the command line keeps 0 of the experiment's 3 arms",
+    ]
+
+
 def test_the_default_and_paper_experiments_compose_their_arms():
     default = [compose_config(*job).model for job in _jobs()]
     assert [m.name for m in default] == ["neural_btf", "clustered", "pca"]

@@ -70,15 +70,16 @@ def expand(
         parsed = {o.get_key_element(): o for o in _parse(_lines(arm))}
         if not any(_chooses_otherwise(given[key], o) for key, o in parsed.items() if key in given):
             kept.append({key: o for key, o in parsed.items() if key not in given})
+    n_kept = len(kept)  # an arm whose every key the command line replaced is still kept
     if not kept:
         kept = [{}]
-    if announce is not None and arms and len(kept) < len(arms):
+    if announce is not None and arms and n_kept < len(arms):
         chosen = [
             o.input_line for key, o in given.items() if "." not in key and not o.is_sweep_override()
         ]
         announce(
             f"{' '.join(chosen)} on the command line keeps "
-            f"{0 if kept == [{}] else len(kept)} of the experiment's {len(arms)} arms"
+            f"{n_kept} of the experiment's {len(arms)} arms"
         )
     axes = [
         o
