@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.data.ubo2014_decode import is_index_array, outer_index, texels_and_directions
+from pipeline.data.crop_abrdfs import CropABRDFs
 
 # Crops up to this size are held in memory (a job's stages read every texel many times):
 # 4 GiB, or an eighth of the machine's memory where that is less (each process of a sweep
@@ -49,54 +49,18 @@ def _in_memory(path: str, size: int, mtime_ns: int, row: int, col: int, height: 
     return crop
 
 
-class ImageABRDFs:
+class ImageABRDFs(CropABRDFs):
     """A crop of decoded images (N, H, W, 3) as the (M, N, 3) float32 array-like method A's
-    stages read: ``shape``, ``len``, ``abrdf[texels]``, ``abrdf[texels, directions]`` (ints,
-    slices, one index array, or ``np.ix_(texels, directions)``) and ``np.asarray``; each read gathers the texels asked for
-    from every image (for crops too large to hold: :func:`crop_abrdfs`)."""
-
-    dtype = np.dtype(np.float32)
-    ndim = 3
+    stages read (:class:`~pipeline.data.crop_abrdfs.CropABRDFs`: the indexing); each read
+    gathers only the texels and images asked for (for crops too large to hold:
+    :func:`crop_abrdfs`)."""
 
     def __init__(self, images: np.ndarray, texels: tuple[int, int, int, int]):
         self.images = images
         self.row, self.col, self.height, self.width = texels
         self.shape = (self.height * self.width, images.shape[0], 3)
-        self.size = int(np.prod(self.shape))
 
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, key) -> np.ndarray:
-        texels, directions = texels_and_directions(key)
-        t = np.arange(self.shape[0])[texels]
-        d = np.arange(self.shape[1])[directions]
-        if outer_index(t, d):  # abrdf[np.ix_(texels, directions)]: (texels, directions, 3)
-            return self._gather(t[:, 0], d[0])
-        if t.ndim > 1 or d.ndim > 1 or (is_index_array(texels) and is_index_array(directions)):
-            raise IndexError(
-                "ImageABRDFs does not pair two index arrays: read a block first, or index "
-                "with np.ix_(texels, directions)"
-            )
-        values = self._gather(
-            np.atleast_1d(t), directions if isinstance(directions, slice) else np.atleast_1d(d)
-        )
-        if d.ndim == 0:
-            values = values[:, 0]
-        if t.ndim == 0:
-            values = values[0]
-        return values
-
-    def _gather(self, t: np.ndarray, directions) -> np.ndarray:
-        """(len(t), directions, 3): texels ``t`` in the images ``directions`` selects (a
-        slice, or an index array: only those texels of those images are read)."""
+    def _read(self, t: np.ndarray, d: np.ndarray) -> np.ndarray:
         rows, cols = self.row + t // self.width, self.col + t % self.width
-        if isinstance(directions, slice):
-            values = self.images[directions][:, rows, cols, :]
-        else:
-            values = self.images[directions[:, None], rows[None, :], cols[None, :], :]
+        values = self.images[d[:, None], rows[None, :], cols[None, :], :]  # (D, T, 3)
         return np.ascontiguousarray(values.transpose(1, 0, 2), np.float32)
-
-    def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        values = self[:]
-        return values if dtype is None else values.astype(dtype, copy=False)

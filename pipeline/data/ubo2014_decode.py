@@ -32,6 +32,7 @@ import numpy as np
 
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.files import output_array
+from pipeline.data.crop_abrdfs import CropABRDFs
 from pipeline.data.ubo2014_format import DRR_EPS, YUV_TO_RGB, DFMFFile
 
 
@@ -248,17 +249,14 @@ def decode_dfmf(
     return out
 
 
-class FactorABRDFs:
+class FactorABRDFs(CropABRDFs):
     """A crop's ABRDFs (texels × direction rows × 3) served from a DFMF file's factors:
     indexing decodes just the texels (and directions) asked for, a small matrix product,
     so the decoded crop is never written or held (a whole UBO2014 material would be
     43.8 GB; its factors are a few MB).
 
-    It stands in for the (M, N, 3) float32 array method A's stages read: ``shape``,
-    ``len``, ``abrdf[texels]`` and ``abrdf[texels, directions]`` with ints, slices or index
-    arrays (one array at most: numpy's paired indexing of two arrays is refused, but
-    ``np.ix_(texels, directions)``, every texel at every direction, is served), and
-    ``np.asarray(abrdf)`` (everything, decoded: only for crops that fit in memory).
+    It stands in for the (M, N, 3) float32 array method A's stages read
+    (:class:`~pipeline.data.crop_abrdfs.CropABRDFs`: the indexing).
 
     Parameters
     ----------
@@ -269,39 +267,14 @@ class FactorABRDFs:
         Texels, image row 0 at the top; texel ``r · width + c``.
     """
 
-    dtype = np.dtype(np.float32)
-    ndim = 3
-
     def __init__(self, dfmf: DFMFFile, rows, crop):
         self.path = dfmf.path
         self.color_model = dfmf.color_model
         self._factors = _factors(dfmf, rows, crop, include_cosine=True)
         m = self._factors.height * self._factors.width
         self.shape = (m, len(self._factors.rows), 3)
-        self.size = int(np.prod(self.shape))
 
-    def __len__(self) -> int:
-        return self.shape[0]
-
-    def __getitem__(self, key) -> np.ndarray:
-        texels, directions = texels_and_directions(key)
-        t = np.arange(self.shape[0])[texels]
-        d = np.arange(self.shape[1])[directions]
-        if outer_index(t, d):  # abrdf[np.ix_(texels, directions)]: (texels, directions, 3)
-            return self._decode(t[:, 0], d[0])
-        if t.ndim > 1 or d.ndim > 1 or (is_index_array(texels) and is_index_array(directions)):
-            raise IndexError(
-                "FactorABRDFs does not pair two index arrays: decode a block first, or "
-                "index with np.ix_(texels, directions)"
-            )
-        values = self._decode(np.atleast_1d(t), np.atleast_1d(d))
-        if d.ndim == 0:
-            values = values[:, 0]
-        if t.ndim == 0:
-            values = values[0]
-        return values
-
-    def _decode(self, texel_rows: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    def _read(self, texel_rows: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(len(texel_rows), len(rows), 3): those texels at those direction rows."""
         f = self._factors
         u = [factor[rows] for factor in f.directions]
@@ -311,31 +284,3 @@ class FactorABRDFs:
         if f.cosine is not None:
             block *= f.cosine[rows, None, None]
         return np.ascontiguousarray(block.transpose(1, 0, 2))
-
-    def __array__(self, dtype=None, copy=None) -> np.ndarray:
-        values = self[:]
-        return values if dtype is None else values.astype(dtype, copy=False)
-
-
-def texels_and_directions(key):
-    """``abrdf[key]``'s texel and direction indices (the colour axis only as ``:``), for
-    the array-likes that serve a crop's ABRDFs (:class:`FactorABRDFs`,
-    :class:`~pipeline.data.image_abrdfs.ImageABRDFs`)."""
-    if not isinstance(key, tuple):
-        return key, slice(None)
-    if len(key) == 1:
-        return key[0], slice(None)
-    if len(key) == 2 or (len(key) == 3 and key[2] == slice(None)):
-        return key[0], key[1]
-    raise IndexError("a crop's ABRDFs take [texels] or [texels, directions]")
-
-
-def is_index_array(index) -> bool:
-    return not isinstance(index, (slice, int, np.integer)) and np.ndim(index) > 0
-
-
-def outer_index(t: np.ndarray, d: np.ndarray) -> bool:
-    """Whether texel and direction indices are ``np.ix_``'s (B, 1) and (1, D): numpy's
-    broadcast of them is every texel at every direction, a block that a crop's ABRDFs can
-    read without the directions not asked for."""
-    return t.ndim == 2 and d.ndim == 2 and t.shape[1] == 1 and d.shape[0] == 1
