@@ -59,37 +59,36 @@ def run_job(cfg: DictConfig) -> float | None:
     ):
         ctx = Context.from_config(cfg, log=RunLog(on=True))
         try:
-            try:
-                with threadpool_limits(cfg.get("threads")):  # numpy's BLAS and OpenMP pools
-                    metrics = method.run(ctx)
-                # The UI lists metrics in the order they were logged: the headline first.
-                first = {name: metrics[name] for name in method.headline if name in metrics}
-                ctx.log.metrics(first)
-                ctx.log.metrics({k: v for k, v in metrics.items() if k not in first})
-                if first and method.description:
-                    # A run page shows its description before its metrics: lead with the result.
-                    result = ", ".join(f"`{name}` {value:.4g}" for name, value in first.items())
-                    ctx.log.tags({NOTE_TAG: f"**Result:** {result}\n\n{method.description}"})
-                share_results_view(run.info.experiment_id, list(first), cfg)
-            except BaseException:
-                # The job's error is the answer, not a second one from logging (a full disk
-                # fails both).
-                with contextlib.suppress(Exception):
-                    log_usage(ctx)
-                raise
-            log_usage(ctx)
-            if method.figures is not None:
-                log_job_figures(ctx, method)
-            print_result(
-                method,
-                method.name_run(cfg),
-                metrics,
-                run.info.run_id,
-                mlflow.get_artifact_uri(),
-                cfg.paths.runs,
-            )
-        finally:
-            ctx.cache.release()  # the entries it used may go (pipeline.cache gc)
+            with threadpool_limits(cfg.get("threads")):  # numpy's BLAS and OpenMP pools
+                metrics = method.run(ctx)
+            # The UI lists metrics in the order they were logged: the headline first.
+            first = {name: metrics[name] for name in method.headline if name in metrics}
+            ctx.log.metrics(first)
+            ctx.log.metrics({k: v for k, v in metrics.items() if k not in first})
+            if first and method.description:
+                # A run page shows its description before its metrics: lead with the result.
+                result = ", ".join(f"`{name}` {value:.4g}" for name, value in first.items())
+                ctx.log.tags({NOTE_TAG: f"**Result:** {result}\n\n{method.description}"})
+            share_results_view(run.info.experiment_id, list(first), cfg)
+        except BaseException:
+            # The job's error is the answer, not a second one from logging (a full disk
+            # fails both).
+            with contextlib.suppress(Exception):
+                log_usage(ctx)
+            ctx.cache.release()
+            raise
+        log_usage(ctx)
+        if method.figures is not None:
+            log_job_figures(ctx, method)
+        ctx.cache.release()  # the entries it used may go now (pipeline.cache gc)
+        print_result(
+            method,
+            method.name_run(cfg),
+            metrics,
+            run.info.run_id,
+            mlflow.get_artifact_uri(),
+            cfg.paths.runs,
+        )
     headline = [metrics[name] for name in method.headline if name in metrics]
     return headline[0] if headline else None
 

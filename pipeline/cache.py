@@ -302,7 +302,7 @@ def stale(
     if max_gb is not None:
         for row in oldest_first:
             if sum(r.bytes for r in rows if r.key not in why) <= max_gb * 1e9:
-                break
+                break  # a sum per row removed: a cache holds hundreds of entries, not millions
             remove(row, f"least recently used ({_when(row.used)}), the cache above {max_gb:g} GB")
     return why
 
