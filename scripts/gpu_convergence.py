@@ -1,23 +1,37 @@
 """Does doubling the run change the error? Neural BTF (the CPU recipe of
 ``conf/train/converged.yaml``: Adam, 32 ABRDFs x 256 directions a step, cosine schedule over
-the run) and the latent texture (``model=latent_texture``'s defaults) on one built-in
-material at the paper's size (a 100 x 100 crop, all 81 x 81 directions), each trained at 1x,
-2x and 4x its length, on the GPU when there is one (where the CPU cannot afford 4x).
+the run) and the latent texture (``model=latent_texture``'s defaults) on built-in materials
+at the paper's size (a 100 x 100 crop, all 81 x 81 directions), each trained at several
+multiples of its length and seeds, on the GPU when there is one (where the CPU cannot
+afford the long runs).
 
-The data is the material's analytic values (no JPEG round trip, unlike the pipeline's
-built-in dataset), so the RMSEs are not those of docs/results.md's tables; the ratios
-between lengths are the point. One JSON line per trained model (stdout, and ``--out``):
+``--data pipeline`` (the default) reads what the pipeline's built-in dataset reads: the
+material written as UBO2003 JPEGs (quality 95, a 128 x 128 texture, generator seed 0) by
+the project's writer, read back by its reader and cropped at [0, 0], so the RMSEs are those
+of docs/results.md's tables. ``--data analytic`` uses the generator's values directly (no
+JPEG round trip): lower errors, not comparable with the tables.
 
-    python scripts/gpu_convergence.py --material corduroy --out convergence.jsonl
+Models train in ``--jobs`` processes at once, the longest first: a step is bound by kernel
+launches and the host's batch drawing, so one GPU serves several. One JSON line per
+trained model (stdout, and appended to ``--out`` as each ends), with its RMSE-versus-steps
+curve on 256 fixed texels (Neural BTF):
+
+    python scripts/gpu_convergence.py --materials plain_weave,corduroy --lengths 1,2,4,8 \
+        --jobs 8 --out convergence.jsonl
     python scripts/gpu_convergence.py --size 16 --crop 12 --scale 0.01   # a CPU check
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
+import multiprocessing
+import os
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -26,8 +40,10 @@ from pipeline.btf.latent_texture import train_latent_texture
 from pipeline.btf.preprocess import fit_normalization
 from pipeline.btf.stereographic import direction_features
 from pipeline.btf.synthetic import SyntheticBTF
+from pipeline.btf.synthetic_dataset import write_synthetic_btf
 from pipeline.btf.train import encode, train
 from pipeline.btf.train_settings import TrainSettings
+from pipeline.data.btf import load_btf
 from pipeline.data.directions import btf_directions
 
 
@@ -48,112 +64,149 @@ def rmse(
     return math.sqrt(total / targets.size)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--material", default="corduroy")
-    parser.add_argument("--size", type=int, default=128, help="texture side (texels)")
-    parser.add_argument("--crop", type=int, default=100, help="crop side (texels)")
-    parser.add_argument("--scale", type=float, default=1.0, help="x every run's length")
-    parser.add_argument("--lengths", default="1,2,4", help="multiples of each recipe")
-    parser.add_argument("--models", default="neural_btf,latent_texture")
-    parser.add_argument("--out", default=None)
-    args = parser.parse_args()
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    clock = time.perf_counter()
-    directions = btf_directions()
-    btf = SyntheticBTF(size=args.size, material=args.material, seed=0)
-    values = btf.evaluate(directions)[:, : args.crop, : args.crop]  # (N, crop, crop, 3)
+def crop_abrdfs(material: str, size: int, crop: int, data: str, folder: Path):
+    """(ABRDFs (M, N, 3), directions (N, 4)) of the crop at [0, 0]."""
+    if data == "pipeline":
+        root = write_synthetic_btf(folder / material, size=size, material=material, quality=95)
+        btf = load_btf(root, progress=False)
+        values, directions = btf.images[:, :crop, :crop], btf.directions
+    else:
+        directions = btf_directions()
+        btf = SyntheticBTF(size=size, material=material, seed=0)
+        values = btf.evaluate(directions)[:, :crop, :crop]  # (N, crop, crop, 3)
     abrdf = np.ascontiguousarray(values.reshape(len(directions), -1, 3).transpose(1, 0, 2))
+    return abrdf.astype(np.float32), np.asarray(directions)
+
+
+def run_task(task: dict) -> dict:
+    """Train one model on the crop saved at ``task["data"]``; its result line."""
+    torch.set_num_threads(1)
+    device = torch.device(task["device"])
+    saved = np.load(task["data"])
+    abrdf, directions = saved["abrdf"], saved["directions"]
     norm = fit_normalization(abrdf)
     targets = norm.target(abrdf)
     features = direction_features(directions).astype(np.float32)
     every = np.arange(len(directions))
     m = len(abrdf)
-    common = {
-        "material": args.material,
-        "crop": args.crop,
-        "device": str(device),
-        "gpu": torch.cuda.get_device_name() if device.type == "cuda" else None,
-    }
-    print(
-        json.dumps(
-            {
-                **common,
-                "data_seconds": round(time.perf_counter() - clock, 1),
-                "M": m,
-                "N": len(directions),
-            }
-        ),
-        flush=True,
-    )
-    lines = []
-    for multiple in (float(v) for v in args.lengths.split(",")):
-        models = args.models.split(",")
-        epochs = max(1, round(24 * multiple * args.scale))
+    line = {k: task[k] for k in ("material", "data", "crop", "model", "multiple", "seed")}
+    line["data"] = task["data_kind"]
+    line["device"] = str(device)
+    line["gpu"] = torch.cuda.get_device_name() if device.type == "cuda" else None
+    if task["model"] == "neural_btf":
         settings = TrainSettings(
             optimizer="adam",
             lr=0.002,
             batch_size=32,
             queries_per_abrdf=256,
-            epochs=epochs,
+            epochs=task["epochs"],
             epoch_texels=10000,
             schedule="cosine",
             device=device.type,
             backend="autograd" if device.type == "cuda" else "auto",
             threads=1,
+            curve_every=task["curve_every"],
         )
-        if "neural_btf" in models:
-            result = train(abrdf, abrdf, np.arange(m), norm, features, every, settings, seed=0)
-            latents = encode(result.encoder.cpu(), abrdf, norm)
-            lines.append(
-                {
-                    **common,
-                    "model": "neural_btf",
-                    "multiple": multiple,
-                    "steps": result.steps,
-                    "seconds": round(result.seconds, 1),
-                    "steps_per_second": round(result.steps / result.seconds, 1),
-                    "rmse": rmse(result.decoder, latents, targets, features, device),
-                }
-            )
-            print(json.dumps(lines[-1]), flush=True)
-        if "latent_texture" not in models:
-            continue
-        steps = max(10, round(15000 * multiple * args.scale))
+        result = train(
+            abrdf, abrdf, np.arange(m), norm, features, every, settings, seed=task["seed"]
+        )
+        latents = encode(result.encoder.cpu(), abrdf, norm)
+        decoder, steps, seconds = result.decoder, result.steps, result.seconds
+        curve = [[p["step"], round(p["rmse"], 6)] for p in result.curve]
+    else:
         fitted = train_latent_texture(
             targets,
             features,
             every,
-            (args.crop, args.crop),
+            (task["crop"], task["crop"]),
             latent=8,
             levels=1,
             hidden=106,
             layers=3,
-            steps=steps,
+            steps=task["steps"],
             batch_texels=64,
             queries_per_texel=64,
             lr=0.01,
-            seed=0,
+            seed=task["seed"],
             device=device.type,
         )
         module = fitted.module
         with torch.no_grad():
             latents = module.texel_latents(torch.arange(m)).numpy()
-        lines.append(
-            {
-                **common,
-                "model": "latent_texture",
-                "multiple": multiple,
-                "steps": steps,
-                "seconds": round(fitted.seconds, 1),
-                "steps_per_second": round(steps / fitted.seconds, 1),
-                "rmse": rmse(module.decoder, latents, targets, features, device),
-            }
+        decoder, steps, seconds, curve = module.decoder, task["steps"], fitted.seconds, []
+    line.update(
+        steps=steps,
+        seconds=round(seconds, 1),
+        steps_per_second=round(steps / seconds, 1),
+        rmse=rmse(decoder, latents, targets, features, device),
+        curve=curve,
+    )
+    return line
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--materials", default="corduroy", help="comma-separated")
+    parser.add_argument("--data", choices=("pipeline", "analytic"), default="pipeline")
+    parser.add_argument("--size", type=int, default=128, help="texture side (texels)")
+    parser.add_argument("--crop", type=int, default=100, help="crop side (texels)")
+    parser.add_argument("--scale", type=float, default=1.0, help="x every run's length")
+    parser.add_argument("--lengths", default="1,2,4", help="multiples of each recipe")
+    parser.add_argument("--seeds", default="0", help="comma-separated training seeds")
+    parser.add_argument("--models", default="neural_btf,latent_texture")
+    parser.add_argument("--curve-every", type=int, default=500, help="Neural BTF curve's step")
+    parser.add_argument("--jobs", type=int, default=1, help="models trained at once")
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args()
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    folder = Path(tempfile.mkdtemp(prefix="gpu_convergence_"))
+    tasks = []
+    for material in args.materials.split(","):
+        clock = time.perf_counter()
+        abrdf, directions = crop_abrdfs(material, args.size, args.crop, args.data, folder)
+        saved = folder / f"{material}.npz"
+        np.savez(saved, abrdf=abrdf, directions=directions)
+        print(
+            json.dumps(
+                {
+                    "material": material,
+                    "data": args.data,
+                    "M": len(abrdf),
+                    "N": len(directions),
+                    "data_seconds": round(time.perf_counter() - clock, 1),
+                }
+            ),
+            flush=True,
         )
-        print(json.dumps(lines[-1]), flush=True)
+        lengths = [float(v) for v in args.lengths.split(",")]
+        seeds = [int(v) for v in args.seeds.split(",")]
+        for model, multiple, seed in itertools.product(args.models.split(","), lengths, seeds):
+            tasks.append(
+                {
+                    "material": material,
+                    "data": str(saved),
+                    "data_kind": args.data,
+                    "crop": args.crop,
+                    "model": model,
+                    "multiple": multiple,
+                    "seed": seed,
+                    "device": device,
+                    "curve_every": args.curve_every,
+                    "epochs": max(1, round(24 * multiple * args.scale)),
+                    "steps": max(10, round(15000 * multiple * args.scale)),
+                }
+            )
+    # The longest first, so the pool's last minutes are not one long model alone.
+    tasks.sort(key=lambda t: -t["multiple"] * (2 if t["model"] == "latent_texture" else 1))
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    pool = multiprocessing.get_context("spawn").Pool(max(1, args.jobs))
+    for line in pool.imap_unordered(run_task, tasks):
+        print(json.dumps({k: v for k, v in line.items() if k != "curve"}), flush=True)
         if args.out:
-            with open(args.out, "w") as out:
-                out.write("".join(json.dumps(line) + "\n" for line in lines))
+            with open(args.out, "a") as out:
+                out.write(json.dumps(line) + "\n")
+    pool.close()
+    pool.join()
 
 
 if __name__ == "__main__":
