@@ -5,6 +5,13 @@ stage's ``losses.json``), each run's final eq. 10 RMSE over the whole crop as a 
 one panel per material. Prints each run's final RMSE and the change from 1x to 2x.
 
     python scripts/convergence_figure.py /work/conv_runs docs/figures/convergence.png
+
+Given the JSON lines of ``scripts/gpu_convergence.py`` instead of a runs folder, it draws
+their Neural BTF curves (one colour per length, one line style per seed) and prints the
+same changes, per seed:
+
+    python scripts/convergence_figure.py docs/measurements/gpu_convergence_2026-11-27.jsonl \
+        docs/figures/convergence_gpu.png
 """
 
 from __future__ import annotations
@@ -20,7 +27,56 @@ from mlflow.tracking import MlflowClient
 from pipeline.core.store import tracking_uri
 
 
+def from_lines(path: str, figure: str) -> None:
+    """The curves and final RMSEs of ``scripts/gpu_convergence.py``'s output."""
+    lines = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+    materials = sorted({line["material"] for line in lines})
+    multiples = sorted({line["multiple"] for line in lines})
+    colours = dict(zip(multiples, ("C0", "C1", "C2", "C3", "C4", "C5"), strict=False))
+    fig = Figure(figsize=(5.5 * len(materials), 4))
+    axes = np.atleast_1d(fig.subplots(1, len(materials)))
+    for ax, material in zip(axes, materials, strict=True):
+        for line in sorted(lines, key=lambda x: (x["multiple"], x["seed"])):
+            if line["material"] != material or not line.get("curve"):
+                continue
+            steps, rmse = np.array(line["curve"]).T
+            style = ("-", "--", ":")[line["seed"] % 3]
+            colour = colours[line["multiple"]]
+            label = f"{line['model']}, {line['steps']} steps, seed {line['seed']}"
+            ax.plot(steps, rmse, style, color=colour, lw=1, label=label)
+            ax.plot([line["steps"]], [line["rmse"]], "o", color=colour, ms=4)
+        ax.set_title(f"{material} ({lines[0].get('gpu') or lines[0]['device']})")
+        ax.set_xlabel("training step")
+        ax.set_ylabel("RMSE (normalised)")
+        ax.set_yscale("log")
+        ax.set_ylim(0.008, 0.1)
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(figure, dpi=110)
+    finals: dict = {}
+    for line in lines:
+        key = (line["material"], line["model"], line["seed"])
+        finals.setdefault(key, []).append((line["steps"], line["rmse"]))
+    report(finals)
+
+
+def report(finals: dict) -> None:
+    """Each run's final RMSE and each doubling's change, one line per group."""
+    for key, points in sorted(finals.items()):
+        points.sort()
+        # Each doubling's change (the criterion compares a run with the one twice as long).
+        changes = [
+            f"{a} -> {b} steps {100 * (rb / ra - 1):+.1f} %"
+            for (a, ra), (b, rb) in zip(points, points[1:], strict=False)
+        ]
+        listed = ", ".join(f"{s} steps {r:.5f}" for s, r in points)
+        name = " ".join(str(part) for part in key)
+        print(f"{name}: {listed}" + (f"; {', '.join(changes)}" if changes else ""))
+
+
 def main(runs_dir: str, figure: str) -> None:
+    if runs_dir.endswith(".jsonl"):
+        return from_lines(runs_dir, figure)
     client = MlflowClient(tracking_uri(runs_dir))
     experiment = client.get_experiment_by_name("convergence")
     runs = [
@@ -65,15 +121,7 @@ def main(runs_dir: str, figure: str) -> None:
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(figure, dpi=110)
-    for (material, name), points in sorted(finals.items()):
-        points.sort()
-        # Each doubling's change (the criterion compares a run with the one twice as long).
-        changes = [
-            f"{a} -> {b} steps {100 * (rb / ra - 1):+.1f} %"
-            for (a, ra), (b, rb) in zip(points, points[1:], strict=False)
-        ]
-        listed = ", ".join(f"{s} steps {r:.5f}" for s, r in points)
-        print(f"{material} {name}: {listed}" + (f"; {', '.join(changes)}" if changes else ""))
+    report(finals)
 
 
 if __name__ == "__main__":
