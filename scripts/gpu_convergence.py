@@ -1,6 +1,6 @@
-"""Does doubling the run change the error? Neural BTF (the CPU recipe of
-``conf/train/converged.yaml``: Adam, 32 ABRDFs x 256 directions a step, cosine schedule over
-the run) and the latent texture (``model=latent_texture``'s defaults) on built-in materials
+"""Does doubling the run change the error? Neural BTF and clustered (k = ``--k``), with the
+CPU recipe of ``conf/train/converged.yaml`` (Adam, 32 ABRDFs x 256 directions a step,
+cosine schedule over the run), and the latent texture (``model=latent_texture``'s defaults) on built-in materials
 at the paper's size (a 100 x 100 crop, all 81 x 81 directions), each trained at several
 multiples of its length and seeds, on the GPU when there is one (where the CPU cannot
 afford the long runs).
@@ -36,8 +36,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.btf.clustering import cluster_medians, kmeans_pp, pca_reduce
 from pipeline.btf.latent_texture import train_latent_texture
-from pipeline.btf.preprocess import fit_normalization
+from pipeline.btf.preprocess import encoder_inputs, fit_normalization
 from pipeline.btf.stereographic import direction_features
 from pipeline.btf.synthetic import SyntheticBTF
 from pipeline.btf.synthetic_dataset import write_synthetic_btf
@@ -93,7 +94,7 @@ def run_task(task: dict) -> dict:
     line["data"] = task["data_kind"]
     line["device"] = str(device)
     line["gpu"] = torch.cuda.get_device_name() if device.type == "cuda" else None
-    if task["model"] == "neural_btf":
+    if task["model"] in ("neural_btf", "clustered"):
         settings = TrainSettings(
             optimizer="adam",
             lr=0.002,
@@ -107,10 +108,21 @@ def run_task(task: dict) -> dict:
             threads=1,
             curve_every=task["curve_every"],
         )
+        if task["model"] == "clustered":
+            # As the pipeline's pca, kmeans and representatives stages (btf.pca's 16
+            # components, k-means++ seeded by the run's seed, the clusters' medians): the
+            # encoder reads a texel's representative and the loss its own ABRDF.
+            scores, _ = pca_reduce(encoder_inputs(abrdf, norm), 16, 0)
+            labels, _, _ = kmeans_pp(scores, task["k"], seed=task["seed"])
+            sources = cluster_medians(abrdf, labels, task["k"])
+            source_of_texel = labels.astype(np.int64)
+            line["k"] = task["k"]
+        else:
+            sources, source_of_texel = abrdf, np.arange(m)
         result = train(
-            abrdf, abrdf, np.arange(m), norm, features, every, settings, seed=task["seed"]
+            abrdf, sources, source_of_texel, norm, features, every, settings, seed=task["seed"]
         )
-        latents = encode(result.encoder.cpu(), abrdf, norm)
+        latents = encode(result.encoder.cpu(), sources, norm)[source_of_texel]
         decoder, steps, seconds = result.decoder, result.steps, result.seconds
         curve = [[p["step"], round(p["rmse"], 6)] for p in result.curve]
     else:
@@ -154,6 +166,7 @@ def main() -> None:
     parser.add_argument("--lengths", default="1,2,4", help="multiples of each recipe")
     parser.add_argument("--seeds", default="0", help="comma-separated training seeds")
     parser.add_argument("--models", default="neural_btf,latent_texture")
+    parser.add_argument("--k", type=int, default=500, help="clustered: k")
     parser.add_argument("--curve-every", type=int, default=500, help="Neural BTF curve's step")
     parser.add_argument("--jobs", type=int, default=1, help="models trained at once")
     parser.add_argument("--out", default=None)
@@ -191,6 +204,7 @@ def main() -> None:
                     "multiple": multiple,
                     "seed": seed,
                     "device": device,
+                    "k": args.k,
                     "curve_every": args.curve_every,
                     "epochs": max(1, round(24 * multiple * args.scale)),
                     "steps": max(10, round(15000 * multiple * args.scale)),
