@@ -37,7 +37,8 @@ class ArmsSweeper(BasicSweeper):
         returns, first = [], 0
         while not self.is_done():
             batch = self.get_job_batch()
-            self.validate_batch_is_legal(batch)  # every job composes before any runs
+            # Every job composes and is checked before any runs (what Hydra's own
+            # validate_batch_is_legal does, a composition per job, is part of this).
             self.check_settings(batch)
             results = self.launcher.launch(batch, initial_job_idx=first)
             for result in results:
