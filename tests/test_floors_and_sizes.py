@@ -1,6 +1,7 @@
 """Numbers read from the data: the data-vs-truth floor, the stored types of Table 1, and
 the per-texel scale's bytes compared at equal size."""
 
+import mlflow
 import numpy as np
 import pandas as pd
 import pytest
@@ -8,6 +9,7 @@ from mlflow.tracking import MlflowClient
 
 from pipeline.app import run_job
 from pipeline.btf import tables
+from pipeline.btf.models import MODELS
 from pipeline.btf.stages import data_truth_rmse
 from pipeline.core.store import tracking_uri
 
@@ -74,6 +76,17 @@ def test_pca_at_a_budget_below_one_component_runs_one_and_says_so(smoke_cfg, cap
     assert run.data.metrics["bytes_total"] == pca_bytes(1, m, n, "float32")
     assert "cannot hold one float32 component" in run.data.tags["over_budget"]
     assert "PCA runs with 1 component, over the budget" in caplog.text
+    # The tables label it so (not "bytes of k = 1", a budget it does not meet).
+    cfg = smoke_cfg()
+    mlflow.set_tracking_uri(tracking_uri(cfg.paths.runs))
+    runs = mlflow.search_runs(experiment_names=[cfg.tracking.experiment])
+    assert set(tables.label_runs(runs)["model"]) == {"PCA c = 1 (over budget)"}
+
+
+def test_a_pca_within_its_budget_is_not_labelled_over_it():
+    column = MODELS["pca"].column
+    assert column({"metrics.n_components": 3.0, "tags.over_budget": float("nan")}) == "PCA c = 3"
+    assert column({"metrics.n_components": 3.0}) == "PCA c = 3"
 
 
 def _row(model: str, k, total: int, rmse: float, seed=0, scaled=None, unscaled=None) -> dict:

@@ -168,6 +168,13 @@ def _int_text(value) -> str:
         return "?"
 
 
+def _pca_column(run: Mapping) -> str:
+    """``PCA c = <c>``, and ``(over budget)`` where the budget it was given held no component
+    and it ran with one (the run's ``over_budget`` tag)."""
+    column = "PCA c = " + _int_text(run.get("metrics.n_components"))
+    return column + " (over budget)" if isinstance(run.get("tags.over_budget"), str) else column
+
+
 MODELS: dict[str, Model] = {
     model.name: model
     for model in (
@@ -203,7 +210,7 @@ MODELS: dict[str, Model] = {
             trains=False,
             clusters=False,
             size=("metrics.n_components", "c = "),
-            column=lambda run: "PCA c = " + _int_text(run.get("metrics.n_components")),
+            column=_pca_column,
             rank=3,
             stored_types=lambda run: _param(run, "model.dtype", "float32"),
         ),
