@@ -7,7 +7,7 @@ one panel per material. Prints each run's final RMSE and the change from 1x to 2
     python scripts/convergence_figure.py /work/conv_runs docs/figures/convergence.png
 
 Given the JSON lines of ``scripts/gpu_convergence.py`` instead of a runs folder, it draws
-their Neural BTF curves (one colour per length, one line style per seed) and prints the
+their curves (any model with one: one colour per length, one line style per seed) and prints the
 same changes, per seed:
 
     python scripts/convergence_figure.py docs/measurements/gpu_convergence_2026-11-27.jsonl \
@@ -49,7 +49,7 @@ def from_lines(path: str, figure: str) -> None:
         ax.set_xlabel("training step")
         ax.set_ylabel("RMSE (normalised)")
         ax.set_yscale("log")
-        ax.set_ylim(0.008, 0.1)
+        ax.set_ylim(0.008, 0.2)
         ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(figure, dpi=110)
@@ -97,8 +97,11 @@ def main(runs_dir: str, figure: str) -> None:
             steps = int(run.data.metrics.get("train_steps", 0))
             label = f"{name}, {steps} steps"
             if name == "latent_texture":
-                folder = Path(params["paths.cache"]) / "train_latent_texture"
-                entry = folder / run.data.tags["cache.train_latent_texture"]
+                # Stores written before the latent texture's stage was named "train" tag
+                # it "train_latent_texture" (the runs of docs/results.md's CPU table).
+                tags = run.data.tags
+                stage = "train" if "cache.train" in tags else "train_latent_texture"
+                entry = Path(params["paths.cache"]) / stage / tags[f"cache.{stage}"]
                 losses = json.loads((entry / "losses.json").read_text())
                 x = np.linspace(steps / len(losses), steps, len(losses))
                 ax.plot(x, np.sqrt(losses), lw=1, label=f"{label} (batch RMSE)")

@@ -11,10 +11,11 @@ the project's writer, read back by its reader and cropped at [0, 0], so the RMSE
 of docs/results.md's tables. ``--data analytic`` uses the generator's values directly (no
 JPEG round trip): lower errors, not comparable with the tables.
 
-Models train in ``--jobs`` processes at once, the longest first: a step is bound by kernel
-launches and the host's batch drawing, so one GPU serves several. One JSON line per
-trained model (stdout, and appended to ``--out`` as each ends), with its RMSE-versus-steps
-curve on 256 fixed texels (Neural BTF):
+Models train in ``--jobs`` processes at once, the longest first: one model's steps leave
+the GPU mostly idle, so one GPU serves several (docs/performance.md: about 4 × one
+model's throughput, reached by 8 processes). One JSON line per trained model (stdout, and
+appended to ``--out`` as each ends: a rerun adds to the file), with the Neural BTF's and
+the clustered model's RMSE-versus-steps curve on 256 texels fixed per seed:
 
     python scripts/gpu_convergence.py --materials plain_weave,corduroy --lengths 1,2,4,8 \
         --jobs 8 --out convergence.jsonl

@@ -195,7 +195,12 @@ def test_the_latent_texture_model_runs_through_the_chain(smoke_cfg):
     cache = Path(cfg.paths.cache)
     [path] = (cache / "export").glob(f"*/{FILE_NAME}")
     assert payload_bytes(path) == metrics["bytes_total"]
-    [trained] = (cache / "train_latent_texture").glob("*/")
+    [trained] = (cache / "train").glob("*/")
+    # Its Fig. 7 is logged, as every trained model's: the tables draw it from the run.
+    from pipeline.btf.fig7 import logged_data
+
+    fig7 = logged_data(run.info.run_id)
+    assert fig7 is not None and fig7["model"].shape == fig7["reference"].shape
     decoder = load_decoder(trained / "decoder.pt")
     latents = np.load(trained / "latents.npy")
     compressed = load_compressed(path)

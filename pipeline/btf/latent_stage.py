@@ -85,8 +85,10 @@ def train_stage(
             "final_loss": losses[-1] if losses else float("nan"),
         }
 
+    # The same stage name as the autoencoder's: its entry holds the same files, which the
+    # evaluate and export stages and the job's Fig. 7 read (the settings tell them apart).
     return ctx.run(
-        "train_latent_texture",
+        "train",
         settings,
         {"crop": cropped, "preprocess": prep},
         compute,
