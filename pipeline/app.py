@@ -75,12 +75,13 @@ def run_job(cfg: DictConfig) -> float | None:
             # fails both).
             with contextlib.suppress(Exception):
                 log_usage(ctx)
-            ctx.cache.release()
             raise
-        log_usage(ctx)
-        if method.figures is not None:
-            log_job_figures(ctx, method)
-        ctx.cache.release()  # the entries it used may go now (pipeline.cache gc)
+        else:
+            log_usage(ctx)
+            if method.figures is not None:
+                log_job_figures(ctx, method)  # reads the entries: released after it
+        finally:
+            ctx.cache.release()  # the entries it used may go now (pipeline.cache gc)
         print_result(
             method,
             method.name_run(cfg),

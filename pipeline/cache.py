@@ -285,14 +285,17 @@ def stale(
             children.setdefault(key, []).append(row)
     why: dict[str, str] = {}
 
-    def remove(row: Row, reason: str) -> None:
-        todo = [(row, reason)]
+    def remove(row: Row, reason: str) -> int:
+        """Mark ``row`` and every entry computed from it; the bytes newly marked."""
+        freed, todo = 0, [(row, reason)]
         while todo:
             found, because = todo.pop()
             if found.key in why:
                 continue
             why[found.key] = because
+            freed += found.bytes
             todo += [(child, f"computed from {found.key}") for child in children.get(found.key, [])]
+        return freed
 
     oldest_first = sorted(rows, key=lambda r: r.used)
     if unused_days is not None:
@@ -300,10 +303,13 @@ def stale(
             if now - row.used > unused_days * 86400:
                 remove(row, f"not used for {(now - row.used) / 86400:.0f} days")
     if max_gb is not None:
+        kept = sum(r.bytes for r in rows if r.key not in why)
         for row in oldest_first:
-            if sum(r.bytes for r in rows if r.key not in why) <= max_gb * 1e9:
-                break  # a sum per row removed: a cache holds hundreds of entries, not millions
-            remove(row, f"least recently used ({_when(row.used)}), the cache above {max_gb:g} GB")
+            if kept <= max_gb * 1e9:
+                break
+            kept -= remove(
+                row, f"least recently used ({_when(row.used)}), the cache above {max_gb:g} GB"
+            )
     return why
 
 
