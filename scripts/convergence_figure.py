@@ -32,7 +32,7 @@ def from_lines(path: str, figure: str) -> None:
     lines = [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
     materials = sorted({line["material"] for line in lines})
     multiples = sorted({line["multiple"] for line in lines})
-    colours = dict(zip(multiples, ("C0", "C1", "C2", "C3", "C4", "C5"), strict=False))
+    colours = {multiple: f"C{i}" for i, multiple in enumerate(multiples)}
     fig = Figure(figsize=(5.5 * len(materials), 4))
     axes = np.atleast_1d(fig.subplots(1, len(materials)))
     for ax, material in zip(axes, materials, strict=True):

@@ -12,8 +12,8 @@ of docs/results.md's tables. ``--data analytic`` uses the generator's values dir
 JPEG round trip): lower errors, not comparable with the tables.
 
 Models train in ``--jobs`` processes at once, the longest first: one model's steps leave
-the GPU mostly idle, so one GPU serves several (docs/performance.md: about 4 × one
-model's throughput, reached by 8 processes). One JSON line per trained model (stdout, and
+the GPU mostly idle, so one GPU serves several (docs/performance.md measures how many
+help). One JSON line per trained model (stdout, and
 appended to ``--out`` as each ends: a rerun adds to the file), with the Neural BTF's and
 the clustered model's RMSE-versus-steps curve on 256 texels fixed per seed:
 
@@ -66,7 +66,7 @@ def rmse(
     return math.sqrt(total / targets.size)
 
 
-def crop_abrdfs(material: str, size: int, crop: int, data: str, folder: Path):
+def material_crop(material: str, size: int, crop: int, data: str, folder: Path):
     """(ABRDFs (M, N, 3), directions (N, 4)) of the crop at [0, 0]."""
     if data == "pipeline":
         root = write_synthetic_btf(folder / material, size=size, material=material, quality=95)
@@ -81,10 +81,10 @@ def crop_abrdfs(material: str, size: int, crop: int, data: str, folder: Path):
 
 
 def run_task(task: dict) -> dict:
-    """Train one model on the crop saved at ``task["data"]``; its result line."""
+    """Train one model on the crop saved at ``task["path"]``; its result line."""
     torch.set_num_threads(1)
     device = torch.device(task["device"])
-    saved = np.load(task["data"])
+    saved = np.load(task["path"])
     abrdf, directions = saved["abrdf"], saved["directions"]
     norm = fit_normalization(abrdf)
     targets = norm.target(abrdf)
@@ -92,7 +92,6 @@ def run_task(task: dict) -> dict:
     every = np.arange(len(directions))
     m = len(abrdf)
     line = {k: task[k] for k in ("material", "data", "crop", "model", "multiple", "seed")}
-    line["data"] = task["data_kind"]
     line["device"] = str(device)
     line["gpu"] = torch.cuda.get_device_name() if device.type == "cuda" else None
     if task["model"] in ("neural_btf", "clustered"):
@@ -168,16 +167,23 @@ def main() -> None:
     parser.add_argument("--seeds", default="0", help="comma-separated training seeds")
     parser.add_argument("--models", default="neural_btf,latent_texture")
     parser.add_argument("--k", type=int, default=500, help="clustered: k")
-    parser.add_argument("--curve-every", type=int, default=500, help="Neural BTF curve's step")
+    parser.add_argument("--curve-every", type=int, default=500, help="steps between curve points")
     parser.add_argument("--jobs", type=int, default=1, help="models trained at once")
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     device = "cuda" if torch.cuda.is_available() else "cpu"
-    folder = Path(tempfile.mkdtemp(prefix="gpu_convergence_"))
+    with tempfile.TemporaryDirectory(prefix="gpu_convergence_") as folder:
+        train_all(args, device, Path(folder))
+
+
+def train_all(args: argparse.Namespace, device: str, folder: Path) -> None:
+    """Write each material's crop into ``folder``, then train every model of the grid."""
+    lengths = [float(v) for v in args.lengths.split(",")]
+    seeds = [int(v) for v in args.seeds.split(",")]
     tasks = []
     for material in args.materials.split(","):
         clock = time.perf_counter()
-        abrdf, directions = crop_abrdfs(material, args.size, args.crop, args.data, folder)
+        abrdf, directions = material_crop(material, args.size, args.crop, args.data, folder)
         saved = folder / f"{material}.npz"
         np.savez(saved, abrdf=abrdf, directions=directions)
         print(
@@ -192,14 +198,12 @@ def main() -> None:
             ),
             flush=True,
         )
-        lengths = [float(v) for v in args.lengths.split(",")]
-        seeds = [int(v) for v in args.seeds.split(",")]
         for model, multiple, seed in itertools.product(args.models.split(","), lengths, seeds):
             tasks.append(
                 {
                     "material": material,
-                    "data": str(saved),
-                    "data_kind": args.data,
+                    "path": str(saved),
+                    "data": args.data,
                     "crop": args.crop,
                     "model": model,
                     "multiple": multiple,
@@ -214,14 +218,12 @@ def main() -> None:
     # The longest first, so the pool's last minutes are not one long model alone.
     tasks.sort(key=lambda t: -t["multiple"] * (2 if t["model"] == "latent_texture" else 1))
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    pool = multiprocessing.get_context("spawn").Pool(max(1, args.jobs))
-    for line in pool.imap_unordered(run_task, tasks):
-        print(json.dumps({k: v for k, v in line.items() if k != "curve"}), flush=True)
-        if args.out:
-            with open(args.out, "a") as out:
-                out.write(json.dumps(line) + "\n")
-    pool.close()
-    pool.join()
+    with multiprocessing.get_context("spawn").Pool(max(1, args.jobs)) as pool:
+        for line in pool.imap_unordered(run_task, tasks):
+            print(json.dumps({k: v for k, v in line.items() if k != "curve"}), flush=True)
+            if args.out:
+                with open(args.out, "a") as out:
+                    out.write(json.dumps(line) + "\n")
 
 
 if __name__ == "__main__":
