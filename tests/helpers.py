@@ -98,3 +98,67 @@ def fresh_python(code: str, timeout: float = 300) -> dict:
     )
     assert done.returncode == 0, done.stderr[-4000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+# ``python -m pipeline`` without paying its imports for every call: a fork server that
+# imported the package's heavy modules once forks a fresh process per command, which then
+# runs ``pipeline/__main__.py`` as ``__main__`` exactly as the command line does. The
+# child is a new process (its own signal handlers, store, torch threads), forked from a
+# single-threaded server that never computed anything, so nothing leaks between commands.
+_PRELOAD = ["torch", "sklearn.cluster", "mlflow", "hydra", "pipeline.app", "pipeline.__main__"]
+_forks = None
+
+
+def _run_command(module: str, arguments: list[str], cwd: str, env: dict, out: str, err: str):
+    import atexit
+    import os
+    import runpy
+
+    os.chdir(cwd)
+    os.environ.clear()
+    os.environ.update(env)
+    for fd, path in ((1, out), (2, err)):
+        file = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+        os.dup2(file, fd)
+        os.close(file)
+    sys.argv = [module, *arguments]
+    try:
+        runpy.run_module(module, run_name="__main__", alter_sys=True)
+    finally:  # as the interpreter's exit does (a joblib sweep's workers are ended there)
+        atexit._run_exitfuncs()
+
+
+def pipeline_command(
+    *arguments: str,
+    module: str = "pipeline",
+    cwd: Path = ROOT,
+    env: dict | None = None,
+    timeout: float = 600,
+) -> subprocess.CompletedProcess:
+    """``python -m <module> arguments`` in ``cwd``: its exit status, stdout and stderr."""
+    import multiprocessing
+    import os
+    import tempfile
+
+    global _forks
+    if _forks is None:
+        _forks = multiprocessing.get_context("forkserver")
+        _forks.set_forkserver_preload(_PRELOAD)
+    with tempfile.TemporaryDirectory() as folder:
+        out, err = os.path.join(folder, "out"), os.path.join(folder, "err")
+        child = _forks.Process(
+            target=_run_command,
+            args=(module, list(arguments), str(cwd), {**os.environ, **(env or {})}, out, err),
+        )
+        child.start()
+        child.join(timeout)
+        if child.exitcode is None:
+            child.kill()
+            child.join()
+            raise subprocess.TimeoutExpired([module, *arguments], timeout)
+        return subprocess.CompletedProcess(
+            [module, *arguments],
+            child.exitcode,
+            Path(out).read_text(errors="replace"),
+            Path(err).read_text(errors="replace"),
+        )

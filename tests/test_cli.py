@@ -1,10 +1,12 @@
-"""The command lines of the README, run as a user runs them (subprocesses)."""
+"""The command lines of the README, run as a user runs them: each in a process of its own
+(``helpers.pipeline_command``)."""
 
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from helpers import pipeline_command
 from mlflow.tracking import MlflowClient
 
 from pipeline.core.store import tracking_uri
@@ -13,23 +15,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _run(*args, cwd=ROOT):
-    return subprocess.run(
-        [sys.executable, "-m", *args], cwd=cwd, capture_output=True, text=True, timeout=600
-    )
+    return pipeline_command(*args[1:], module=args[0], cwd=cwd)
 
 
 def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_template):
     runs = tmp_path / "runs"
     mlflow_template(runs)
-    done = _run(
-        "pipeline",
-        "-m",
-        "experiment=smoke",
-        "model.k=4,8",
-        "seed=0,1",
-        "hydra/launcher=joblib",
-        f"paths.runs={runs}",
+    # A new interpreter, as a user's: joblib's workers are processes of their own.
+    done = subprocess.run(
+        [sys.executable, "-m", "pipeline", "-m", "experiment=smoke", "model.k=4,8", "seed=0,1"]
+        + ["hydra/launcher=joblib", f"paths.runs={runs}"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
+
     assert done.returncode == 0, done.stderr[-3000:]
 
     client = MlflowClient(tracking_uri(runs))

@@ -18,13 +18,11 @@ sample counts, none tuned (:func:`agreement`):
 from __future__ import annotations
 
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT
+from helpers import pipeline_command
 
 mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba)")
 
@@ -50,20 +48,7 @@ def smoke_compressed_file(
     runs.mkdir(parents=True, exist_ok=True)
     if empty_store is not None:
         shutil.copy(empty_store, runs / "mlflow.db")
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pipeline",
-            "experiment=smoke",
-            f"model={model}",
-            f"paths.runs={runs}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    done = pipeline_command("experiment=smoke", f"model={model}", f"paths.runs={runs}")
     assert done.returncode == 0, done.stderr[-4000:]
     found = sorted((runs / "cache" / "export").glob("*/btf.safetensors"))
     assert len(found) == 1, f"expected one exported file under {runs / 'cache'}, got {found}"

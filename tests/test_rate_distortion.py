@@ -4,14 +4,13 @@ bytes as its compressed file stores them, and its RMSE as that file decodes, for
 storage type and latent size; the smoke sweep end to end."""
 
 import subprocess
-import sys
 from pathlib import Path
 
 import mlflow
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import ROOT, compose_config, recipe_tags
+from helpers import compose_config, pipeline_command, recipe_tags
 from mlflow.tracking import MlflowClient
 from scipy import stats
 
@@ -435,20 +434,12 @@ def test_a_latent_size_outside_2_to_16_is_refused_at_the_door(smoke_cfg, latent)
 
 
 def _sweep(runs: Path, *overrides: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pipeline",
-            "-m",
-            "experiment=rate_distortion_smoke",
-            f"paths.runs={runs}",
-            "hydra.callbacks.mlflow_parent.run_tables=false",
-            *overrides,
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
+    return pipeline_command(
+        "-m",
+        "experiment=rate_distortion_smoke",
+        f"paths.runs={runs}",
+        "hydra.callbacks.mlflow_parent.run_tables=false",
+        *overrides,
         timeout=900,
     )
 

@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 import pytest
-from helpers import ROOT, check_one_line_refusal
+from helpers import ROOT, check_one_line_refusal, pipeline_command
 from mlflow.tracking import MlflowClient
 
 from pipeline.core.errors import DataError
@@ -48,12 +48,8 @@ AT_THE_JOB = [
 
 
 def _run(tmp_path, *arguments: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "pipeline", *arguments, f"paths.runs={tmp_path / 'runs'}"],
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
+    return pipeline_command(
+        *arguments, f"paths.runs={tmp_path / 'runs'}", cwd=tmp_path, timeout=300
     )
 
 

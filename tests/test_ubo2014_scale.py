@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import pipeline_command
 
 from pipeline.btf.ubo2014_chain import run_chain, write_structured
 from pipeline.data.ubo2014 import load_ubo2014
@@ -58,8 +59,6 @@ def test_the_readmes_ubo2014_command_runs_its_three_models(structured, tmp_path)
     """The README's UBO2014 line as written, on a small file, with a short training (the
     only override besides the file and the store): the main job's three arms finish."""
     import re
-    import subprocess
-    import sys
 
     from mlflow.tracking import MlflowClient
 
@@ -74,9 +73,8 @@ def test_the_readmes_ubo2014_command_runs_its_three_models(structured, tmp_path)
     words = re.sub(r"dataset\.root=\S+", f"dataset.root={structured}", line).split()
     words = [w.replace("btf.crop.size=100", "btf.crop.size=16") for w in words[1:]]
     short = ["train.epochs=1", "train.epoch_texels=64", f"paths.runs={tmp_path / 'runs'}"]
-    done = subprocess.run(
-        [sys.executable, *words, *short], cwd=tmp_path, capture_output=True, text=True
-    )
+    assert words[:2] == ["-m", "pipeline"], words
+    done = pipeline_command(*words[2:], *short, cwd=tmp_path)
     assert done.returncode == 0, done.stderr[-3000:]
     client = MlflowClient(tracking_uri(tmp_path / "runs"))
     experiment = client.get_experiment_by_name("btf")
