@@ -38,7 +38,7 @@ def test_a_structured_file_repeats_its_patch_at_the_stated_rank(structured):
 
 
 def test_the_chain_holds_no_copy_of_the_crop_and_pca_at_the_files_rank_is_exact(
-    structured, tmp_path
+    structured, tmp_path, mlflow_template
 ):
     """The main job's command (`python -m pipeline dataset=ubo2014 dataset.root=...
     btf.crop.size=...`, the default offset) with its PCA model, which the chain runs at the
@@ -46,6 +46,7 @@ def test_the_chain_holds_no_copy_of_the_crop_and_pca_at_the_files_rank_is_exact(
     decoded crop: load reads the header, crop records its texels and directions,
     preprocess its statistics; the ABRDFs are decoded from the file's factors where read."""
     size = 16
+    mlflow_template(tmp_path / "runs")
     rows = run_chain(structured, tmp_path / "runs", size, models=("pca",), offset=None)
     written = {row["stage"]: row["cache_bytes"] for row in rows}
     decoded = size * size * VIEWS * LIGHTS * 3 * 4
@@ -55,7 +56,7 @@ def test_the_chain_holds_no_copy_of_the_crop_and_pca_at_the_files_rank_is_exact(
     assert rows[0]["rmse"] < 1e-4 * rows[0]["rmse_mean_abrdf"]
 
 
-def test_the_readmes_ubo2014_command_runs_its_three_models(structured, tmp_path):
+def test_the_readmes_ubo2014_command_runs_its_three_models(structured, tmp_path, mlflow_template):
     """The README's UBO2014 line as written, on a small file, with a short training (the
     only override besides the file and the store): the main job's three arms finish."""
     import re
@@ -72,6 +73,7 @@ def test_the_readmes_ubo2014_command_runs_its_three_models(structured, tmp_path)
     )
     words = re.sub(r"dataset\.root=\S+", f"dataset.root={structured}", line).split()
     words = [w.replace("btf.crop.size=100", "btf.crop.size=16") for w in words[1:]]
+    mlflow_template(tmp_path / "runs")
     short = ["train.epochs=1", "train.epoch_texels=64", f"paths.runs={tmp_path / 'runs'}"]
     assert words[:2] == ["-m", "pipeline"], words
     done = pipeline_command(*words[2:], *short, cwd=tmp_path)
