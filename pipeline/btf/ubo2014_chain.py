@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core import cli
+from pipeline.core.cache import folder_bytes
 from pipeline.core.files import human
 from pipeline.core.settings import Integer, ListOf, OneOf
 from pipeline.data.ubo2014_bench import hemisphere_angles
@@ -113,12 +114,6 @@ def write_structured(
     return write_dfmf(path, views, lights, size, size, factors=factors, dtype=dtype, sync=False)
 
 
-def _folder_bytes(folder: Path) -> int:
-    if not folder.is_dir():
-        return 0
-    return sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
-
-
 def run_chain(
     path: Path, runs: Path, size: int, models=("neural_btf", "clustered", "pca"), offset=(0, 0)
 ):
@@ -146,7 +141,7 @@ def run_chain(
         "pca": ["model.match_clustered_k=null", f"model.n_components={rank}", "model.dtype=float32"]
     }
     for model in models:
-        before = {d.name: _folder_bytes(d) for d in (runs / "cache").glob("*")}
+        before = {d.name: folder_bytes(d) for d in (runs / "cache").glob("*")}
         command = [
             sys.executable,
             "-m",
@@ -181,7 +176,7 @@ def run_chain(
                     "stage": stage,
                     "seconds": seconds,
                     "rss_mb": metrics.get(f"memory/{stage}_peak_rss_mb", float("nan")),
-                    "cache_bytes": _folder_bytes(runs / "cache" / stage) - before.get(stage, 0),
+                    "cache_bytes": folder_bytes(runs / "cache" / stage) - before.get(stage, 0),
                     "rmse": metrics.get("rmse"),
                     "rmse_mean_abrdf": metrics.get("rmse_mean_abrdf"),
                 }

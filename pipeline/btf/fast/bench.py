@@ -85,12 +85,10 @@ from pipeline.btf.fast.bench_loops import (
     paper_channels,
     pipeline_training,
 )
-from pipeline.btf.fast.bench_settings import PROG, BenchSettings, parse_args
+from pipeline.btf.fast.bench_settings import DECODER_MACS, PROG, BenchSettings, parse_args
 from pipeline.btf.model import Decoder, Encoder, parameter_count
 
 M_PAPER = 10_000
-# Decoder multiply-adds per query: 12*106 + 2*106*106 + 106*3.
-DECODER_MACS = 12 * 106 + 2 * 106 * 106 + 106 * 3
 TRAIN_FLOPS_PER_QUERY = 3 * 2 * DECODER_MACS  # forward + backward ~ 3x forward
 
 

@@ -18,6 +18,7 @@ from pipeline.core import cli
 from pipeline.core.settings import Integer, OneOf
 
 PROG = "python -m pipeline.bench"
+DECODER_MACS = 12 * 106 + 2 * 106 * 106 + 106 * 3  # per query: the paper decoder's products
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ imported, so that a bad one is answered at once.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -38,13 +39,13 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.btf.fast.bench_settings import DECODER_MACS
 from pipeline.core import cli
 from pipeline.core.settings import Integer, OneOf
 
 CONF = Path(__file__).resolve().parents[2] / "conf"  # pipeline/btf/fast/ -> pipeline/conf
 N_PAPER = 6561
 PARTS = ("data", "encoder_forward", "decoder", "encoder_backward", "optimizer")
-DECODER_MACS = 12 * 106 + 2 * 106 * 106 + 106 * 3  # per query, the model's products
 # The recipe of conf/train/cpu.yaml before the faster step (the ``before`` setup).
 BEFORE_RECIPE = {
     "batch_size": 32,
@@ -169,18 +170,12 @@ def decoder_flops(batch: int, queries: int) -> float:
     return 3 * 2.0 * DECODER_MACS * batch * queries
 
 
-def matmul_peak(size: int = 2048, repeats: int = 5) -> float:
-    """GFLOP/s of a square float32 matrix product, median of ``repeats``."""
-    import torch
+def matmul_peak() -> float:
+    """GFLOP/s of a 2048 x 2048 float32 matrix product (:func:`pipeline.btf.fast.bench.matmul_peak`,
+    imported here so that this module's top level stays free of torch)."""
+    from pipeline.btf.fast import bench
 
-    a, b = torch.randn(size, size), torch.randn(size, size)
-    a @ b
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        a @ b
-        times.append(time.perf_counter() - start)
-    return 2 * size**3 / float(np.median(times)) / 1e9
+    return bench.matmul_peak()
 
 
 def time_steps(
@@ -243,7 +238,7 @@ def time_steps(
             for part, start, stop in zip(PARTS, cpu[:-1], cpu[1:], strict=True):
                 cpu_totals[part] += stop - start
 
-    memory = reuse_freed_memory() if recipe["reuse_freed_memory"] else _nothing()
+    memory = reuse_freed_memory() if recipe["reuse_freed_memory"] else contextlib.nullcontext()
     try:
         with memory:
             for _ in range(warmup):
@@ -258,14 +253,6 @@ def time_steps(
         | {f"cpu_{part}": 1e3 * cpu_totals[part] / steps for part in PARTS}
         | {"peak_gflops": matmul_peak()}
     )
-
-
-class _nothing:
-    def __enter__(self):
-        return None
-
-    def __exit__(self, *exc):
-        return False
 
 
 def _child(spec: dict) -> dict:
