@@ -66,6 +66,22 @@ def test_the_sweep_says_how_many_arms_the_command_line_keeps():
     ]
 
 
+def test_arms_the_command_line_makes_identical_launch_each_job_once():
+    """experiment=rate_distortion has three PCA arms (float32, float16, and 32/64
+    components); a command line that replaces their size and storage type launches each
+    of its jobs once, not three times."""
+    command = ["model=pca", "model.n_components=16,32", "model.dtype=float16"]
+    jobs = _jobs("experiment=rate_distortion", *command)
+    assert sorted(sorted(job) for job in jobs) == [
+        sorted(["experiment=rate_distortion", "model=pca", f"model.n_components={c}", command[2]])
+        for c in (16, 32)
+    ]
+    said: list[str] = []
+    arms = [{"m": "a", "m.n": "1,2"}, {"m": "a", "m.n": "3"}, {"m": "b"}]
+    assert expand(arms, None, ["m=a", "m.n=4"], announce=said.append) == [["m=a", "m.n=4"]]
+    assert said == ["m=a on the command line keeps 1 of the experiment's 3 arms"]
+
+
 def test_the_default_and_paper_experiments_compose_their_arms():
     default = [compose_config(*job).model for job in _jobs()]
     assert [m.name for m in default] == ["neural_btf", "clustered", "pca"]

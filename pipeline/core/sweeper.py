@@ -12,7 +12,8 @@ names a setting an experiment sweeps must replace that axis, not multiply it. So
 - The command line's overrides apply to every job and replace the same key in the axes and
   in every arm. Where the command line chooses a config group that arms choose
   (``model=clustered``), only the arms that choose the same option are kept (none kept:
-  one arm, the command line's); a line says which.
+  one arm, the command line's); a line says which. Arms that differ only in what the
+  command line replaced are one arm: the same job is never launched twice.
 
 >>> expand([{"model": "a"}, {"model": "b", "k": "1,2"}], {"seed": "0,1"}, ["model=b"])
 [['model=b', 'k=1', 'seed=0'], ['model=b', 'k=1', 'seed=1'], ['model=b', 'k=2', 'seed=0'], \
@@ -65,11 +66,13 @@ def expand(
     """The jobs (each a list of ``key=value`` overrides) of ``arms`` x ``params`` with the
     command line ``arguments`` replacing what they name (see the module docstring)."""
     given = {o.get_key_element(): o for o in _parse(arguments)}
-    kept = []
+    kept: dict[tuple, dict] = {}  # arms the command line made identical are one arm
     for arm in arms or [{}]:
         parsed = {o.get_key_element(): o for o in _parse(_lines(arm))}
         if not any(_chooses_otherwise(given[key], o) for key, o in parsed.items() if key in given):
-            kept.append({key: o for key, o in parsed.items() if key not in given})
+            rest = {key: o for key, o in parsed.items() if key not in given}
+            kept.setdefault(tuple(o.input_line for o in rest.values()), rest)
+    kept = list(kept.values())
     n_kept = len(kept)  # an arm whose every key the command line replaced is still kept
     if not kept:
         kept = [{}]
