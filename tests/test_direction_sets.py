@@ -258,6 +258,26 @@ def test_measured_interpolation_on_a_fibonacci_set_is_the_data_there_and_near_th
     assert coarse < 0.6 * nearest_error
 
 
+def test_one_view_is_interpolated_over_its_lights_and_takes_that_view_for_every_query():
+    """One view of 37 lights (``dataset.views=[[0, 0]]``): the views span no polygon, so
+    every query takes the one view, unclamped, as ProductInterpolator's baselines do; the
+    lights are interpolated as on any set. Two computations of the same values agree."""
+    lights = product_directions(fibonacci_hemisphere(N_LIGHTS), np.zeros((1, 2)))
+    material = _measured_fabric(lights, SyntheticBTF(size=8, seed=0))
+    inside = DirectionHull(lights[:, :2]).inscribed_theta
+    queries = offgrid_directions(200, seed=5, max_theta=inside)  # views anywhere below it
+    texels = np.random.default_rng(6).integers(0, 4, len(queries))
+    _, linear = ProductInterpolator(lights, np.arange(len(lights))).predict(
+        material.values, queries
+    )
+    np.testing.assert_allclose(
+        material.evaluate(texels, queries), linear[texels, np.arange(len(queries))], atol=1e-6
+    )
+    np.testing.assert_array_equal(
+        material.evaluate(texels[:37], lights), material.values[texels[:37], np.arange(37)]
+    )
+
+
 def test_the_grid_edge_of_the_render_is_the_datas_own():
     """Clamp and indicator follow the data's sets, not the 75-degree ring: a view near the
     edge of a Fibonacci set that reaches 80 degrees is inside it, beyond the UBO2003 grid."""

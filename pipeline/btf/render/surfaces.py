@@ -40,6 +40,7 @@ from functools import lru_cache
 import numpy as np
 
 from pipeline.btf.interpolation import DirectionHull, ProductInterpolator
+from pipeline.btf.stereographic import stereographic
 from pipeline.data.directions import btf_directions, direction_sets, grid_81
 from pipeline.render.materials import Material, check_crop_size
 
@@ -164,6 +165,19 @@ def _ubo2003_hulls() -> tuple[DirectionHull, DirectionHull]:
     return hull, hull
 
 
+def _polygon_of(angles: np.ndarray) -> DirectionHull | None:
+    """The polygon a direction set spans, None when it spans none: fewer than 3
+    directions, or all on one line in stereographic coordinates (one view of a BTF)."""
+    points = stereographic(*np.asarray(angles, dtype=np.float64).reshape(-1, 2).T)
+    if len(points) < 3 or np.linalg.matrix_rank(points - points[0], tol=1e-12) < 2:
+        return None
+    return DirectionHull(angles)
+
+
+def _clamped(hull: DirectionHull | None, angles: np.ndarray) -> np.ndarray:
+    return angles if hull is None else hull.clamp(angles)
+
+
 class GridClamped(Material):
     """``material`` queried at directions clamped onto the measured grid
     (:func:`clamp_to_grid`; the light onto the light set's polygon, the view onto the view
@@ -243,14 +257,18 @@ class MeasuredMaterial(Material):
     directions : ndarray of shape (N, 4), radians, or None
         The direction pair of each column of ``values``; None means
         :func:`pipeline.data.directions.btf_directions` (N = 6561). Any light and view
-        sets, but every light under every view (N = L · V), and each set must surround the
-        normal (:class:`~pipeline.btf.interpolation.DirectionHull`).
+        sets, but every light under every view (N = L · V). A set of one direction, or
+        of directions on one line, spans no polygon: every query takes its nearest
+        direction of that set (as :class:`~pipeline.btf.interpolation.Barycentric` does),
+        unclamped; a set that spans one must surround the normal
+        (:class:`~pipeline.btf.interpolation.DirectionHull`).
 
     Raises
     ------
     ValueError
         For arrays of the wrong shapes; :class:`~pipeline.core.errors.DataError` (a
-        ValueError) for directions that are not a full product or surround no normal.
+        ValueError) for directions that are not a full product, or whose polygon does not
+        surround the normal.
     """
 
     def __init__(self, values: np.ndarray, crop_size, directions: np.ndarray | None = None):
@@ -276,8 +294,8 @@ class MeasuredMaterial(Material):
         """The interpolation over ``directions`` (N, 4), a full product of light and view
         sets, and the polygons each set covers."""
         self._interpolator = ProductInterpolator(directions, np.arange(len(directions)))
-        self._light_hull = DirectionHull(self._interpolator.light_dirs)
-        self._view_hull = DirectionHull(self._interpolator.view_dirs)
+        self._light_hull = _polygon_of(self._interpolator.light_dirs)
+        self._view_hull = _polygon_of(self._interpolator.view_dirs)
 
     def _gather(self, texels: np.ndarray, columns: np.ndarray) -> np.ndarray:
         """Stored RGB of texel ``texels[i]`` at direction pair ``columns[i]``: (n, 3)."""
@@ -295,10 +313,10 @@ class MeasuredMaterial(Material):
         # The exhaustive search is much faster than scipy's walk for queries scattered
         # over the hemisphere, as a render's are.
         light_ids, light_w = interp.light_weights(
-            self._light_hull.clamp(directions[:, :2]), bruteforce=True, snap=_SNAP
+            _clamped(self._light_hull, directions[:, :2]), bruteforce=True, snap=_SNAP
         )
         view_ids, view_w = interp.view_weights(
-            self._view_hull.clamp(directions[:, 2:]), bruteforce=True, snap=_SNAP
+            _clamped(self._view_hull, directions[:, 2:]), bruteforce=True, snap=_SNAP
         )
         # Each query gathers its own texel's 9 values (ProductInterpolator.predict would
         # interpolate every texel at every query).
