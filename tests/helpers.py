@@ -124,7 +124,7 @@ def _run_command(module: str, arguments: list[str], cwd: str, env: dict, out: st
     sys.argv = [module, *arguments]
     try:
         runpy.run_module(module, run_name="__main__", alter_sys=True)
-    finally:  # as the interpreter's exit does (a joblib sweep's workers are ended there)
+    finally:  # the exit handlers (MLflow's, joblib's) run as at the interpreter's exit
         atexit._run_exitfuncs()
 
 
