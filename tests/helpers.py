@@ -7,6 +7,7 @@ Tests import from here (``from helpers import compose_config``): pytest's defaul
 
 from __future__ import annotations
 
+import functools
 import json
 import subprocess
 import sys
@@ -106,7 +107,16 @@ def fresh_python(code: str, timeout: float = 300) -> dict:
 # child is a new process (its own signal handlers, store, torch threads), forked from a
 # single-threaded server that never computed anything, so nothing leaks between commands.
 _PRELOAD = ["torch", "sklearn.cluster", "mlflow", "hydra", "pipeline.app", "pipeline.__main__"]
-_forks = None
+
+
+@functools.cache
+def _fork_server():
+    """This worker's fork server (started at its first command)."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(_PRELOAD)
+    return context
 
 
 def _run_command(module: str, arguments: list[str], cwd: str, env: dict, out: str, err: str):
@@ -135,18 +145,14 @@ def pipeline_command(
     env: dict | None = None,
     timeout: float = 600,
 ) -> subprocess.CompletedProcess:
-    """``python -m <module> arguments`` in ``cwd``: its exit status, stdout and stderr."""
-    import multiprocessing
+    """``python -m <module> arguments`` in ``cwd``, with ``env`` added to this process's
+    environment: its exit status, stdout and stderr."""
     import os
     import tempfile
 
-    global _forks
-    if _forks is None:
-        _forks = multiprocessing.get_context("forkserver")
-        _forks.set_forkserver_preload(_PRELOAD)
     with tempfile.TemporaryDirectory() as folder:
         out, err = os.path.join(folder, "out"), os.path.join(folder, "err")
-        child = _forks.Process(
+        child = _fork_server().Process(
             target=_run_command,
             args=(module, list(arguments), str(cwd), {**os.environ, **(env or {})}, out, err),
         )

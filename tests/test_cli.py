@@ -6,16 +6,10 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers import pipeline_command
+from helpers import ROOT, pipeline_command
 from mlflow.tracking import MlflowClient
 
 from pipeline.core.store import tracking_uri
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _run(*args, cwd=ROOT):
-    return pipeline_command(*args[1:], module=args[0], cwd=cwd)
 
 
 def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_template):
@@ -90,8 +84,7 @@ def _artifact_paths(client, run_id, path=None):
 
 def test_bad_input_exits_non_zero_with_the_path(tmp_path):
     missing = tmp_path / "nowhere"
-    done = _run(
-        "pipeline",
+    done = pipeline_command(
         "experiment=smoke",
         f"paths.runs={tmp_path / 'runs'}",
         "dataset=ubo2003",
@@ -184,7 +177,7 @@ def test_the_cache_command_answers_a_bad_setting_before_importing_mlflow(tmp_pat
     assert done.returncode == 2
     assert "'bogus=1' is not a setting of the gc command" in done.stderr
     assert done.stdout.strip() == "[]"
-    helped = _run("pipeline.cache", "--help", cwd=tmp_path)
+    helped = pipeline_command("--help", module="pipeline.cache", cwd=tmp_path)
     assert helped.returncode == 0
     for key in ("paths.runs=", "paths.cache=", "entries=", "fix=", "dry_run="):
         assert key in helped.stdout

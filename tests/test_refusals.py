@@ -5,11 +5,10 @@ left without the error that ended it (pipeline/core/refusal.py)."""
 from __future__ import annotations
 
 import subprocess
-import sys
 
 import numpy as np
 import pytest
-from helpers import ROOT, check_one_line_refusal, pipeline_command
+from helpers import check_one_line_refusal, pipeline_command
 from mlflow.tracking import MlflowClient
 
 from pipeline.core.errors import DataError
@@ -127,19 +126,11 @@ def test_a_bad_file_is_one_line_naming_it_and_its_run_says_why(tmp_path):
 
 
 def test_debug_shows_the_traceback(tmp_path):
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pipeline",
-            "experiment=smoke",
-            "threads=0",
-            f"paths.runs={tmp_path / 'runs'}",
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
+    done = pipeline_command(
+        "experiment=smoke",
+        "threads=0",
+        f"paths.runs={tmp_path / 'runs'}",
+        env={"PIPELINE_DEBUG": "1"},
         timeout=300,
-        env={**__import__("os").environ, "PIPELINE_DEBUG": "1"},
     )
     assert done.returncode != 0 and "Traceback" in done.stdout + done.stderr
