@@ -273,8 +273,9 @@ def test_one_view_is_interpolated_over_its_lights_and_takes_that_view_for_every_
     np.testing.assert_allclose(
         material.evaluate(texels, queries), linear[texels, np.arange(len(queries))], atol=1e-6
     )
+    at = texels[: len(lights)]
     np.testing.assert_array_equal(
-        material.evaluate(texels[:37], lights), material.values[texels[:37], np.arange(37)]
+        material.evaluate(at, lights), material.values[at, np.arange(len(lights))]
     )
 
 

@@ -77,6 +77,11 @@ def training_directions(directions: np.ndarray, heldout: np.ndarray) -> np.ndarr
     return np.flatnonzero(~np.isin(light_of, heldout))
 
 
+class NoPolygon(DataError):
+    """A direction set that spans no polygon: fewer than 3 directions, or all on one line
+    in stereographic coordinates (one view of a BTF)."""
+
+
 class DirectionHull:
     """The region a direction set's triangulation covers, and the clamp onto its edge.
 
@@ -93,8 +98,10 @@ class DirectionHull:
 
     Raises
     ------
+    NoPolygon
+        If the set spans no polygon.
     DataError
-        If the set spans no polygon around the normal.
+        If its polygon does not hold the normal.
     """
 
     # A direction this far (radians) outside the polygon counts as beyond it: the set's own
@@ -109,7 +116,7 @@ class DirectionHull:
         try:
             corners = points[ConvexHull(points).vertices]  # counterclockwise
         except (QhullError, ValueError):
-            raise DataError(
+            raise NoPolygon(
                 f"{len(angles)} directions span no polygon (fewer than 3, or all on one "
                 f"line in stereographic coordinates): nothing to interpolate in"
             ) from None

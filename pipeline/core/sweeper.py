@@ -66,13 +66,13 @@ def expand(
     """The jobs (each a list of ``key=value`` overrides) of ``arms`` x ``params`` with the
     command line ``arguments`` replacing what they name (see the module docstring)."""
     given = {o.get_key_element(): o for o in _parse(arguments)}
-    kept: dict[tuple, dict] = {}  # arms the command line made identical are one arm
+    distinct: dict[tuple, dict] = {}  # arms the command line made identical are one arm
     for arm in arms or [{}]:
         parsed = {o.get_key_element(): o for o in _parse(_lines(arm))}
         if not any(_chooses_otherwise(given[key], o) for key, o in parsed.items() if key in given):
             rest = {key: o for key, o in parsed.items() if key not in given}
-            kept.setdefault(tuple(o.input_line for o in rest.values()), rest)
-    kept = list(kept.values())
+            distinct.setdefault(tuple(o.input_line for o in rest.values()), rest)
+    kept = list(distinct.values())
     n_kept = len(kept)  # an arm whose every key the command line replaced is still kept
     if not kept:
         kept = [{}]

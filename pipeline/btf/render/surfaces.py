@@ -39,8 +39,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from pipeline.btf.interpolation import DirectionHull, ProductInterpolator
-from pipeline.btf.stereographic import stereographic
+from pipeline.btf.interpolation import DirectionHull, NoPolygon, ProductInterpolator
 from pipeline.data.directions import btf_directions, direction_sets, grid_81
 from pipeline.render.materials import Material, check_crop_size
 
@@ -166,12 +165,11 @@ def _ubo2003_hulls() -> tuple[DirectionHull, DirectionHull]:
 
 
 def _polygon_of(angles: np.ndarray) -> DirectionHull | None:
-    """The polygon a direction set spans, None when it spans none: fewer than 3
-    directions, or all on one line in stereographic coordinates (one view of a BTF)."""
-    points = stereographic(*np.asarray(angles, dtype=np.float64).reshape(-1, 2).T)
-    if len(points) < 3 or np.linalg.matrix_rank(points - points[0], tol=1e-12) < 2:
+    """The polygon a direction set spans, None when it spans none (one view of a BTF)."""
+    try:
+        return DirectionHull(angles)
+    except NoPolygon:
         return None
-    return DirectionHull(angles)
 
 
 def _clamped(hull: DirectionHull | None, angles: np.ndarray) -> np.ndarray:
