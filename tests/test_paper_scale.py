@@ -137,8 +137,8 @@ def test_the_gpu_figures_print_on_a_machine_without_one(capsys):
     every loop, the ratios and the time a paper_cpu model's steps take at its rate."""
     from omegaconf import OmegaConf
 
-    from pipeline.btf.fast.bench import print_cuda
     from pipeline.btf.fast.bench_loops import CONF
+    from pipeline.btf.fast.bench_report import print_cuda
 
     recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
 
