@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
 from pipeline.btf.model import Decoder, Encoder
 
@@ -19,7 +18,10 @@ CONF = Path(__file__).resolve().parents[2] / "conf"  # pipeline/btf/fast/ -> pip
 
 
 def paper_channels() -> tuple[int, ...]:
-    return tuple(OmegaConf.load(CONF / "btf" / "default.yaml").network.encoder_channels)
+    """The encoder's channels as btf.network declares them by default (the paper's)."""
+    from pipeline.btf.data_settings import NetworkSettings
+
+    return tuple(NetworkSettings().encoder_channels)
 
 
 def naive_training(steps: int, channels):
