@@ -16,7 +16,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from helpers import compose_config
+from helpers import WIRING_STEPS, compose_config
 from omegaconf import DictConfig
 
 from pipeline.core.methods import register_schemas
@@ -50,15 +50,38 @@ def mlflow_template(_empty_mlflow_db):
     return copy
 
 
+@pytest.fixture(scope="session")
+def shared_cache(tmp_path_factory) -> Path:
+    """One stage cache for the pytest worker's smoke jobs. The cache is made to be shared
+    (entries are keyed by their settings and inputs, published atomically, locked while
+    computed), so a job whose stages another test already computed reads them: only the
+    tests about computing or keeping entries need a cache of their own."""
+    return tmp_path_factory.mktemp("shared_cache")
+
+
 @pytest.fixture
-def smoke_cfg(tmp_path, mlflow_template):
-    """A factory: the smoke experiment writing under a temporary ``paths.runs``."""
+def smoke_cfg(tmp_path, mlflow_template, shared_cache):
+    """A factory: the smoke experiment writing its runs under a temporary ``paths.runs``,
+    its stages into the worker's shared cache and trained for :data:`WIRING_STEPS` steps,
+    unless the overrides name ``paths.cache`` or ``train.max_steps``."""
     mlflow_template(tmp_path / "runs")
+    defaults = {"paths.cache": str(shared_cache), "train.max_steps": str(WIRING_STEPS)}
 
     def make(*overrides: str) -> DictConfig:
-        return compose_config("experiment=smoke", f"paths.runs={tmp_path / 'runs'}", *overrides)
+        named = {o.split("=", 1)[0] for o in overrides}
+        unnamed = [f"{key}={value}" for key, value in defaults.items() if key not in named]
+        return compose_config(
+            "experiment=smoke", f"paths.runs={tmp_path / 'runs'}", *unnamed, *overrides
+        )
 
     return make
+
+
+@pytest.fixture
+def own_cache(tmp_path) -> str:
+    """The override that gives a smoke job a cache of its own (where ``paths.cache`` is by
+    default), for the tests that check what was computed or stored."""
+    return f"paths.cache={tmp_path / 'runs' / 'cache'}"
 
 
 @pytest.fixture(autouse=True)

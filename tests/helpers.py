@@ -20,6 +20,11 @@ ROOT = Path(__file__).resolve().parents[1]  # the repository
 CONF_DIR = ROOT / "pipeline" / "conf"
 SHARED = ROOT.parent / "shared"  # real datasets, where the checkout has them
 PACKAGE = ROOT / "pipeline"
+TESTS = ROOT / "tests"
+# Tests that check the wiring, not what training reaches, stop the smoke recipe's 300
+# steps at this many (``train.max_steps``); tests/test_smoke_quality.py trains the recipe
+# as the demo does.
+WIRING_STEPS = 30
 
 
 def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictConfig:
@@ -119,7 +124,9 @@ def _fork_server():
     return context
 
 
-def _run_command(module: str, arguments: list[str], cwd: str, env: dict, out: str, err: str):
+def _run_command(
+    module: str | None, code: str | None, arguments: list, cwd: str, env: dict, out: str, err: str
+):
     import atexit
     import os
     import runpy
@@ -131,11 +138,43 @@ def _run_command(module: str, arguments: list[str], cwd: str, env: dict, out: st
         file = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
         os.dup2(file, fd)
         os.close(file)
-    sys.argv = [module, *arguments]
     try:
-        runpy.run_module(module, run_name="__main__", alter_sys=True)
+        if module is not None:
+            sys.argv = [module, *arguments]
+            runpy.run_module(module, run_name="__main__", alter_sys=True)
+        else:  # as ``python -c``: the current folder first on the path, not tests/
+            sys.argv = ["-c", *arguments]
+            sys.path[:] = ["", *(p for p in sys.path if Path(p or ".").resolve() != TESTS)]
+            exec(compile(code, "<string>", "exec"), {"__name__": "__main__"})
     finally:  # the exit handlers (MLflow's, joblib's) run as at the interpreter's exit
         atexit._run_exitfuncs()
+
+
+def _forked(
+    module: str | None, code: str | None, arguments: list, cwd: Path, env: dict | None, timeout
+) -> subprocess.CompletedProcess:
+    import os
+    import tempfile
+
+    shown = [module or "-c", *arguments]
+    with tempfile.TemporaryDirectory() as folder:
+        out, err = os.path.join(folder, "out"), os.path.join(folder, "err")
+        child = _fork_server().Process(
+            target=_run_command,
+            args=(module, code, arguments, str(cwd), {**os.environ, **(env or {})}, out, err),
+        )
+        child.start()
+        child.join(timeout)
+        if child.exitcode is None:
+            child.kill()
+            child.join()
+            raise subprocess.TimeoutExpired(shown, timeout)
+        return subprocess.CompletedProcess(
+            shown,
+            child.exitcode,
+            Path(out).read_text(errors="replace"),
+            Path(err).read_text(errors="replace"),
+        )
 
 
 def pipeline_command(
@@ -147,24 +186,10 @@ def pipeline_command(
 ) -> subprocess.CompletedProcess:
     """``python -m <module> arguments`` in ``cwd``, with ``env`` added to this process's
     environment: its exit status, stdout and stderr."""
-    import os
-    import tempfile
+    return _forked(module, None, list(arguments), cwd, env, timeout)
 
-    with tempfile.TemporaryDirectory() as folder:
-        out, err = os.path.join(folder, "out"), os.path.join(folder, "err")
-        child = _fork_server().Process(
-            target=_run_command,
-            args=(module, list(arguments), str(cwd), {**os.environ, **(env or {})}, out, err),
-        )
-        child.start()
-        child.join(timeout)
-        if child.exitcode is None:
-            child.kill()
-            child.join()
-            raise subprocess.TimeoutExpired([module, *arguments], timeout)
-        return subprocess.CompletedProcess(
-            [module, *arguments],
-            child.exitcode,
-            Path(out).read_text(errors="replace"),
-            Path(err).read_text(errors="replace"),
-        )
+
+def python_code(code: str, cwd: Path = ROOT, timeout: float = 600) -> subprocess.CompletedProcess:
+    """``python -c code`` in ``cwd``, forked as :func:`pipeline_command` is (for the
+    examples the docs give, run from another folder): its exit status, stdout and stderr."""
+    return _forked(None, code, [], cwd, None, timeout)

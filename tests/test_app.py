@@ -30,8 +30,8 @@ def _cache_entries(cfg) -> list[Path]:
     return [p for p in root.glob("*/*") if not p.name.startswith(".")]
 
 
-def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, caplog):
-    cfg = smoke_cfg()
+def test_smoke_run_logs_to_mlflow_and_second_run_computes_nothing(smoke_cfg, own_cache, caplog):
+    cfg = smoke_cfg(own_cache)
     with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
         rmse = run_job(cfg)
     first = [r.getMessage() for r in caplog.records if "stage" in r.getMessage()]
@@ -101,11 +101,11 @@ def test_the_recipe_tag_ignores_the_seed_and_speed_settings_only(smoke_cfg):
     assert recipe != recipe_id(flatten(smoke_cfg("train.lr=0.01")))
 
 
-def test_changing_train_settings_reuses_the_data_stages(smoke_cfg, caplog):
-    run_job(smoke_cfg())
+def test_changing_train_settings_reuses_the_data_stages(smoke_cfg, own_cache, caplog):
+    run_job(smoke_cfg(own_cache))
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="pipeline.core.cache"):
-        run_job(smoke_cfg("train.max_steps=10", "model.k=4"))
+        run_job(smoke_cfg(own_cache, "train.max_steps=10", "model.k=4"))
     by_stage = {r.getMessage().split()[1]: r.getMessage() for r in caplog.records}
     for stage in ("load", "crop", "preprocess", "pca"):
         assert " hit " in by_stage[stage], by_stage[stage]
@@ -121,35 +121,39 @@ def _assert_failed_cleanly(cfg, error, match):
     return runs[0]
 
 
-def test_missing_dataset_root_fails_cleanly(smoke_cfg, tmp_path):
+def test_missing_dataset_root_fails_cleanly(smoke_cfg, own_cache, tmp_path):
     missing = tmp_path / "no_such_dataset"
-    cfg = smoke_cfg("dataset=ubo2003", f"dataset.root={missing}")
+    cfg = smoke_cfg(own_cache, "dataset=ubo2003", f"dataset.root={missing}")
     _assert_failed_cleanly(cfg, DataError, str(missing))
     assert _cache_entries(cfg) == []
 
 
-def test_crop_larger_than_texture_fails_cleanly(smoke_cfg):
-    cfg = smoke_cfg("btf.crop.size=17")
+def test_crop_larger_than_texture_fails_cleanly(smoke_cfg, own_cache):
+    cfg = smoke_cfg(own_cache, "btf.crop.size=17")
     _assert_failed_cleanly(cfg, ConfigError, "btf.crop.size=17")
     assert _cache_entries(cfg) == []  # refused from the images' size, before decoding them
 
 
-def test_k_larger_than_texel_count_fails_cleanly(smoke_cfg):
+def test_k_larger_than_texel_count_fails_cleanly(smoke_cfg, own_cache):
     """k against btf.crop.size²: refused before the job's run opens, no stage computed."""
-    cfg = smoke_cfg("model.k=145")
+    cfg = smoke_cfg(own_cache, "model.k=145")
     with pytest.raises(ConfigError, match="model.k=145 is larger than the number of texels M=144"):
         run_job(cfg)
     assert _cache_entries(cfg) == []
 
 
-def test_corrupt_image_fails_cleanly_with_its_path(smoke_cfg, tmp_path):
+def test_corrupt_image_fails_cleanly_with_its_path(smoke_cfg, own_cache, tmp_path):
     from pipeline.btf.synthetic_dataset import write_synthetic_btf
 
     root = write_synthetic_btf(tmp_path / "ds", size=8, seed=0, views=[[0, 0], [15, 0]])
     victim = sorted(root.glob("*/*.jpg"))[5]
     victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])
     cfg = smoke_cfg(
-        "dataset=ubo2003", f"dataset.root={root}", "dataset.views=null", "btf.crop.size=8"
+        own_cache,
+        "dataset=ubo2003",
+        f"dataset.root={root}",
+        "dataset.views=null",
+        "btf.crop.size=8",
     )
     _assert_failed_cleanly(cfg, DataError, victim.name)
     assert _cache_entries(cfg) == []
@@ -174,8 +178,14 @@ def test_tables_draw_fig7_from_what_the_runs_logged_without_the_cache(smoke_cfg)
     cfg = smoke_cfg()
     run_job(cfg)
     run_job(smoke_cfg("model=pca"))  # logs no Fig. 7 data: left out of the figure
-    shutil.rmtree(cfg.paths.cache)  # the cache is a memo: the figure comes from the runs
-    out = build_tables(cfg.paths.runs)
+    # The cache is a memo: the figure comes from the runs. The worker's shared cache is
+    # moved aside while the tables are built, and back after.
+    aside = Path(cfg.paths.runs) / "cache_aside"
+    shutil.move(cfg.paths.cache, aside)
+    try:
+        out = build_tables(cfg.paths.runs)
+    finally:
+        shutil.move(aside, cfg.paths.cache)
     pngs = sorted(p.name for p in out.glob("fig7_*.png"))
     assert pngs == ["fig7_synthetic_plain_weave_12__729.png"]
     # One EXR per pair and panel: reference + the one model, two direction pairs; the

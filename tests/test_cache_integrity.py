@@ -10,14 +10,13 @@ import logging
 import os
 import re
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT
+from helpers import pipeline_command
 from omegaconf import OmegaConf
 
 from pipeline import cache as command
@@ -401,13 +400,7 @@ def test_ls_prints_each_stage(tmp_path, capsys):
 
 def test_command_runs_as_a_module(tmp_path):
     _entry(StageCache(tmp_path / "cache"), "load")
-    done = subprocess.run(
-        [sys.executable, "-m", "pipeline.cache", "ls", f"paths.runs={tmp_path}"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = pipeline_command("ls", f"paths.runs={tmp_path}", module="pipeline.cache")
     assert done.returncode == 0, done.stderr
     assert re.search(r"^load\s+1\s", done.stdout, re.MULTILINE)
 

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers import ROOT, pipeline_command
+from helpers import ROOT, WIRING_STEPS, pipeline_command
 from mlflow.tracking import MlflowClient
 
 from pipeline.core.store import tracking_uri
@@ -18,7 +18,7 @@ def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_templ
     # A new interpreter, as a user's: joblib's workers are processes of their own.
     done = subprocess.run(
         [sys.executable, "-m", "pipeline", "-m", "experiment=smoke", "model.k=4,8", "seed=1"]
-        + ["hydra/launcher=joblib", f"paths.runs={runs}"],
+        + ["hydra/launcher=joblib", f"paths.runs={runs}", f"train.max_steps={WIRING_STEPS}"],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -432,7 +432,7 @@ def test_two_equal_runs_log_the_same_bytes(tmp_path, mlflow_template, model):
     store, so the second computes everything again): their logged
     ``compressed/btf.safetensors`` are byte for byte equal."""
     import mlflow
-    from helpers import compose_config
+    from helpers import WIRING_STEPS, compose_config
     from mlflow.tracking import MlflowClient
 
     from pipeline.app import run_job
@@ -442,7 +442,12 @@ def test_two_equal_runs_log_the_same_bytes(tmp_path, mlflow_template, model):
     for name in ("first", "second"):
         runs = tmp_path / name
         mlflow_template(runs)
-        cfg = compose_config("experiment=smoke", f"model={model}", f"paths.runs={runs}")
+        cfg = compose_config(
+            "experiment=smoke",
+            f"model={model}",
+            f"paths.runs={runs}",
+            f"train.max_steps={WIRING_STEPS}",
+        )
         run_job(cfg)
         client = MlflowClient(tracking_uri(runs))
         experiment = client.get_experiment_by_name(cfg.tracking.experiment)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import compose_config
+from helpers import WIRING_STEPS, compose_config
 from mlflow.tracking import MlflowClient
 from omegaconf import OmegaConf
 
@@ -416,7 +416,11 @@ def test_the_whole_chain_runs_on_a_fibonacci_set(tmp_path, mlflow_template):
     mlflow_template(runs_dir)
     run_job(
         compose_config(
-            "experiment=render_smoke", f"paths.runs={runs_dir}", "model=neural_btf", *FIBONACCI
+            "experiment=render_smoke",
+            f"paths.runs={runs_dir}",
+            "model=neural_btf",
+            f"train.max_steps={WIRING_STEPS}",
+            *FIBONACCI,
         )
     )
     client, run = _only_run(runs_dir, "render_smoke")

@@ -16,7 +16,7 @@ from pathlib import Path
 import mlflow
 import pytest
 import sqlalchemy
-from helpers import ROOT, check_one_line_refusal, compose_config
+from helpers import ROOT, check_one_line_refusal, compose_config, pipeline_command
 from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
 from mlflow.tracking import MlflowClient
 
@@ -66,9 +66,10 @@ def _pipeline(tmp_path: Path, *arguments: str, script: str | None = None, env=No
         f"hydra.run.dir={tmp_path / 'hydra'}",
         f"hydra.sweep.dir={tmp_path / 'sweep'}",
     ]
-    command = [sys.executable, "-m", "pipeline"] if script is None else [sys.executable, script]
+    if script is None:
+        return pipeline_command(*arguments, *outside)
     return subprocess.run(
-        [*command, *arguments, *outside],
+        [sys.executable, script, *arguments, *outside],
         cwd=ROOT,
         capture_output=True,
         text=True,

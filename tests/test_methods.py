@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from helpers import CONF_DIR, ROOT
+from helpers import CONF_DIR, ROOT, pipeline_command
 from mlflow.tracking import MlflowClient
 
 from pipeline.core.errors import ConfigError
@@ -119,20 +119,7 @@ def test_a_spec_of_another_method_or_missing_is_refused():
 )
 def test_an_added_unknown_setting_is_refused_naming_the_closest(override, hint, tmp_path):
     experiment = "brdf_smoke" if "prior" in override else "smoke"
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pipeline",
-            f"experiment={experiment}",
-            f"paths.runs={tmp_path}",
-            override,
-        ],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = pipeline_command(f"experiment={experiment}", f"paths.runs={tmp_path}", override)
     assert done.returncode != 0 and hint in done.stderr, done.stderr[-2000:]
     assert not (tmp_path / "mlflow.db").exists()  # refused before anything ran
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import pipeline_command
+from helpers import WIRING_STEPS, pipeline_command
 
 mi = pytest.importorskip("mitsuba", reason="Mitsuba 3 is not installed (pip install mitsuba)")
 
@@ -40,15 +40,20 @@ MESH_RESOLUTION = 24  # coarse: the vertex tangents differ most from Mitsuba's d
 def smoke_compressed_file(
     tmp_path: Path, empty_store: Path | None = None, model: str = "clustered"
 ) -> Path:
-    """Train the smoke experiment in a fresh interpreter (``python -m pipeline
-    experiment=smoke paths.runs=<tmp_path>/runs``) and return the compressed
+    """Train the smoke experiment for a few steps (``python -m pipeline experiment=smoke
+    paths.runs=<tmp_path>/runs train.max_steps=...``) and return the compressed
     file it exported, found in the stage cache (``cache/export/<key>/btf.safetensors``).
     ``empty_store``: an empty ``mlflow.db`` to start from (creating one takes seconds)."""
     runs = tmp_path / "runs"
     runs.mkdir(parents=True, exist_ok=True)
     if empty_store is not None:
         shutil.copy(empty_store, runs / "mlflow.db")
-    done = pipeline_command("experiment=smoke", f"model={model}", f"paths.runs={runs}")
+    done = pipeline_command(
+        "experiment=smoke",
+        f"model={model}",
+        f"paths.runs={runs}",
+        f"train.max_steps={WIRING_STEPS}",  # any model will do: it is the renderers compared
+    )
     assert done.returncode == 0, done.stderr[-4000:]
     found = sorted((runs / "cache" / "export").glob("*/btf.safetensors"))
     assert len(found) == 1, f"expected one exported file under {runs / 'cache'}, got {found}"

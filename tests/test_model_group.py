@@ -187,7 +187,7 @@ def test_no_model_is_chosen_by_comparing_names():
     assert found == []
 
 
-def test_the_latent_texture_model_runs_through_the_chain(smoke_cfg):
+def test_the_latent_texture_model_runs_through_the_chain(smoke_cfg, own_cache):
     """``model=latent_texture`` (NeuMIP-style, no encoder) through the job: its file's
     payload is its bytes_total, the file's numpy reader equals the torch decoder on the
     stored latents, and it ends far below the mean-ABRDF baseline."""
@@ -201,7 +201,7 @@ def test_the_latent_texture_model_runs_through_the_chain(smoke_cfg):
     from pipeline.btf.stereographic import direction_features
     from pipeline.core.store import tracking_uri
 
-    cfg = smoke_cfg("model=latent_texture")
+    cfg = smoke_cfg(own_cache, "model=latent_texture")
     run_job(cfg)
     client = MlflowClient(tracking_uri(cfg.paths.runs))
     [run] = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])

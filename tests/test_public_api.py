@@ -10,6 +10,7 @@ import sys
 import textwrap
 
 import pytest
+from helpers import python_code
 
 import pipeline
 
@@ -70,9 +71,7 @@ def test_the_docstring_example_loads_a_run_s_model_from_another_folder(smoke_cfg
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     (elsewhere / "example.py").write_text(code)
-    done = subprocess.run(
-        [sys.executable, "example.py"], cwd=elsewhere, capture_output=True, text=True, timeout=300
-    )
+    done = python_code("import runpy; runpy.run_path('example.py', run_name='__main__')", elsewhere)
     assert done.returncode == 0, done.stderr[-3000:]
     assert not (elsewhere / "mlflow.db").exists()
     table, array = done.stdout.split("[[", 1)

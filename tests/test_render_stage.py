@@ -9,7 +9,7 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import compose_config
+from helpers import WIRING_STEPS, compose_config
 from mlflow.tracking import MlflowClient
 
 from pipeline.btf.render.stage import (
@@ -193,7 +193,8 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
 
     runs_dir = tmp_path / "runs"
     mlflow_template(runs_dir)
-    cfg = compose_config("experiment=render_smoke", f"paths.runs={runs_dir}")
+    steps = f"train.max_steps={WIRING_STEPS}"
+    cfg = compose_config("experiment=render_smoke", f"paths.runs={runs_dir}", steps)
     run_job(cfg)
     run_job(
         compose_config(

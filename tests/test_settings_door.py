@@ -36,8 +36,8 @@ BAD = [
 
 
 @pytest.mark.parametrize(("override", "message"), BAD)
-def test_a_bad_setting_is_refused_before_any_stage(smoke_cfg, override, message):
-    cfg = smoke_cfg(override)
+def test_a_bad_setting_is_refused_before_any_stage(smoke_cfg, own_cache, override, message):
+    cfg = smoke_cfg(own_cache, override)
     with pytest.raises(ConfigError) as error:
         run_job(cfg)
     assert message in str(error.value)

@@ -43,7 +43,7 @@ def _check(run, records) -> None:
 
 @pytest.mark.parametrize("method", ["clustered", "neural_btf"])
 def test_the_smoke_run_ends_well_below_the_mean_abrdf_baseline(smoke_cfg, caplog, method):
-    cfg = smoke_cfg(f"model={method}")
+    cfg = smoke_cfg(f"model={method}", "train.max_steps=-1")  # the recipe as the demo runs it
     with caplog.at_level(logging.WARNING):
         run_job(cfg)
     _check(_only_run(cfg.paths.runs, "smoke"), caplog.records)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import python_code
 from mlflow.tracking import MlflowClient
 
 from pipeline import cache as cache_command
@@ -242,9 +243,7 @@ def test_the_readme_example_from_another_folder_names_the_missing_store_or_finds
         "except Exception as error:\n    print(type(error).__name__, error)\n"
         "runpy.run_path('with_paths_runs.py')\n"
     )
-    done = subprocess.run(
-        [sys.executable, "-c", probe], cwd=elsewhere, capture_output=True, text=True, timeout=300
-    )
+    done = python_code(probe, elsewhere)
     assert done.returncode == 0, done.stderr[-3000:]
     first, *answer = done.stdout.strip().splitlines()
     assert first.startswith(f"StoreError no MLflow store at {elsewhere}/runs/mlflow.db")
