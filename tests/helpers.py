@@ -27,12 +27,18 @@ TESTS = ROOT / "tests"
 WIRING_STEPS = 30
 
 
-def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictConfig:
-    """Compose ``conf/config.yaml`` exactly as ``python -m pipeline`` would (with the
-    ``hydra`` section too if asked: its sweeper's parameters, for instance)."""
+@functools.cache
+def _register_schemas() -> None:
+    """The structured configs in Hydra's ConfigStore, once per process (it keeps them)."""
     from pipeline.core.methods import register_schemas
 
     register_schemas()
+
+
+def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictConfig:
+    """Compose ``conf/config.yaml`` exactly as ``python -m pipeline`` would (with the
+    ``hydra`` section too if asked: its sweeper's parameters, for instance)."""
+    _register_schemas()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return compose(
             config_name="config", overrides=list(overrides), return_hydra_config=return_hydra_config
@@ -111,7 +117,24 @@ def fresh_python(code: str, timeout: float = 300) -> dict:
 # runs ``pipeline/__main__.py`` as ``__main__`` exactly as the command line does. The
 # child is a new process (its own signal handlers, store, torch threads), forked from a
 # single-threaded server that never computed anything, so nothing leaks between commands.
-_PRELOAD = ["torch", "sklearn.cluster", "mlflow", "hydra", "pipeline.app", "pipeline.__main__"]
+# What a job imports on its way (torch's optimisers bring torch._dynamo; MLflow's store
+# SQLAlchemy; the tags GitPython), imported without creating anything: no thread starts.
+_PRELOAD = [
+    "torch",
+    "torch._dynamo",
+    "sklearn.cluster",
+    "mlflow",
+    "mlflow.pyfunc",
+    "mlflow.store.tracking.sqlalchemy_store",
+    "git",
+    "hydra",
+    "matplotlib.pyplot",
+    "pipeline.app",
+    "pipeline.__main__",
+    "pipeline.btf.runner",
+    "pipeline.btf.train",
+    "pipeline.tables",
+]
 
 
 @functools.cache

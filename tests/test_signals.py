@@ -172,15 +172,18 @@ def test_a_stop_dropped_in_a_gc_callback_is_raised_again(patient):
                 pass
 
     before = signal.getsignal(signal.SIGTERM)
-    gc.callbacks.append(callback)
     try:
         with pytest.raises(Stopped) as stopped, stopping.job_scope():
+            # Added inside the scope: a collection before it would send the signal to a
+            # process whose handler is not installed yet, and end the test's process.
+            gc.callbacks.append(callback)
             gc.collect()
             for _ in range(10_000_000):  # Stopped must be raised before this ends
                 pass
             pytest.fail("the stop was dropped")
     finally:
-        gc.callbacks.remove(callback)
+        if callback in gc.callbacks:
+            gc.callbacks.remove(callback)
     assert stopped.value.code == 128 + signal.SIGTERM
     assert stopping.requested() is None  # a scoped install forgets its stop
     assert signal.getsignal(signal.SIGTERM) is before
