@@ -25,7 +25,7 @@ BAD_TYPES = [
 BAD = [
     ("train.lr=nan", "train.lr=nan must be a finite number"),
     ("train.lr=-1", "train.lr=-1.0 must be a finite number > 0"),
-    ("train.batch_size=1", "train.batch_size=1 must be >= 2"),
+    ("train.batch_size=1", "train.batch_size=1 must be an integer >= 2"),
     ("btf.sizes.weight_dtype=foo", "btf.sizes.weight_dtype='foo' must be one of float32, float16"),
     ("model.k=0", "model.k=0 must be an integer >= 1"),
     ("model.texel_scale=both", "model.texel_scale='both' must be one of none, lstsq, luminance"),

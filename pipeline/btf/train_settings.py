@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 from pipeline.core.errors import ConfigError
-from pipeline.core.settings import LOG, RESULT, SPEED, check_fields, setting
+from pipeline.core.settings import (
+    LOG,
+    RESULT,
+    SPEED,
+    Either,
+    Integer,
+    OneOf,
+    Real,
+    check_fields,
+    check_settings,
+    constraints,
+    setting,
+)
 
 PRECISIONS = ("float32", "bfloat16")  # train.precision
 BACKENDS = ("auto", "fused", "autograd")  # train.backend (pipeline.btf.backends)
@@ -60,67 +72,33 @@ class TrainSettings:
         on the CPU alike), which rounds the same products to bfloat16.
     """
 
-    epochs: int = setting(1, role=RESULT)
-    epoch_texels: int | None = setting(None, role=RESULT)
-    lr: float = setting(0.05, role=RESULT)
-    batch_size: int = setting(5, role=RESULT)
-    queries_per_abrdf: int = setting(512, role=RESULT)
-    max_steps: int = setting(-1, role=RESULT)
-    device: str = setting("auto", role=SPEED)
-    momentum: float = setting(0.0, role=RESULT)
-    optimizer: str = setting("sgd", role=RESULT)
-    lr_half_life: float = setting(0.0, role=RESULT)
-    schedule: str = setting("half_life", role=RESULT)
-    curve_every: int = setting(0, role=LOG)
-    curve_texels: int = setting(256, role=LOG)
-    threads: int | None = setting(None, role=SPEED)
-    chunk: int | None = setting(None, role=SPEED)
-    precision: str = setting("float32", role=RESULT)
-    backend: str = setting("auto", role=SPEED)
+    epochs: int = setting(1, Integer(1), role=RESULT)
+    epoch_texels: int | None = setting(None, Integer(1, optional=True), role=RESULT)
+    lr: float = setting(0.05, Real(0.0, closed=False), role=RESULT)
+    # Batch-norm in training mode needs at least two samples.
+    batch_size: int = setting(5, Integer(2), role=RESULT)
+    queries_per_abrdf: int = setting(512, Either(OneOf(-1), Integer(1)), role=RESULT)
+    max_steps: int = setting(-1, Either(OneOf(-1), Integer(1)), role=RESULT)
+    device: str = setting("auto", OneOf("auto", "cpu", "cuda"), role=SPEED)
+    momentum: float = setting(0.0, Real(0.0, high=1.0, high_closed=False), role=RESULT)
+    optimizer: str = setting("sgd", OneOf("sgd", "adam"), role=RESULT)
+    lr_half_life: float = setting(0.0, Real(0.0), role=RESULT)
+    schedule: str = setting("half_life", OneOf("half_life", "cosine"), role=RESULT)
+    curve_every: int = setting(0, Integer(0), role=LOG)
+    curve_texels: int = setting(256, Integer(1), role=LOG)
+    threads: int | None = setting(None, Integer(1, optional=True), role=SPEED)
+    chunk: int | None = setting(None, Integer(1, optional=True), role=SPEED)
+    precision: str = setting("float32", OneOf(*PRECISIONS), role=RESULT)
+    backend: str = setting("auto", OneOf(*BACKENDS), role=SPEED)
     keep_awake: bool = setting(False, role=SPEED)
-    omp_spin_count: int | None = setting(None, role=SPEED)
+    omp_spin_count: int | None = setting(None, Integer(0, optional=True), role=SPEED)
     reuse_freed_memory: bool = setting(False, role=SPEED)
 
     def __post_init__(self):
         check_fields(self, "train")  # types first: 1.5 epochs, "abc" as lr, NaN as a count
-        if self.epochs < 1:
-            raise ConfigError(f"train.epochs={self.epochs} must be >= 1")
+        check_settings({"train": asdict(self)}, constraints(TrainSettings, "train"))
         if self.epoch_texels is not None and self.epoch_texels < self.batch_size:
             raise ConfigError(
                 f"train.epoch_texels={self.epoch_texels} must be null or >= "
                 f"train.batch_size={self.batch_size}"
-            )
-        if self.batch_size < 2:
-            # Batch-norm in training mode needs at least two samples.
-            raise ConfigError(f"train.batch_size={self.batch_size} must be >= 2")
-        if not self.lr > 0 or self.lr == float("inf"):  # also NaN
-            raise ConfigError(f"train.lr={self.lr} must be a finite number > 0")
-        if self.queries_per_abrdf != -1 and self.queries_per_abrdf < 1:
-            raise ConfigError(
-                f"train.queries_per_abrdf={self.queries_per_abrdf} must be "
-                f">= 1, or -1 for every training direction"
-            )
-        if self.max_steps != -1 and self.max_steps < 1:
-            raise ConfigError(f"train.max_steps={self.max_steps} must be >= 1, or -1 for none")
-        if not 0 <= self.momentum < 1:  # also NaN
-            raise ConfigError(f"train.momentum={self.momentum} must be in [0, 1)")
-        if self.optimizer not in ("sgd", "adam"):
-            raise ConfigError(f"train.optimizer={self.optimizer!r} must be sgd or adam")
-        if self.schedule not in ("half_life", "cosine"):
-            raise ConfigError(f"train.schedule={self.schedule!r} must be half_life or cosine")
-        if not self.lr_half_life >= 0:  # also NaN
-            raise ConfigError(f"train.lr_half_life={self.lr_half_life} must be >= 0")
-        if self.curve_every < 0 or self.curve_texels < 1:
-            raise ConfigError("train.curve_every must be >= 0 and train.curve_texels >= 1")
-        if (self.chunk is not None and self.chunk < 1) or (
-            self.threads is not None and self.threads < 1
-        ):
-            raise ConfigError("train.chunk and train.threads must be >= 1")
-        if self.precision not in PRECISIONS:
-            raise ConfigError(f"train.precision={self.precision!r} must be float32 or bfloat16")
-        if self.device not in ("auto", "cpu", "cuda"):
-            raise ConfigError(f"train.device={self.device!r} must be auto, cpu or cuda")
-        if self.backend not in BACKENDS:
-            raise ConfigError(
-                f"train.backend={self.backend!r} must be one of {', '.join(BACKENDS)}"
             )

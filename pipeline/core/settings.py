@@ -56,12 +56,14 @@ class Integer:
 @dataclass(frozen=True)
 class Real:
     """A finite number (not a bool, not a string) above ``low`` (or at it when
-    ``closed``) and at most ``high``; None too when ``optional``."""
+    ``closed``) and at most ``high`` (below it unless ``high_closed``); None too when
+    ``optional``."""
 
     low: float | None = None
     closed: bool = True
     optional: bool = False
     high: float | None = None
+    high_closed: bool = True
 
     def ok(self, value) -> bool:
         if value is None:
@@ -70,14 +72,17 @@ class Real:
             return False
         if not math.isfinite(value):
             return False
-        if self.high is not None and value > self.high:
+        above = self.high is not None and (
+            value > self.high or (value == self.high and not self.high_closed)
+        )
+        if above:
             return False
         return self.low is None or value > self.low or (self.closed and value == self.low)
 
     def __str__(self) -> str:
         bounds = [
             "" if self.low is None else f"{'>=' if self.closed else '>'} {self.low:g}",
-            "" if self.high is None else f"<= {self.high:g}",
+            "" if self.high is None else f"{'<=' if self.high_closed else '<'} {self.high:g}",
         ]
         text = " and ".join(b for b in bounds if b)
         return f"a finite number {text}".rstrip() + (" or null" if self.optional else "")
@@ -124,7 +129,24 @@ class ListOf:
         return f"a list of {count}items, each {self.item}"
 
 
-Constraint = Integer | Real | OneOf | ListOf
+@dataclass(frozen=True)
+class Either:
+    """A value that one of the given constraints allows (``Either(OneOf(-1), Integer(1))``:
+    -1 for "none", or a count)."""
+
+    choices: tuple
+
+    def __init__(self, *choices):
+        object.__setattr__(self, "choices", choices)
+
+    def ok(self, value) -> bool:
+        return any(choice.ok(value) for choice in self.choices)
+
+    def __str__(self) -> str:
+        return " or ".join(str(choice) for choice in self.choices)
+
+
+Constraint = Integer | Real | OneOf | ListOf | Either
 
 
 def check_settings(cfg: Mapping | DictConfig, constraints: Mapping[str, Constraint]) -> None:
