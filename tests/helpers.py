@@ -166,9 +166,12 @@ def _run_command(
             sys.argv = [module, *arguments]
             runpy.run_module(module, run_name="__main__", alter_sys=True)
         else:  # as ``python -c``: the current folder first on the path, not tests/
+            import types
+
             sys.argv = ["-c", *arguments]
             sys.path[:] = ["", *(p for p in sys.path if Path(p or ".").resolve() != TESTS)]
-            exec(compile(code, "<string>", "exec"), {"__name__": "__main__"})
+            main = sys.modules["__main__"] = types.ModuleType("__main__")
+            exec(compile(code, "<string>", "exec"), main.__dict__)
     finally:  # the exit handlers (MLflow's, joblib's) run as at the interpreter's exit
         atexit._run_exitfuncs()
 
@@ -214,5 +217,7 @@ def pipeline_command(
 
 def python_code(code: str, cwd: Path = ROOT, timeout: float = 600) -> subprocess.CompletedProcess:
     """``python -c code`` in ``cwd``, forked as :func:`pipeline_command` is (for the
-    examples the docs give, run from another folder): its exit status, stdout and stderr."""
+    examples the docs give, run from another folder): its exit status, stdout and stderr.
+    The package is already imported: whether it imports from another folder is
+    tests/test_install.py's question, in a new interpreter."""
     return _forked(None, code, [], cwd, None, timeout)

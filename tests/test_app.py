@@ -170,22 +170,16 @@ def test_pca_baseline_runs_through_the_app(smoke_cfg):
     assert run.data.metrics["bytes_total"] == 4 * (4 * 3 * n + m * 3)
 
 
-def test_tables_draw_fig7_from_what_the_runs_logged_without_the_cache(smoke_cfg):
+def test_tables_draw_fig7_from_what_the_runs_logged_without_the_cache(smoke_cfg, own_cache):
     import shutil
 
     from pipeline.tables import build_tables
 
-    cfg = smoke_cfg()
+    cfg = smoke_cfg(own_cache)
     run_job(cfg)
-    run_job(smoke_cfg("model=pca"))  # logs no Fig. 7 data: left out of the figure
-    # The cache is a memo: the figure comes from the runs. The worker's shared cache is
-    # moved aside while the tables are built, and back after.
-    aside = Path(cfg.paths.runs) / "cache_aside"
-    shutil.move(cfg.paths.cache, aside)
-    try:
-        out = build_tables(cfg.paths.runs)
-    finally:
-        shutil.move(aside, cfg.paths.cache)
+    run_job(smoke_cfg(own_cache, "model=pca"))  # logs no Fig. 7 data: left out of the figure
+    shutil.rmtree(cfg.paths.cache)  # the cache is a memo: the figure comes from the runs
+    out = build_tables(cfg.paths.runs)
     pngs = sorted(p.name for p in out.glob("fig7_*.png"))
     assert pngs == ["fig7_synthetic_plain_weave_12__729.png"]
     # One EXR per pair and panel: reference + the one model, two direction pairs; the

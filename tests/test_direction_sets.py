@@ -441,7 +441,7 @@ def test_the_whole_chain_runs_on_a_fibonacci_set(tmp_path, mlflow_template):
         "render_reference_truth_rmse_cloth",
     ):
         assert np.isfinite(metrics[name]), name
-    # The reference interpolates lossless data: near the truth, unlike the 20-step model.
+    # The reference interpolates lossless data: near the truth, unlike a model of a few steps.
     assert metrics["render_reference_truth_rmse_cloth"] < metrics["render_truth_rmse_cloth"]
 
     cache = StageCache(runs_dir / "cache")

@@ -40,7 +40,7 @@ def test_a_built_in_run_logs_its_floor_lossless_data_below_jpeg(smoke_cfg):
     and both far below the model's error."""
     floors = {}
     for ext in ("jpg", "png"):
-        run_job(smoke_cfg(f"dataset.synthetic.ext={ext}"))
+        run_job(smoke_cfg(f"dataset.synthetic.ext={ext}", "train.max_steps=-1"))  # trained
         metrics = _runs(smoke_cfg())[-1].data.metrics
         floors[ext] = metrics["rmse_data_vs_truth"]
         assert 0 < floors[ext] < metrics["rmse"]

@@ -25,10 +25,8 @@ METHOD_A = {"btf"}
 
 
 def _sweep_points(experiment: str) -> list[list[str]]:
-    """The experiment alone, then each value of each of its sweep's axes alone, then the
-    first and the last job of each of its arms (pipeline.core.sweeper): every key and every
-    model an arm sets. Every job of a sweep is composed and checked before the first runs
-    (tests/test_refusals.py), so a bad value in an arm's middle cannot start a sweep."""
+    """The experiment alone, then each value of each of its sweep's axes alone, then each
+    job of each of its arms (pipeline.core.sweeper)."""
     cfg = compose_config(f"experiment={experiment}", return_hydra_config=True)
     params = OmegaConf.select(cfg, "hydra.sweeper.params") or {}
     parser = OverridesParser.create()
@@ -38,10 +36,7 @@ def _sweep_points(experiment: str) -> list[list[str]]:
         points += [[f"{key}={value}"] for value in override.sweep_string_iterator()]
     arms = OmegaConf.select(cfg, "hydra.sweeper.arms")
     arms = OmegaConf.to_container(arms) if arms else []
-    for arm in arms:
-        jobs = expand([arm], None, [])
-        points += [jobs[0], jobs[-1]] if len(jobs) > 1 else jobs
-    return points
+    return points + expand(arms, None, [])
 
 
 def test_experiments_are_found():

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import math
+import sys
 import types
 import typing
 from collections.abc import Mapping
@@ -108,7 +109,7 @@ class OneOf:
 class ListOf:
     """A list whose items each satisfy ``item``, of ``length`` items when given."""
 
-    item: Integer | Real | OneOf
+    item: Integer | Real | OneOf | Either
     length: int | None = None
     at_least: int = 0
 
@@ -137,6 +138,8 @@ class Either:
     choices: tuple
 
     def __init__(self, *choices):
+        if not choices:
+            raise TypeError("Either needs at least one constraint")
         object.__setattr__(self, "choices", choices)
 
     def ok(self, value) -> bool:
@@ -152,10 +155,9 @@ Constraint = Integer | Real | OneOf | ListOf | Either
 def check_settings(cfg: Mapping | DictConfig, constraints: Mapping[str, Constraint]) -> None:
     """Raise :class:`ConfigError` naming the first setting (dotted name) whose value breaks
     its constraint; settings absent from ``cfg`` are not checked."""
-    from omegaconf import DictConfig, OmegaConf
-
-    if isinstance(cfg, DictConfig):
-        cfg = OmegaConf.to_container(cfg, resolve=True)
+    omegaconf = sys.modules.get("omegaconf")  # a DictConfig means it is loaded; training
+    if omegaconf is not None and isinstance(cfg, omegaconf.DictConfig):  # may run without
+        cfg = omegaconf.OmegaConf.to_container(cfg, resolve=True)
     missing = object()
     for name, constraint in constraints.items():
         value = _select(cfg, name, missing)
