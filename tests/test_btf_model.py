@@ -472,3 +472,23 @@ def test_every_training_setting_declares_its_allowed_values():
     switches = {"train.keep_awake", "train.reuse_freed_memory"}
     assert set(constraints(TrainSettings, "train")) == set(roles(TrainSettings, "train")) - switches
     assert TrainSettings(max_steps=-1, queries_per_abrdf=-1, momentum=0.99).momentum == 0.99
+
+
+def test_training_settings_are_checked_without_hydra():
+    """Training runs where Hydra and OmegaConf are not installed (a GPU machine): building
+    and checking TrainSettings imports neither."""
+    from helpers import fresh_python
+
+    result = fresh_python(
+        "import json, sys\n"
+        "from pipeline.btf.train_settings import TrainSettings\n"
+        "from pipeline.core.errors import ConfigError\n"
+        "TrainSettings(max_steps=3)\n"
+        "try:\n    TrainSettings(max_steps=0)\nexcept ConfigError as error:\n    refused = str(error)\n"
+        "print(json.dumps({'refused': refused, 'loaded': sorted("
+        "m for m in ('omegaconf', 'hydra') if m in sys.modules)}))\n"
+    )
+    assert result == {
+        "refused": "train.max_steps=0 must be one of -1 or an integer >= 1",
+        "loaded": [],
+    }
