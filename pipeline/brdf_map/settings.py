@@ -3,7 +3,7 @@ them as a Hydra structured config) imports no numerics."""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 
 from pipeline.core.errors import ConfigError
 from pipeline.core.settings import (
@@ -11,8 +11,7 @@ from pipeline.core.settings import (
     ListOf,
     OneOf,
     Real,
-    check_settings,
-    constraints,
+    check_fields,
     setting,
 )
 
@@ -84,7 +83,7 @@ class MicrofacetEMSettings:
     phi_mode: str = setting("line", OneOf("line", "wrap"))
 
     def __post_init__(self) -> None:
-        check_settings({"method": asdict(self)}, constraints(type(self), "method"))
+        check_fields(self, "method")
         low, high = self.rs_range
         if low > high:
             raise ConfigError(f"method.rs_range={self.rs_range!r} must be (low, high), low <= high")

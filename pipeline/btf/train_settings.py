@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 from pipeline.core.errors import ConfigError
 from pipeline.core.settings import (
@@ -14,8 +14,6 @@ from pipeline.core.settings import (
     OneOf,
     Real,
     check_fields,
-    check_settings,
-    constraints,
     setting,
 )
 
@@ -95,8 +93,7 @@ class TrainSettings:
     reuse_freed_memory: bool = setting(False, role=SPEED)
 
     def __post_init__(self):
-        check_fields(self, "train")  # types first: 1.5 epochs, "abc" as lr, NaN as a count
-        check_settings({"train": asdict(self)}, constraints(TrainSettings, "train"))
+        check_fields(self, "train")  # 1.5 epochs, "abc" as lr, NaN as a count, 0 steps
         if self.epoch_texels is not None and self.epoch_texels < self.batch_size:
             raise ConfigError(
                 f"train.epoch_texels={self.epoch_texels} must be null or >= "

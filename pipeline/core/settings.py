@@ -175,14 +175,15 @@ def _select(cfg: Mapping, name: str, default):
 
 
 def check_fields(settings, prefix: str) -> None:
-    """Check a dataclass's fields against their annotations (``int``, ``float``, ``str``,
+    """Check a dataclass's fields against the constraint each declares (:func:`setting`),
+    or, where it declares none, against its annotation (``int``, ``float``, ``str``,
     ``bool``, ``X | None``): an ``int`` field refuses 1.5, True and NaN, a ``float`` field
     refuses strings and non-finite values. Raises :class:`ConfigError` naming
     ``prefix.field``."""
     hints = typing.get_type_hints(type(settings))
     for field in dataclasses.fields(settings):
         value = getattr(settings, field.name)
-        constraint = _constraint_of(hints[field.name])
+        constraint = field.metadata.get("constraint") or _constraint_of(hints[field.name])
         if constraint is not None and not constraint.ok(value):
             raise ConfigError(f"{prefix}.{field.name}={value!r} must be {constraint}")
 

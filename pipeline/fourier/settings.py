@@ -12,14 +12,14 @@ runs.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 
 from pipeline.core.settings import (
     Integer,
     OneOf,
     Real,
+    check_fields,
     check_settings,
-    constraints,
     setting,
 )
 
@@ -58,7 +58,7 @@ class FourierSettings:
     solver: str = setting("auto", OneOf(*SOLVERS))
 
     def __post_init__(self) -> None:
-        check_settings({"method": asdict(self)}, constraints(type(self), "method"))
+        check_fields(self, "method")
 
 
 # The nested maps of method.*, whose defaults are in conf/method/fourier.yaml (the
