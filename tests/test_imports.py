@@ -31,10 +31,8 @@ from pathlib import Path
 
 import grimp
 import pytest
-from helpers import PACKAGE, ROOT, module_name
+from helpers import PACKAGE, ROOT, TESTS, module_name
 from helpers import PIPELINE_MODULES as MODULES
-
-TESTS = ROOT / "tests"
 
 
 def _lint_imports(cwd: Path) -> subprocess.CompletedProcess:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import python_code
+from helpers import ROOT, python_code
 from mlflow.tracking import MlflowClient
 
 from pipeline import cache as cache_command
@@ -18,8 +18,6 @@ from pipeline.core.cache import StageCache, save_arrays
 from pipeline.core.errors import StoreError
 from pipeline.core.process import process_alive
 from pipeline.core.store import init_store, tracking_uri
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _dead_pid() -> int:
