@@ -5,7 +5,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test tables
+.PHONY: demo test test-slow tables
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,7 +21,10 @@ demo: $(STAMP)  ## the main job: default experiment on the built-in synthetic BT
 test: $(STAMP)  ## the default (fast) test suite: lint, format, pytest
 	$(PY) -m ruff check pipeline tests hydra_plugins scripts
 	$(PY) -m ruff format --check pipeline tests hydra_plugins scripts
-	$(PY) -m pytest -q -n 2  # two workers (pytest-xdist): the machine's two cores
+	$(PY) -m pytest -q -n 2 --dist worksteal  # two workers (pytest-xdist), the machine's two cores; an idle one takes queued tests from the other
+
+test-slow: $(STAMP)  ## the tests marked slow: paper size, real interpreters and sweeps
+	$(PY) -m pytest -q -n 2 --dist worksteal -m slow
 
 tables: $(STAMP)
 	$(PY) -m pipeline.tables

@@ -59,13 +59,27 @@ def shared_cache(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("shared_cache")
 
 
+@pytest.fixture(scope="session")
+def shared_data(tmp_path_factory) -> Path:
+    """One folder for the worker's generated built-in BTFs (``paths.data``). The load
+    stage's key holds the dataset's file times, so a dataset written again in each test's
+    folder would miss every stage of :func:`shared_cache`; a generated dataset is
+    published atomically and never rewritten with the same settings."""
+    return tmp_path_factory.mktemp("shared_data")
+
+
 @pytest.fixture
-def smoke_cfg(tmp_path, mlflow_template, shared_cache):
+def smoke_cfg(tmp_path, mlflow_template, shared_cache, shared_data):
     """A factory: the smoke experiment writing its runs under a temporary ``paths.runs``,
-    its stages into the worker's shared cache and trained for :data:`WIRING_STEPS` steps,
-    unless the overrides name ``paths.cache`` or ``train.max_steps``."""
+    its stages into the worker's shared cache, its built-in BTF into the worker's shared
+    data folder, trained for :data:`WIRING_STEPS` steps, unless the overrides name
+    ``paths.cache``, ``paths.data`` or ``train.max_steps``."""
     mlflow_template(tmp_path / "runs")
-    defaults = {"paths.cache": str(shared_cache), "train.max_steps": str(WIRING_STEPS)}
+    defaults = {
+        "paths.cache": str(shared_cache),
+        "paths.data": str(shared_data),
+        "train.max_steps": str(WIRING_STEPS),
+    }
 
     def make(*overrides: str) -> DictConfig:
         named = {o.split("=", 1)[0].lstrip("+~") for o in overrides}

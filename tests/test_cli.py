@@ -12,6 +12,7 @@ from mlflow.tracking import MlflowClient
 from pipeline.core.store import tracking_uri
 
 
+@pytest.mark.slow
 def test_joblib_sweep_gives_one_parent_and_reuses_the_pca(tmp_path, mlflow_template):
     runs = tmp_path / "runs"
     mlflow_template(runs)

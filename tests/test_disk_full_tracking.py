@@ -93,7 +93,9 @@ def test_a_store_created_on_a_full_disk_is_named_with_the_space_left(tmp_path, m
     assert [p.name for p in runs.iterdir()] == [".mlflow.lock"]  # no store, no partial one
 
 
-@pytest.mark.parametrize("sweep", [False, True], ids=["job", "sweep"])
+@pytest.mark.parametrize(
+    "sweep", [pytest.param(False, marks=pytest.mark.slow), True], ids=["job", "sweep"]
+)
 def test_a_store_created_on_a_full_tmpfs_is_one_line(tmp_path, sweep):
     """A 256 KiB disk: MLflow's empty store takes about 1 MiB. A sweep's launcher creates
     the store first (its parent run's callback), and is refused alike."""
@@ -175,6 +177,7 @@ runpy.run_module("pipeline", run_name="__main__", alter_sys=True)
 """
 
 
+@pytest.mark.slow
 def test_a_tmpfs_that_fills_during_a_run_is_one_line_and_the_run_ends_failed(tmp_path):
     """The real thing: SQLite meets the full disk as the job logs its metrics, and cannot
     write the run's end either; after space is freed, the next start marks it FAILED."""

@@ -55,6 +55,7 @@ def test_the_wheel_holds_the_configs_the_sweeper_and_the_kernels(installed):
     assert (installed / "hydra_plugins" / "pipeline_sweeper" / "arms_sweeper.py").is_file()
 
 
+@pytest.mark.slow
 def test_the_smoke_job_runs_from_another_folder(installed, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(installed)}
     work = tmp_path / "elsewhere"

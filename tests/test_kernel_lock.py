@@ -114,6 +114,7 @@ def test_build_timeout_setting(monkeypatch):
             kernels.build_timeout()
 
 
+@pytest.mark.slow
 def test_a_killed_build_leaves_no_trap(tmp_path):
     """A build killed midway leaves torch's lock file, which torch would wait on forever;
     the next process, in a fresh interpreter, recognises it as stale (our flock, which the
@@ -145,6 +146,7 @@ def test_a_killed_build_leaves_no_trap(tmp_path):
     assert time.monotonic() - start < 60
 
 
+@pytest.mark.slow
 def test_a_build_in_progress_is_waited_for_up_to_the_limit(tmp_path):
     """While another process builds, the next one says it waits, for whom, and falls back
     with one warning at the limit (``PIPELINE_KERNELS_BUILD_TIMEOUT``) instead of waiting
@@ -172,6 +174,7 @@ def test_a_build_in_progress_is_waited_for_up_to_the_limit(tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_a_build_past_the_limit_is_stopped(tmp_path):
     """A build that takes longer than the limit is killed, its compiler included, and the
     process falls back with one warning, leaving no lock to wait on."""

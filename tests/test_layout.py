@@ -11,7 +11,7 @@ import io
 import re
 
 import pytest
-from helpers import CONF_DIR, compose_config
+from helpers import CONF_DIR, compose_config, hydra_compose
 from helpers import PIPELINE_MODULES as MODULES
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import OmegaConf
@@ -37,6 +37,23 @@ def _sweep_points(experiment: str) -> list[list[str]]:
     arms = OmegaConf.select(cfg, "hydra.sweeper.arms")
     arms = OmegaConf.to_container(arms) if arms else []
     return points + expand(arms, None, [])
+
+
+def test_the_tests_set_folders_as_a_hydra_override_does(tmp_path):
+    """compose_config sets plain ``paths.*`` folders on a copy of a composed config: the
+    result equals Hydra's compose with the same overrides, interpolations resolved."""
+    overrides = (
+        "experiment=render_smoke",
+        "model=pca",
+        f"paths.runs={tmp_path / 'runs'}",
+        f"paths.data={tmp_path / 'data'}",
+    )
+    ours = compose_config(*overrides)
+    assert ours.paths.data == str(tmp_path / "data")
+    hydras = hydra_compose(overrides)
+    assert OmegaConf.to_container(ours, resolve=True) == OmegaConf.to_container(
+        hydras, resolve=True
+    )
 
 
 def test_experiments_are_found():

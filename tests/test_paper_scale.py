@@ -36,7 +36,7 @@ def test_paper_experiment_produces_table1_with_the_papers_bytes(tmp_path):
         timeout=3600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
-    sizes = pd.read_csv(runs / "tables" / "table1_sizes.csv").set_index("model")
+    sizes = pd.read_csv(runs / "tables" / "btf" / "table1_sizes.csv").set_index("model")
     neural = ["Neural BTF", "k = 500", "k = 1000", "k = 2000"]
     assert list(sizes.index[:4]) == neural and sizes.index[4].startswith("PCA c = ")
     assert sizes.iloc[4]["total [B]"] <= sizes.loc["k = 1000", "total [B]"]  # matched bytes

@@ -185,7 +185,9 @@ def test_each_dataset_is_scored_against_its_truth_if_it_has_one_else_the_referen
     assert list(table["beyond grid"]) == ["25.0 %", "0.0 %"]
 
 
-def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlflow_template):
+def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(
+    tmp_path, mlflow_template, shared_data
+):
     """The built-in material: the truth is rendered beside the reference, every run is
     scored against both, and the tables score against the truth."""
     from pipeline.app import run_job
@@ -193,14 +195,10 @@ def test_a_rendering_job_logs_its_renders_and_the_tables_draw_fig8(tmp_path, mlf
 
     runs_dir = tmp_path / "runs"
     mlflow_template(runs_dir)
-    steps = f"train.max_steps={WIRING_STEPS}"
-    cfg = compose_config("experiment=render_smoke", f"paths.runs={runs_dir}", steps)
+    paths = [f"paths.runs={runs_dir}", f"paths.data={shared_data}"]
+    cfg = compose_config("experiment=render_smoke", *paths, f"train.max_steps={WIRING_STEPS}")
     run_job(cfg)
-    run_job(
-        compose_config(
-            "experiment=render_smoke", f"paths.runs={runs_dir}", "model=pca", "model.n_components=2"
-        )
-    )
+    run_job(compose_config("experiment=render_smoke", *paths, "model=pca", "model.n_components=2"))
 
     client = MlflowClient(tracking_uri(runs_dir))
     experiment = client.get_experiment_by_name("render_smoke")

@@ -36,8 +36,10 @@ BAD = [
 
 
 @pytest.mark.parametrize(("override", "message"), BAD)
-def test_a_bad_setting_is_refused_before_any_stage(smoke_cfg, own_cache, override, message):
-    cfg = smoke_cfg(own_cache, override)
+def test_a_bad_setting_is_refused_before_any_stage(
+    smoke_cfg, own_cache, tmp_path, override, message
+):
+    cfg = smoke_cfg(own_cache, f"paths.data={tmp_path / 'data'}", override)
     with pytest.raises(ConfigError) as error:
         run_job(cfg)
     assert message in str(error.value)

@@ -392,8 +392,8 @@ def _wait_gone(pids: list[int], timeout_s: float) -> list[int]:
 @pytest.mark.parametrize(
     "signum",
     [
-        pytest.param(signal.SIGKILL, id="kill-9"),
-        pytest.param(signal.SIGTERM, id="sigterm"),
+        pytest.param(signal.SIGKILL, id="kill-9", marks=pytest.mark.slow),
+        pytest.param(signal.SIGTERM, id="sigterm", marks=pytest.mark.slow),
         pytest.param(signal.SIGINT, id="sigint", marks=pytest.mark.slow),
     ],
 )

@@ -37,6 +37,7 @@ def test_a_structured_file_repeats_its_patch_at_the_stated_rank(structured):
         assert singular[RANK] < 1e-5 * singular[0] and singular[RANK - 1] > 10 * singular[RANK]
 
 
+@pytest.mark.slow
 def test_the_chain_holds_no_copy_of_the_crop_and_pca_at_the_files_rank_is_exact(
     structured, tmp_path, mlflow_template
 ):
@@ -56,6 +57,7 @@ def test_the_chain_holds_no_copy_of_the_crop_and_pca_at_the_files_rank_is_exact(
     assert rows[0]["rmse"] < 1e-4 * rows[0]["rmse_mean_abrdf"]
 
 
+@pytest.mark.slow
 def test_the_readmes_ubo2014_command_runs_its_three_models(structured, tmp_path, mlflow_template):
     """The README's UBO2014 line as written, on a small file, with a short training (the
     only override besides the file and the store): the main job's three arms finish."""
