@@ -36,10 +36,15 @@ def test_paper_experiment_produces_table1_with_the_papers_bytes(tmp_path):
         timeout=3600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
-    sizes = pd.read_csv(runs / "tables" / "btf" / "table1_sizes.csv").set_index("model")
+    sizes = pd.read_csv(runs / "tables" / "paper" / "table1_sizes.csv").set_index("model")
     neural = ["Neural BTF", "k = 500", "k = 1000", "k = 2000"]
-    assert list(sizes.index[:4]) == neural and sizes.index[4].startswith("PCA c = ")
-    assert sizes.iloc[4]["total [B]"] <= sizes.loc["k = 1000", "total [B]"]  # matched bytes
+    # Each clustered model has a second row: its bytes with a per-texel scale stored.
+    scaled = [m for m in sizes.index if m.endswith(" + per-texel scale")]
+    assert scaled == [f"{k} + per-texel scale" for k in neural[1:]]
+    assert set(sizes.loc[scaled, "per-texel scale [B]"]) == {40_000}  # M float32
+    plain = [m for m in sizes.index if m not in scaled]
+    assert plain[:4] == neural and len(plain) == 5 and plain[4].startswith("PCA c = ")
+    assert sizes.loc[plain[4], "total [B]"] <= sizes.loc["k = 1000", "total [B]"]  # matched
     sizes = sizes.loc[neural]
     assert set(sizes["decoder [B]"]) == {97_532}
     assert list(sizes["latents [B]"]) == [320_000, 16_000, 32_000, 64_000]

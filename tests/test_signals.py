@@ -337,9 +337,15 @@ def test_sigterm_at_many_points_always_stops_the_job(tmp_path, mlflow_template):
 def _start_sweep(runs: Path) -> tuple[subprocess.Popen, list[int], list[str]]:
     """A two-job sweep on loky workers, returned once both jobs have opened their runs,
     with the launcher's descendants (workers, loky's resource tracker) at that time."""
+    # As from a terminal, where Ctrl-C is not ignored: a suite started in the background
+    # of a script inherits SIGINT ignored, and the launcher keeps an ignored signal ignored.
+    default_sigint = "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+    default_sigint += "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])"
     sweep = subprocess.Popen(
         [
             sys.executable,
+            "-c",
+            default_sigint,
             "-m",
             "pipeline",
             "-m",
