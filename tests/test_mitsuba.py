@@ -38,20 +38,21 @@ MESH_RESOLUTION = 24  # coarse: the vertex tangents differ most from Mitsuba's d
 
 
 def smoke_compressed_file(
-    tmp_path: Path, empty_store: Path | None = None, model: str = "clustered"
+    tmp_path: Path, empty_store: Path, data: Path, model: str = "clustered"
 ) -> Path:
     """Train the smoke experiment for a few steps (``python -m pipeline experiment=smoke
     paths.runs=<tmp_path>/runs train.max_steps=...``) and return the compressed
     file it exported, found in the stage cache (``cache/export/<key>/btf.safetensors``).
-    ``empty_store``: an empty ``mlflow.db`` to start from (creating one takes seconds)."""
+    ``empty_store``: an empty ``mlflow.db`` to start from (creating one takes seconds);
+    ``data``: the folder of generated built-in BTFs (``paths.data``)."""
     runs = tmp_path / "runs"
     runs.mkdir(parents=True, exist_ok=True)
-    if empty_store is not None:
-        shutil.copy(empty_store, runs / "mlflow.db")
+    shutil.copy(empty_store, runs / "mlflow.db")
     done = pipeline_command(
         "experiment=smoke",
         f"model={model}",
         f"paths.runs={runs}",
+        f"paths.data={data}",
         f"train.max_steps={WIRING_STEPS}",  # any model will do: it is the renderers compared
     )
     assert done.returncode == 0, done.stderr[-4000:]
@@ -67,10 +68,10 @@ def variant() -> str:
 
 
 @pytest.fixture(scope="module", params=["clustered", "neural_btf"])
-def compressed_file(request, tmp_path_factory, _empty_mlflow_db) -> Path:
+def compressed_file(request, tmp_path_factory, _empty_mlflow_db, shared_data) -> Path:
     """A smoke model of each trained kind (PCA: tests/test_mitsuba_pca.py)."""
     return smoke_compressed_file(
-        tmp_path_factory.mktemp("smoke"), _empty_mlflow_db, model=request.param
+        tmp_path_factory.mktemp("smoke"), _empty_mlflow_db, shared_data, model=request.param
     )
 
 

@@ -60,16 +60,18 @@ def test_a_bad_command_line_is_one_line_before_any_job(tmp_path, experiment, ove
 
 
 @pytest.mark.parametrize(("experiment", "override", "named"), AT_THE_JOB)
-def test_a_bad_value_is_one_line_and_its_run_says_why(tmp_path, experiment, override, named):
+def test_a_bad_value_is_one_line_and_its_run_says_why(
+    tmp_path, mlflow_template, experiment, override, named
+):
+    mlflow_template(tmp_path / "runs")  # where a run is opened, it opens at once
     done = _run(tmp_path, f"experiment={experiment}", override)
     check_one_line_refusal(done, named)
     assert not list((tmp_path / "runs" / "cache").glob("*/*"))  # no stage computed
-    if (tmp_path / "runs" / "mlflow.db").exists():  # a run was opened: it says why it failed
-        client = MlflowClient(tracking_uri(tmp_path / "runs"))
-        runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
-        assert all(
-            r.info.status == "FAILED" and named.split("=")[0] in r.data.tags["error"] for r in runs
-        ), [(r.info.status, r.data.tags.get("error")) for r in runs]
+    client = MlflowClient(tracking_uri(tmp_path / "runs"))
+    runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
+    assert all(  # a run that was opened says why it failed
+        r.info.status == "FAILED" and named.split("=")[0] in r.data.tags["error"] for r in runs
+    ), [(r.info.status, r.data.tags.get("error")) for r in runs]
 
 
 def test_a_sweep_checks_every_job_before_the_first_runs(tmp_path):
@@ -86,11 +88,14 @@ def test_a_sweep_checks_every_job_before_the_first_runs(tmp_path):
         ("btf.interpolation.holdout_lights=100", "btf.interpolation.holdout_lights=100"),
     ],
 )
-def test_a_setting_read_from_the_data_is_refused_naming_it(tmp_path, override, named):
+def test_a_setting_read_from_the_data_is_refused_naming_it(
+    tmp_path, mlflow_template, shared_data, override, named
+):
     """Known once the data's header (or, for images, the load stage) is read: the crop must
     fit the texture, the held-out lights leave lights to train on. Nothing after the load
     stage is computed."""
-    done = _run(tmp_path, "experiment=smoke", override)
+    mlflow_template(tmp_path / "runs")
+    done = _run(tmp_path, "experiment=smoke", f"paths.data={shared_data}", override)
     check_one_line_refusal(done, named)
     assert "Traceback" not in done.stdout + done.stderr
     stages = {p.parent.name for p in (tmp_path / "runs" / "cache").glob("*/*")}
@@ -114,8 +119,9 @@ def test_a_utia_brdf_file_holding_nan_is_refused_naming_it(tmp_path):
         read_utia_brdf(path)
 
 
-def test_a_bad_file_is_one_line_naming_it_and_its_run_says_why(tmp_path):
+def test_a_bad_file_is_one_line_naming_it_and_its_run_says_why(tmp_path, mlflow_template):
     """A DataError (here a UTIA file holding NaN) ends the job as a refused setting does."""
+    mlflow_template(tmp_path / "runs")
     path = _utia_file_with_nan(tmp_path / "fabric139.bin")
     done = _run(tmp_path, "experiment=brdf_smoke", "dataset=utia_brdf", f"dataset.root={path}")
     check_one_line_refusal(done, f"UTIA BRDF file {path} holds 1 non-finite values")
