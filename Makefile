@@ -13,6 +13,9 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet torch==2.13.0 2>&1 | grep -v "is ignored" || true
 	$(PY) -m pip install --quiet -e '.[dev]' 2>&1 | grep -v "is ignored" || true
 	$(PY) -c "import pipeline, torch, hydra, mlflow, OpenEXR"
+	# method A's C++ kernels, built now rather than by the first job that trains (without
+	# a compiler it warns, and training uses torch's own operators)
+	$(PY) -c "from pipeline.btf.fast import kernels; kernels.available()"
 	touch $(STAMP)
 
 demo: $(STAMP)  ## the main job: default experiment on the built-in synthetic BTF
