@@ -37,24 +37,27 @@ def _register_schemas() -> None:
     register_schemas()
 
 
+# ``paths.<name>=<folder>`` with nothing Hydra's override grammar would read differently.
+_PLAIN_FOLDER = re.compile(r"paths\.\w+=[\w./-]+")
+
+
 def compose_config(*overrides: str, return_hydra_config: bool = False) -> DictConfig:
     """Compose ``conf/config.yaml`` exactly as ``python -m pipeline`` would (with the
     ``hydra`` section too if asked: its sweeper's parameters, for instance).
 
-    A Hydra compose takes about a tenth of a second and the tests compose hundreds of
-    times, mostly the same settings in another temporary folder: the settings other than
-    plain ``paths.*=folder`` are composed once per process, and the folders are set on a
-    copy (as a ``paths.*`` override would: they are leaves that others interpolate)."""
-    folders = [o for o in overrides if _PLAIN_FOLDER.fullmatch(o)]
-    rest = tuple(o for o in overrides if o not in folders)
-    cfg = copy.deepcopy(hydra_compose(rest, return_hydra_config))
+    The tests compose the same settings hundreds of times, each in another temporary
+    folder, and a Hydra compose costs far more than a copy (docs/performance.md): the
+    settings other than plain ``paths.*=folder`` are composed once per process, and the
+    folders are set on a copy (as a ``paths.*`` override would: they are leaves that
+    others interpolate)."""
+    folders, rest = [], []
+    for override in overrides:
+        (folders if _PLAIN_FOLDER.fullmatch(override) else rest).append(override)
+    cfg = copy.deepcopy(hydra_compose(tuple(rest), return_hydra_config))
     for override in folders:
         key, value = override.split("=", 1)
         OmegaConf.update(cfg, key, value)
     return cfg
-
-
-_PLAIN_FOLDER = re.compile(r"paths\.\w+=[\w./-]+")
 
 
 @functools.lru_cache(maxsize=256)

@@ -63,7 +63,7 @@ def test_a_bad_command_line_is_one_line_before_any_job(tmp_path, experiment, ove
 def test_a_bad_value_is_one_line_and_its_run_says_why(
     tmp_path, mlflow_template, experiment, override, named
 ):
-    mlflow_template(tmp_path / "runs")  # where a run is opened, it opens at once
+    mlflow_template(tmp_path / "runs")  # the store exists: a job opens its run without creating it
     done = _run(tmp_path, f"experiment={experiment}", override)
     check_one_line_refusal(done, named)
     assert not list((tmp_path / "runs" / "cache").glob("*/*"))  # no stage computed
