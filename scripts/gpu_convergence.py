@@ -32,6 +32,7 @@ import multiprocessing
 import os
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -166,7 +167,7 @@ def main() -> None:
     parser.add_argument("--lengths", default="1,2,4", help="multiples of each recipe")
     parser.add_argument("--seeds", default="0", help="comma-separated training seeds")
     parser.add_argument("--models", default="neural_btf,latent_texture")
-    parser.add_argument("--k", type=int, default=500, help="clustered: k")
+    parser.add_argument("--k", default="500", help="clustered: k, comma-separated")
     parser.add_argument("--curve-every", type=int, default=500, help="steps between curve points")
     parser.add_argument("--jobs", type=int, default=1, help="models trained at once")
     parser.add_argument("--out", default=None)
@@ -177,53 +178,72 @@ def main() -> None:
 
 
 def train_all(args: argparse.Namespace, device: str, folder: Path) -> None:
-    """Write each material's crop into ``folder``, then train every model of the grid."""
+    """Write each material's crop into ``folder`` and queue its models, the longest first,
+    so the next material's crop is written while the first one's models train."""
     lengths = [float(v) for v in args.lengths.split(",")]
     seeds = [int(v) for v in args.seeds.split(",")]
-    tasks = []
-    for material in args.materials.split(","):
-        clock = time.perf_counter()
-        abrdf, directions = material_crop(material, args.size, args.crop, args.data, folder)
-        saved = folder / f"{material}.npz"
-        np.savez(saved, abrdf=abrdf, directions=directions)
-        print(
-            json.dumps(
-                {
-                    "material": material,
-                    "data": args.data,
-                    "M": len(abrdf),
-                    "N": len(directions),
-                    "data_seconds": round(time.perf_counter() - clock, 1),
-                }
-            ),
-            flush=True,
-        )
-        for model, multiple, seed in itertools.product(args.models.split(","), lengths, seeds):
-            tasks.append(
-                {
-                    "material": material,
-                    "path": str(saved),
-                    "data": args.data,
-                    "crop": args.crop,
-                    "model": model,
-                    "multiple": multiple,
-                    "seed": seed,
-                    "device": device,
-                    "k": args.k,
-                    "curve_every": args.curve_every,
-                    "epochs": max(1, round(24 * multiple * args.scale)),
-                    "steps": max(10, round(15000 * multiple * args.scale)),
-                }
-            )
-    # The longest first, so the pool's last minutes are not one long model alone.
-    tasks.sort(key=lambda t: -t["multiple"] * (2 if t["model"] == "latent_texture" else 1))
+    k_values = [int(v) for v in args.k.split(",")]
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+    failures = []
     with multiprocessing.get_context("spawn").Pool(max(1, args.jobs)) as pool:
-        for line in pool.imap_unordered(run_task, tasks):
-            print(json.dumps({k: v for k, v in line.items() if k != "curve"}), flush=True)
-            if args.out:
-                with open(args.out, "a") as out:
-                    out.write(json.dumps(line) + "\n")
+        for material in args.materials.split(","):
+            clock = time.perf_counter()
+            abrdf, directions = material_crop(material, args.size, args.crop, args.data, folder)
+            saved = folder / f"{material}.npz"
+            np.savez(saved, abrdf=abrdf, directions=directions)
+            print(
+                json.dumps(
+                    {
+                        "material": material,
+                        "data": args.data,
+                        "M": len(abrdf),
+                        "N": len(directions),
+                        "data_seconds": round(time.perf_counter() - clock, 1),
+                    }
+                ),
+                flush=True,
+            )
+            tasks = []
+            for model, multiple, seed in itertools.product(args.models.split(","), lengths, seeds):
+                # k is the clustered model's alone: one task per k for it, one for the others.
+                for k in k_values if model == "clustered" else [None]:
+                    tasks.append(
+                        {
+                            "material": material,
+                            "path": str(saved),
+                            "data": args.data,
+                            "crop": args.crop,
+                            "model": model,
+                            "multiple": multiple,
+                            "seed": seed,
+                            "device": device,
+                            "k": k,
+                            "curve_every": args.curve_every,
+                            "epochs": max(1, round(24 * multiple * args.scale)),
+                            "steps": max(10, round(15000 * multiple * args.scale)),
+                        }
+                    )
+            # The longest first, so the pool's last minutes are not one long model alone.
+            tasks.sort(key=lambda t: -t["multiple"] * (2 if t["model"] == "latent_texture" else 1))
+            for task in tasks:
+                pool.apply_async(
+                    run_task,
+                    (task,),
+                    callback=partial(report, args.out),
+                    error_callback=failures.append,
+                )
+        pool.close()
+        pool.join()
+    if failures:
+        raise failures[0]
+
+
+def report(out: str | None, line: dict) -> None:
+    """Print a finished model's line without its curve; append it whole to ``out``."""
+    print(json.dumps({k: v for k, v in line.items() if k != "curve"}), flush=True)
+    if out:
+        with open(out, "a") as file:
+            file.write(json.dumps(line) + "\n")
 
 
 if __name__ == "__main__":
