@@ -1,7 +1,7 @@
 """Does doubling the run change the error? Neural BTF and clustered (k = ``--k``), with the
 CPU recipe of ``conf/train/converged.yaml`` (Adam, 32 ABRDFs x 256 directions a step,
-cosine schedule over the run), and the latent texture (``model=latent_texture``'s defaults) on built-in materials
-at the paper's size (a 100 x 100 crop, all 81 x 81 directions), each trained at several
+cosine schedule over the run; ``--lr`` its peak), and the latent texture
+(``model=latent_texture``'s defaults) on built-in materials at the paper's size (a 100 x 100 crop, all 81 x 81 directions), each trained at several
 multiples of its length and seeds, on the GPU when there is one (where the CPU cannot
 afford the long runs).
 
@@ -93,12 +93,14 @@ def run_task(task: dict) -> dict:
     every = np.arange(len(directions))
     m = len(abrdf)
     line = {k: task[k] for k in ("material", "data", "crop", "model", "multiple", "seed")}
+    if task["model"] != "latent_texture":
+        line["lr"] = task["lr"]
     line["device"] = str(device)
     line["gpu"] = torch.cuda.get_device_name() if device.type == "cuda" else None
     if task["model"] in ("neural_btf", "clustered"):
         settings = TrainSettings(
             optimizer="adam",
-            lr=0.002,
+            lr=task["lr"],
             batch_size=32,
             queries_per_abrdf=256,
             epochs=task["epochs"],
@@ -168,6 +170,7 @@ def main() -> None:
     parser.add_argument("--seeds", default="0", help="comma-separated training seeds")
     parser.add_argument("--models", default="neural_btf,latent_texture")
     parser.add_argument("--k", default="500", help="clustered: k, comma-separated")
+    parser.add_argument("--lr", type=float, default=0.002, help="Neural BTF, clustered: peak lr")
     parser.add_argument("--curve-every", type=int, default=500, help="steps between curve points")
     parser.add_argument("--jobs", type=int, default=1, help="models trained at once")
     parser.add_argument("--out", default=None)
@@ -218,6 +221,7 @@ def train_all(args: argparse.Namespace, device: str, folder: Path) -> None:
                             "seed": seed,
                             "device": device,
                             "k": k,
+                            "lr": args.lr,
                             "curve_every": args.curve_every,
                             "epochs": max(1, round(24 * multiple * args.scale)),
                             "steps": max(10, round(15000 * multiple * args.scale)),
