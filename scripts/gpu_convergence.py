@@ -1,9 +1,9 @@
 """Does doubling the run change the error? Neural BTF and clustered (k = ``--k``), with the
 CPU recipe of ``conf/train/converged.yaml`` (Adam, 32 ABRDFs x 256 directions a step,
 cosine schedule over the run; ``--lr`` its peak), and the latent texture
-(``model=latent_texture``'s defaults) on built-in materials at the paper's size (a 100 x 100 crop, all 81 x 81 directions), each trained at several
-multiples of its length and seeds, on the GPU when there is one (where the CPU cannot
-afford the long runs).
+(``model=latent_texture``'s defaults) on built-in materials at the paper's size (a
+100 x 100 crop, all 81 x 81 directions), each trained at several multiples of its length
+and seeds, on the GPU when there is one (where the CPU cannot afford the long runs).
 
 ``--data pipeline`` (the default) reads what the pipeline's built-in dataset reads: the
 material written as UBO2003 JPEGs (quality 95, a 128 x 128 texture, generator seed 0) by
@@ -12,8 +12,9 @@ of docs/results.md's tables. ``--data analytic`` uses the generator's values dir
 JPEG round trip): lower errors, not comparable with the tables.
 
 Models train in ``--jobs`` processes at once, the longest first: one model's steps leave
-the GPU mostly idle, so one GPU serves several (docs/performance.md measures how many
-help). One JSON line per trained model (stdout, and
+the GPU mostly idle, so one GPU serves several, best with CUDA MPS started first
+(``nvidia-cuda-mps-control -d``: the processes' kernels then run side by side;
+docs/performance.md has figures with and without it). One JSON line per trained model (stdout, and
 appended to ``--out`` as each ends: a rerun adds to the file), with the Neural BTF's and
 the clustered model's RMSE-versus-steps curve on 256 texels fixed per seed:
 

@@ -142,6 +142,10 @@ def test_tables_from_hand_made_runs(tmp_path, settings):
         for ext in ("md", "csv", "tex"):
             assert (out / f"{stem}.{ext}").is_file()
     assert "\\begin{table}" in (out / "table2_rmse.tex").read_text()
+    # The paper's Table 2 stands beside ours, in the same files and in the summary.
+    published = pd.read_csv(out / "table2_paper.csv").set_index("dataset")
+    assert published.loc["fabric02", "k = 500"] == 0.0212
+    assert "The paper's Table 2, beside ours" in summary
 
 
 def test_verdict_finds_no_effect_when_k_is_within_seed_noise(tmp_path, settings):
