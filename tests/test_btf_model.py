@@ -365,6 +365,58 @@ def test_learning_rate_halves_every_half_life(monkeypatch):
     assert seen[-1] == pytest.approx(0.01 * 0.5 ** ((2 * steps_per_epoch - 1) / steps_per_epoch))
 
 
+@pytest.mark.parametrize("backend", ["autograd", "fused"])
+def test_clip_grad_norm_bounds_each_steps_gradient_and_a_loose_one_changes_nothing(
+    monkeypatch, backend
+):
+    """The optimizer sees gradients of norm <= train.clip_grad_norm, on either backend
+    (both leave every gradient in .grad); a bound no gradient reaches trains bit for bit as
+    no bound (the code before the setting)."""
+    abrdf, features = _tiny_btf(m=40)
+    norms = []
+    original = torch.optim.Adam.step
+
+    def spy(self, *args, **kwargs):
+        grads = [p.grad for group in self.param_groups for p in group["params"]]
+        norms.append(float(torch.linalg.vector_norm(torch.stack([g.norm() for g in grads]))))
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(torch.optim.Adam, "step", spy)
+
+    def run(clip):
+        norms.clear()
+        settings = TrainSettings(
+            epochs=2,
+            lr=0.01,
+            optimizer="adam",
+            queries_per_abrdf=4,
+            device="cpu",
+            threads=1,
+            backend=backend,
+            clip_grad_norm=clip,
+        )
+        result = train(
+            abrdf,
+            abrdf,
+            np.arange(40),
+            fit_normalization(abrdf),
+            features,
+            np.arange(27),
+            settings,
+            seed=0,
+            encoder_channels=(4, 8),
+        )
+        return result.decoder.state_dict(), list(norms)
+
+    unclipped, free = run(None)
+    bound = float(np.median(free))
+    _, clipped = run(bound)
+    assert max(free) > bound and max(clipped) <= bound * (1 + 1e-5)
+    loose, _ = run(10 * max(free))
+    for a, b in zip(unclipped.values(), loose.values(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
 def test_bfloat16_training_follows_float32_training():
     """train.precision=bfloat16 rounds the decoder's products, not its updates: on the same
     steps its RMSE-versus-time curve stays within 2 % of float32's (measured: under 1 %),

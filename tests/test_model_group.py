@@ -14,11 +14,11 @@ from omegaconf import OmegaConf
 
 from pipeline.btf.methods import BTF, unused
 from pipeline.btf.models import MODELS, model_of
-from pipeline.btf.runner import SPEED_ONLY
+from pipeline.btf.runner import SPEED_ONLY, keyless
 from pipeline.btf.train_settings import TrainSettings
-from pipeline.core.recipe import left_out
+from pipeline.core.recipe import left_out, recipe_id
 from pipeline.core.run import flatten
-from pipeline.core.settings import RESULT, roles, setting
+from pipeline.core.settings import RESULT, added_defaults, roles, setting
 from pipeline.core.sweeper import expand
 
 
@@ -174,6 +174,27 @@ def test_keys_recipe_and_logged_settings_follow_from_the_declaration(name):
     # A model trained by train.* logs the train.lr it trains at, not its default model.lr.
     assert ("model.lr" in logged) == (not model.trains and "lr" in model.config.__annotations__)
     assert BTF.roles()["train.device"] == "speed"
+
+
+def test_an_added_setting_at_its_default_leaves_keys_recipe_and_logged_settings_as_before():
+    """train.clip_grad_norm came after results existed (declared ``added``): at its
+    default (None) it is in no train-stage key, recipe or logged setting, so those results
+    stay the same models; set, it is in all three."""
+    assert "train.clip_grad_norm" in added_defaults(TrainSettings, "train")
+    plain = compose_config("experiment=smoke", "model=neural_btf")
+    clipped = compose_config("experiment=smoke", "model=neural_btf", "train.clip_grad_norm=1.0")
+    assert "train.clip_grad_norm" in BTF.left_out(plain)
+    assert "train.clip_grad_norm" not in BTF.left_out(clipped)
+    assert "clip_grad_norm" in keyless(TrainSettings())
+    assert "clip_grad_norm" not in keyless(TrainSettings(clip_grad_norm=1.0))
+
+    def logged(cfg):
+        return {k: v for k, v in flatten(cfg).items() if k not in set(BTF.left_out(cfg))}
+
+    before = {k: v for k, v in logged(plain).items() if k != "train.clip_grad_norm"}
+    assert logged(plain) == before and recipe_id(logged(plain)) == recipe_id(before)
+    assert logged(clipped)["train.clip_grad_norm"] == 1.0
+    assert recipe_id(logged(clipped)) != recipe_id(before)
 
 
 def test_no_model_is_chosen_by_comparing_names():

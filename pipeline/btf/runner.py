@@ -26,7 +26,7 @@ from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.cache import Entry, save_arrays, save_json
 from pipeline.core.methods import resolve
 from pipeline.core.run_log import RunLog
-from pipeline.core.settings import SPEED, check_settings, constraints, roles
+from pipeline.core.settings import SPEED, at_added_default, check_settings, constraints, roles
 from pipeline.core.stage import Context, plain_settings
 from pipeline.data.directions import direction_sets
 
@@ -70,6 +70,13 @@ SPEED_ONLY = {
 }
 
 
+def keyless(settings: TrainSettings) -> set[str]:
+    """The fields of ``settings`` left out of the train stage's key: the speed-only ones,
+    and those declared ``added`` that are at their default (the key of the code before)."""
+    added = at_added_default(TrainSettings, "train", {"train": settings.__dict__})
+    return SPEED_ONLY | {key.removeprefix("train.") for key in added}
+
+
 def train_stage(
     ctx: Context, cropped: Entry, prep: Entry, clusters: Entry | None, reps: Entry | None
 ) -> Entry:
@@ -82,7 +89,7 @@ def train_stage(
     stage_settings = {
         "method": cfg.model.name,
         "target": cfg.model.get("target", "texel"),
-        "train": {k: v for k, v in settings.__dict__.items() if k not in SPEED_ONLY},
+        "train": {k: v for k, v in settings.__dict__.items() if k not in keyless(settings)},
         "model": plain_settings(cfg.btf.network),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),

@@ -239,6 +239,8 @@ def train(
                     # A float, or a 0-d tensor left on the device: summed there, it is read
                     # once per pass, so that a CUDA step does not wait for the device.
                     running += step_fn(batch)
+                    if settings.clip_grad_norm is not None:
+                        torch.nn.utils.clip_grad_norm_(params, settings.clip_grad_norm)
                     optimizer.step()
                     if schedule is not None:
                         schedule.step()

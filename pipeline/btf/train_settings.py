@@ -59,6 +59,10 @@ class TrainSettings:
     chunk : queries per chunk of the fused decoder step (speed only); None for the
         precision's default (``pipeline.btf.fast.fused.DEFAULT_CHUNK``: 1024 for float32, whose
         chunk's activations should fit in a core's L2 cache; 8192 for bfloat16).
+    clip_grad_norm : None, or the largest norm of all parameters' gradients together,
+        scaled down to it before each optimizer step (``torch.nn.utils.clip_grad_norm_``).
+        A remedy to try for the jumps of the loss that long cosine runs show on the
+        corduroy (docs/results.md); None (the default) clips nothing, as before it existed.
     keep_awake, omp_spin_count, reuse_freed_memory : opt-in machine tuning, speed only
         (:mod:`pipeline.btf.fast.tuning`): spinning idle-class processes keep the cores
         awake when the job's threads are all its cores; ``GOMP_SPINCOUNT`` for OpenMP's
@@ -91,6 +95,9 @@ class TrainSettings:
     keep_awake: bool = setting(False, role=SPEED)
     omp_spin_count: int | None = setting(None, Integer(0, optional=True), role=SPEED)
     reuse_freed_memory: bool = setting(False, role=SPEED)
+    clip_grad_norm: float | None = setting(
+        None, Real(0.0, closed=False, optional=True), role=RESULT, added=True
+    )
 
     def __post_init__(self):
         check_fields(self, "train")  # 1.5 epochs, "abc" as lr, NaN as a count, 0 steps

@@ -81,8 +81,12 @@ class Method:
         }
 
     def left_out(self, cfg: DictConfig) -> list[str]:
-        """The settings :attr:`unused` names for this job (none without it)."""
-        return self.unused(cfg) if self.unused else []
+        """The settings :attr:`unused` names for this job, and the settings declared
+        ``added`` that are at their default (:func:`pipeline.core.settings.setting`)."""
+        from pipeline.core.settings import at_added_default
+
+        added = [key for prefix, cls in self.settings for key in at_added_default(cls, prefix, cfg)]
+        return (self.unused(cfg) if self.unused else []) + added
 
     def name_run(self, cfg: DictConfig) -> str:
         return self.run_name(cfg) if self.run_name else f"{self.name} s{cfg.seed}"

@@ -316,11 +316,23 @@ LOG = "log"  # changes what is logged or drawn, not the model
 ROLES = (RESULT, SPEED, LOG)
 
 
-def setting(default, constraint: Constraint | None = None, *, role: str = RESULT, help: str = ""):
-    """A dataclass field with its role, its allowed values and one line of help."""
+def setting(
+    default,
+    constraint: Constraint | None = None,
+    *,
+    role: str = RESULT,
+    help: str = "",
+    added: bool = False,
+):
+    """A dataclass field with its role, its allowed values and one line of help.
+
+    ``added``: the setting came after results existed, and its default is what the code
+    before it did. At its default it is left out of cache keys, recipes and logged
+    parameters (:func:`at_added_default`), so those results stay the same model.
+    """
     if role not in ROLES:
         raise ValueError(f"role={role!r} must be one of {', '.join(ROLES)}")
-    metadata = {"role": role, "constraint": constraint, "help": help}
+    metadata = {"role": role, "constraint": constraint, "help": help, "added": added}
     if isinstance(default, list | dict):
         return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
@@ -338,6 +350,25 @@ def roles(settings_class: type, prefix: str) -> dict[str, str]:
             )
         found[f"{prefix}.{f.name}"] = f.metadata["role"]
     return found
+
+
+def added_defaults(settings_class: type, prefix: str) -> dict[str, object]:
+    """``{"prefix.field": default}`` of the fields declared ``added`` (:func:`setting`)."""
+    return {
+        f"{prefix}.{f.name}": f.default
+        for f in dataclasses.fields(settings_class)
+        if f.metadata.get("added")
+    }
+
+
+def at_added_default(settings_class: type, prefix: str, values: Mapping) -> list[str]:
+    """The ``added`` settings (dotted names) whose value in the nested ``values`` (a config
+    holding ``prefix``) is their default, or which it lacks: left out of keys and recipes."""
+    return [
+        key
+        for key, default in added_defaults(settings_class, prefix).items()
+        if _select(values, key, default) == default
+    ]
 
 
 def constraints(settings_class: type, prefix: str) -> dict[str, Constraint]:
