@@ -96,6 +96,8 @@ def run_task(task: dict) -> dict:
     line = {k: task[k] for k in ("material", "data", "crop", "model", "multiple", "seed")}
     if task["model"] != "latent_texture":
         line["lr"] = task["lr"]
+        line["backend"] = task["backend"] or ("autograd" if task["device"] == "cuda" else "auto")
+        line["clip"] = task["clip"]
     line["device"] = str(device)
     line["gpu"] = torch.cuda.get_device_name() if device.type == "cuda" else None
     if task["model"] in ("neural_btf", "clustered"):
@@ -108,9 +110,10 @@ def run_task(task: dict) -> dict:
             epoch_texels=10000,
             schedule="cosine",
             device=device.type,
-            backend="autograd" if device.type == "cuda" else "auto",
+            backend=task["backend"] or ("autograd" if device.type == "cuda" else "auto"),
             threads=1,
             curve_every=task["curve_every"],
+            clip_grad_norm=task["clip"],
         )
         if task["model"] == "clustered":
             # As the pipeline's pca, kmeans and representatives stages (btf.pca's 16
@@ -172,6 +175,8 @@ def main() -> None:
     parser.add_argument("--models", default="neural_btf,latent_texture")
     parser.add_argument("--k", default="500", help="clustered: k, comma-separated")
     parser.add_argument("--lr", type=float, default=0.002, help="Neural BTF, clustered: peak lr")
+    parser.add_argument("--clip", type=float, default=None, help="train.clip_grad_norm")
+    parser.add_argument("--backend", default=None, help="train.backend (autograd on CUDA)")
     parser.add_argument("--curve-every", type=int, default=500, help="steps between curve points")
     parser.add_argument("--jobs", type=int, default=1, help="models trained at once")
     parser.add_argument("--out", default=None)
@@ -223,6 +228,8 @@ def train_all(args: argparse.Namespace, device: str, folder: Path) -> None:
                             "device": device,
                             "k": k,
                             "lr": args.lr,
+                            "backend": args.backend,
+                            "clip": args.clip,
                             "curve_every": args.curve_every,
                             "epochs": max(1, round(24 * multiple * args.scale)),
                             "steps": max(10, round(15000 * multiple * args.scale)),
