@@ -329,8 +329,23 @@ def test_a_shorter_run_is_the_start_of_a_longer_one_with_its_curve():
     assert short.curve[-1]["rmse"] == pytest.approx(expected, rel=1e-5)
 
 
-def test_learning_rate_halves_every_half_life(monkeypatch):
+def _train_40(settings):
+    """Train on 40 texels of :func:`_tiny_btf` (seed 0) with a small encoder."""
     abrdf, features = _tiny_btf(m=40)
+    return train(
+        abrdf,
+        abrdf,
+        np.arange(40),
+        fit_normalization(abrdf),
+        features,
+        np.arange(27),
+        settings,
+        seed=0,
+        encoder_channels=(4, 8),
+    )
+
+
+def test_learning_rate_halves_every_half_life(monkeypatch):
     settings = TrainSettings(
         epochs=2,
         lr=0.01,
@@ -348,17 +363,7 @@ def test_learning_rate_halves_every_half_life(monkeypatch):
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(torch.optim.SGD, "step", spy)
-    train(
-        abrdf,
-        abrdf,
-        np.arange(40),
-        fit_normalization(abrdf),
-        features,
-        np.arange(27),
-        settings,
-        seed=0,
-        encoder_channels=(4, 8),
-    )
+    _train_40(settings)
     steps_per_epoch = 40 // 5
     assert seen[0] == pytest.approx(0.01)
     assert seen[steps_per_epoch] == pytest.approx(0.005)
@@ -372,7 +377,6 @@ def test_clip_grad_norm_bounds_each_steps_gradient_and_a_loose_one_changes_nothi
     """The optimizer sees gradients of norm <= train.clip_grad_norm, on either backend
     (both leave every gradient in .grad); a bound no gradient reaches trains bit for bit as
     no bound (the code before the setting)."""
-    abrdf, features = _tiny_btf(m=40)
     norms = []
     original = torch.optim.Adam.step
 
@@ -395,17 +399,7 @@ def test_clip_grad_norm_bounds_each_steps_gradient_and_a_loose_one_changes_nothi
             backend=backend,
             clip_grad_norm=clip,
         )
-        result = train(
-            abrdf,
-            abrdf,
-            np.arange(40),
-            fit_normalization(abrdf),
-            features,
-            np.arange(27),
-            settings,
-            seed=0,
-            encoder_channels=(4, 8),
-        )
+        result = _train_40(settings)
         return result.decoder.state_dict(), list(norms)
 
     unclipped, free = run(None)
