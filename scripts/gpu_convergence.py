@@ -33,7 +33,7 @@ import multiprocessing
 import os
 import tempfile
 import time
-from functools import partial
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +47,7 @@ from pipeline.btf.synthetic import SyntheticBTF
 from pipeline.btf.synthetic_dataset import write_synthetic_btf
 from pipeline.btf.train import encode, train
 from pipeline.btf.train_settings import TrainSettings
+from pipeline.core.errors import ConfigError
 from pipeline.data.btf import load_btf
 from pipeline.data.directions import btf_directions
 
@@ -82,6 +83,26 @@ def material_crop(material: str, size: int, crop: int, data: str, folder: Path):
     return abrdf.astype(np.float32), np.asarray(directions)
 
 
+def recipe(task: dict) -> TrainSettings:
+    """The Neural BTF's and the clustered model's training settings for ``task``
+    (``conf/train/converged.yaml``'s recipe at ``task["epochs"]``); refuses a bad value
+    naming the setting (ConfigError)."""
+    return TrainSettings(
+        optimizer="adam",
+        lr=task["lr"],
+        batch_size=32,
+        queries_per_abrdf=256,
+        epochs=task["epochs"],
+        epoch_texels=10000,
+        schedule="cosine",
+        device=task["device"],
+        backend=task["backend"] or ("autograd" if task["device"] == "cuda" else "auto"),
+        threads=1,
+        curve_every=task["curve_every"],
+        clip_grad_norm=task["clip"],
+    )
+
+
 def run_task(task: dict) -> dict:
     """Train one model on the crop saved at ``task["path"]``; its result line."""
     torch.set_num_threads(1)
@@ -94,27 +115,11 @@ def run_task(task: dict) -> dict:
     every = np.arange(len(directions))
     m = len(abrdf)
     line = {k: task[k] for k in ("material", "data", "crop", "model", "multiple", "seed")}
-    if task["model"] != "latent_texture":
-        line["lr"] = task["lr"]
-        line["backend"] = task["backend"] or ("autograd" if task["device"] == "cuda" else "auto")
-        line["clip"] = task["clip"]
     line["device"] = str(device)
     line["gpu"] = torch.cuda.get_device_name() if device.type == "cuda" else None
     if task["model"] in ("neural_btf", "clustered"):
-        settings = TrainSettings(
-            optimizer="adam",
-            lr=task["lr"],
-            batch_size=32,
-            queries_per_abrdf=256,
-            epochs=task["epochs"],
-            epoch_texels=10000,
-            schedule="cosine",
-            device=device.type,
-            backend=task["backend"] or ("autograd" if device.type == "cuda" else "auto"),
-            threads=1,
-            curve_every=task["curve_every"],
-            clip_grad_norm=task["clip"],
-        )
+        settings = recipe(task)
+        line.update(lr=settings.lr, backend=settings.backend, clip=settings.clip_grad_norm)
         if task["model"] == "clustered":
             # As the pipeline's pca, kmeans and representatives stages (btf.pca's 16
             # components, k-means++ seeded by the run's seed, the clusters' medians): the
@@ -182,19 +187,32 @@ def main() -> None:
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
     device = "cuda" if torch.cuda.is_available() else "cpu"
+    try:  # at the door: a bad --lr, --clip or --backend before any crop is written
+        recipe(vars(args) | {"device": device, "epochs": 1})
+    except ConfigError as error:
+        raise SystemExit(f"gpu_convergence.py: {error}") from None
+    unknown = set(args.models.split(",")) - {"neural_btf", "clustered", "latent_texture"}
+    if unknown:
+        raise SystemExit(f"gpu_convergence.py: --models: unknown {', '.join(sorted(unknown))}")
+    if args.out and not Path(args.out).resolve().parent.is_dir():
+        raise SystemExit(f"gpu_convergence.py: --out {args.out}: its folder does not exist")
     with tempfile.TemporaryDirectory(prefix="gpu_convergence_") as folder:
-        train_all(args, device, Path(folder))
+        failed = train_all(args, device, Path(folder))
+    if failed:
+        raise SystemExit(f"gpu_convergence.py: {failed} model(s) failed (above)")
 
 
-def train_all(args: argparse.Namespace, device: str, folder: Path) -> None:
+def train_all(args: argparse.Namespace, device: str, folder: Path) -> int:
     """Write each material's crop into ``folder`` and queue its models, the longest first,
-    so the next material's crop is written while the first one's models train."""
+    so the next material's crop is written while the first one's models train; report each
+    model as it ends. Returns how many failed."""
     lengths = [float(v) for v in args.lengths.split(",")]
     seeds = [int(v) for v in args.seeds.split(",")]
     k_values = [int(v) for v in args.k.split(",")]
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    failures = []
-    with multiprocessing.get_context("spawn").Pool(max(1, args.jobs)) as pool:
+    pending = {}
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max(1, args.jobs), mp_context=context) as pool:
         for material in args.materials.split(","):
             clock = time.perf_counter()
             abrdf, directions = material_crop(material, args.size, args.crop, args.data, folder)
@@ -237,17 +255,19 @@ def train_all(args: argparse.Namespace, device: str, folder: Path) -> None:
                     )
             # The longest first, so the pool's last minutes are not one long model alone.
             tasks.sort(key=lambda t: -t["multiple"] * (2 if t["model"] == "latent_texture" else 1))
-            for task in tasks:
-                pool.apply_async(
-                    run_task,
-                    (task,),
-                    callback=partial(report, args.out),
-                    error_callback=failures.append,
-                )
-        pool.close()
-        pool.join()
-    if failures:
-        raise failures[0]
+            pending.update({pool.submit(run_task, task): task for task in tasks})
+        # Lines are written here, in this process: a worker that dies (out of memory, a
+        # CUDA fault) fails its own future and the ones still queued, and nothing hangs.
+        failed = 0
+        for future in as_completed(pending):
+            task = pending[future]
+            try:
+                report(args.out, future.result())
+            except Exception as error:  # one model's failure: named and counted, the rest go on
+                failed += 1
+                named = {k: task[k] for k in ("material", "model", "k", "multiple", "seed")}
+                print(f"FAILED {json.dumps(named)}: {type(error).__name__}: {error}", flush=True)
+    return failed
 
 
 def report(out: str | None, line: dict) -> None:

@@ -29,8 +29,21 @@ JUMP = 2.0
 
 
 def load(paths: list[str]) -> pd.DataFrame:
-    """One row per trained model of the files, with its label, jumps and divergence."""
-    rows = [json.loads(line) for path in paths for line in Path(path).read_text().splitlines()]
+    """One row per trained Neural BTF or clustered model of the files that has a curve (the
+    latent texture's lines and older lines without one are left out), with its label, jumps
+    and divergence."""
+    rows = [
+        line
+        for path in paths
+        for text in Path(path).read_text().splitlines()
+        if text.strip()
+        for line in [json.loads(text)]
+        if line.get("model") in ("neural_btf", "clustered") and line.get("curve")
+    ]
+    if not rows:
+        raise SystemExit(
+            f"kverdict_gpu.py: no Neural BTF or clustered line with a curve in {paths}"
+        )
     runs = pd.DataFrame(rows)
     runs["lr"] = runs.get("lr", pd.Series(0.002, index=runs.index)).fillna(0.002)
     k = runs.get("k", pd.Series(np.nan, index=runs.index))
@@ -71,6 +84,8 @@ def report(runs: pd.DataFrame) -> str:
             + pd.DataFrame([row]).to_markdown(index=False)
         )
         clustered = kept[kept["model"] == "clustered"]
+        if clustered.empty:
+            continue
         blocks = clustered.pivot_table(index="seed", columns="k", values="rmse").dropna()
         if blocks.shape[0] >= 2 and blocks.shape[1] >= 2:
             verdict = describe(blocked_verdict(blocks))

@@ -2,7 +2,7 @@
 are set beside, and the figures our k verdict quotes from it.
 
 Its rows are measured BTFs (UBO2003 fabric02, WOOL, CORDUROY, PULLI), trained by plain SGD
-(lr 0.05, batches of 5) for 2-3 hours a model on a GTX 970, with no stopping criterion
+(lr 0.05 / 0.08, batches of 5) for 2-3 hours a model on a GTX 970, with no stopping criterion
 stated: the paper's numbers sit beside ours, they are not a reproduction of them.
 """
 

@@ -76,7 +76,7 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
             "The paper's Table 2, beside ours (not a reproduction)",
             "RMSE of eq. 10 as published, one model per cell. Its data are measured UBO2003 "
             "BTFs with their camera noise (the built-in data are generated materials rounded "
-            "to 8-bit JPEGs); it trains by plain SGD (lr 0.05, batches of 5) for 2-3 hours a "
+            "to 8-bit JPEGs); it trains by plain SGD (lr 0.05 / 0.08, batches of 5) for 2-3 hours a "
             "model on a GTX 970 with no stopping criterion stated (train.* above says our "
             "recipe). Its largest step between two k is "
             f"{100 * paper.largest_k_step():.1f} % (fabric02, 500 -> 1000); its largest "
@@ -259,7 +259,10 @@ def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path)
         cache.lookup("evaluate", cache_keys["evaluate"]) if "evaluate" in cache_keys else None
     )
     data = job_data(cropped, prep, trained, evaluated, pairs_degrees)
-    settings = flatten(cfg)
+    from pipeline.btf.methods import BTF
+
+    left_out = set(BTF.left_out(cfg))  # what the job's run did not log, as job_run does
+    settings = {k: v for k, v in flatten(cfg).items() if k not in left_out}
     row = {f"params.{k}": str(v) for k, v in settings.items()}
     row["tags.recipe"] = recipe_id(settings)
     row["run_id"] = "this job"

@@ -83,10 +83,17 @@ class Method:
     def left_out(self, cfg: DictConfig) -> list[str]:
         """The settings :attr:`unused` names for this job, and the settings declared
         ``added`` that are at their default (:func:`pipeline.core.settings.setting`)."""
-        from pipeline.core.settings import at_added_default
+        from pipeline.core.settings import added_defaults, at_added_default, roles
 
-        added = [key for prefix, cls in self.settings for key in at_added_default(cls, prefix, cfg)]
-        return (self.unused(cfg) if self.unused else []) + added
+        added = {key for prefix, cls in self.settings for key in at_added_default(cls, prefix, cfg)}
+        # A name another class under the same prefix (another model) declares plainly stays.
+        plain = {
+            key
+            for prefix, cls in self.settings
+            for key in roles(cls, prefix)
+            if key not in added_defaults(cls, prefix)
+        }
+        return (self.unused(cfg) if self.unused else []) + sorted(added - plain)
 
     def name_run(self, cfg: DictConfig) -> str:
         return self.run_name(cfg) if self.run_name else f"{self.name} s{cfg.seed}"

@@ -332,6 +332,8 @@ def setting(
     """
     if role not in ROLES:
         raise ValueError(f"role={role!r} must be one of {', '.join(ROLES)}")
+    if added and isinstance(default, list | dict):
+        raise ValueError("an added setting needs a plain default, compared as it is")
     metadata = {"role": role, "constraint": constraint, "help": help, "added": added}
     if isinstance(default, list | dict):
         return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
