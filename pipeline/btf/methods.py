@@ -38,7 +38,7 @@ def figures(cfg: DictConfig, cache_keys: dict[str, str], out: Path) -> list[Path
     from pipeline.core.report import tables_settings
 
     pairs = OmegaConf.to_container(tables_settings().fig7.pairs)
-    return job_figures(cfg, cache_keys, pairs, out)
+    return job_figures(cfg, cache_keys, pairs, out, left_out=BTF.left_out(cfg))
 
 
 def prepare(cfg: DictConfig) -> None:

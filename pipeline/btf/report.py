@@ -238,10 +238,13 @@ def _verdict_row(model: str, runs: pd.DataFrame, baseline: float) -> list[str]:
     ]
 
 
-def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path) -> list[Path]:
+def job_figures(
+    cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path, left_out=()
+) -> list[Path]:
     """Fig. 7 of one finished job (the reference crops and its reconstruction), drawn into
     ``out`` (PNG and EXR) with its data (``fig7_data.npz``, which the tables draw from);
-    nothing for PCA, which has no decoder to query."""
+    nothing for PCA, which has no decoder to query. ``left_out``: the settings the job's
+    run did not log (``Method.left_out``), left out of its recipe as the run's are."""
     import numpy as np
 
     from pipeline.btf.fig7 import DATA_NAME, draw_fig7, job_data
@@ -259,10 +262,7 @@ def job_figures(cfg, cache_keys: dict[str, str], pairs_degrees: list, out: Path)
         cache.lookup("evaluate", cache_keys["evaluate"]) if "evaluate" in cache_keys else None
     )
     data = job_data(cropped, prep, trained, evaluated, pairs_degrees)
-    from pipeline.btf.methods import BTF
-
-    left_out = set(BTF.left_out(cfg))  # what the job's run did not log, as job_run does
-    settings = {k: v for k, v in flatten(cfg).items() if k not in left_out}
+    settings = {k: v for k, v in flatten(cfg).items() if k not in set(left_out)}
     row = {f"params.{k}": str(v) for k, v in settings.items()}
     row["tags.recipe"] = recipe_id(settings)
     row["run_id"] = "this job"
