@@ -145,6 +145,7 @@ def test_tables_from_hand_made_runs(tmp_path, settings):
     # The paper's Table 2 stands beside ours, in the same files and in the summary.
     published = pd.read_csv(out / "table2_paper.csv").set_index("dataset")
     assert published.loc["fabric02", "k = 500"] == 0.0212
+    assert " 0.0200 |" in (out / "table2_paper.md").read_text()  # as published, 4 digits
     assert "The paper's Table 2, beside ours" in summary
 
 

@@ -77,11 +77,12 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
             "RMSE of eq. 10 as published, one model per cell. Its data are measured UBO2003 "
             "BTFs with their camera noise (the built-in data are generated materials rounded "
             "to 8-bit JPEGs); it trains by plain SGD (lr 0.05 / 0.08, batches of 5) for 2-3 hours a "
-            "model on a GTX 970 with no stopping criterion stated (train.* above says our "
-            "recipe). Its largest step between two k is "
+            "model on a GTX 970 with no stopping criterion stated (Table 2's learning rates and "
+            "table2_columns.csv say ours). Its largest step between two k is "
             f"{100 * paper.largest_k_step():.1f} % (fabric02, 500 -> 1000); its largest "
             f"clustering penalty {100 * paper.largest_clustering_penalty():+.1f} % "
             "(fabric02, k = 500 over the Neural BTF).",
+            floatfmt=".4f",  # as published: 0.0200, not 0.02
         )
     )
     grain = tables.table_graininess(runs)

@@ -127,9 +127,12 @@ def save_figure(fig, path: Path, dpi: int = 110) -> Path:
     return write_file(path, lambda tmp: fig.savefig(tmp, dpi=dpi))
 
 
-def write_table(table: pd.DataFrame, out: Path, stem: str, title: str, note: str = "") -> str:
+def write_table(
+    table: pd.DataFrame, out: Path, stem: str, title: str, note: str = "", floatfmt: str = "g"
+) -> str:
     """Write ``stem``.md/.csv/.tex into ``out`` (each atomically); return the Markdown
-    section. A missing value is an empty CSV cell and "–" in Markdown and LaTeX.
+    section. A missing value is an empty CSV cell and "–" in Markdown and LaTeX;
+    ``floatfmt`` formats the Markdown's numbers.
 
     Raises
     ------
@@ -143,7 +146,7 @@ def write_table(table: pd.DataFrame, out: Path, stem: str, title: str, note: str
         table.to_latex(index=index, caption=title, label=f"tab:{stem}", na_rep="--"),
     )
     shown = table.astype(object).where(table.notna(), None)  # tabulate: None is missing
-    markdown = f"## {title}\n\n{shown.to_markdown(index=index, missingval='–')}\n\n{note}\n"
+    markdown = f"## {title}\n\n{shown.to_markdown(index=index, missingval='–', floatfmt=floatfmt)}\n\n{note}\n"
     write_file(out / f"{stem}.md", markdown)
     return markdown
 
