@@ -32,14 +32,13 @@ def load(paths: list[str]) -> pd.DataFrame:
     """One row per trained Neural BTF or clustered model of the files that has a curve (the
     latent texture's lines and older lines without one are left out), with its label, jumps
     and divergence."""
-    rows = [
-        line
+    lines = [
+        json.loads(text)
         for path in paths
         for text in Path(path).read_text().splitlines()
         if text.strip()
-        for line in [json.loads(text)]
-        if line.get("model") in ("neural_btf", "clustered") and line.get("curve")
     ]
+    rows = [r for r in lines if r.get("model") in ("neural_btf", "clustered") and r.get("curve")]
     if not rows:
         raise SystemExit(
             f"kverdict_gpu.py: no Neural BTF or clustered line with a curve in {paths}"
@@ -48,14 +47,14 @@ def load(paths: list[str]) -> pd.DataFrame:
     runs["lr"] = runs.get("lr", pd.Series(0.002, index=runs.index)).fillna(0.002)
     k = runs.get("k", pd.Series(np.nan, index=runs.index))
     runs["label"] = [
-        "Neural BTF" if m == "neural_btf" else f"k = {int(v)}" if m == "clustered" else m
+        "Neural BTF" if m == "neural_btf" else f"k = {int(v)}"
         for m, v in zip(runs["model"], k, strict=True)
     ]
     runs["jumps"] = [
         sum(b[1] > JUMP * a[1] for a, b in zip(c, c[1:], strict=False)) for c in runs["curve"]
     ]
     runs["diverged"] = [
-        bool(c) and r > DIVERGED * min(p[1] for p in c)
+        r > DIVERGED * min(p[1] for p in c)
         for r, c in zip(runs["rmse"], runs["curve"], strict=True)
     ]
     return runs

@@ -83,13 +83,14 @@ def train_stage(
     """Train the autoencoder and store decoder weights and latents."""
     cfg = ctx.cfg
     settings = _train_settings(cfg)
+    left_out = keyless(settings)
     # Indices into the data's own light set (the 81-grid's canonical order for UBO2003).
     lights = direction_sets(cropped.array("directions", mmap=False)).lights
     heldout = interpolation.heldout_light_indices(cfg, lights)
     stage_settings = {
         "method": cfg.model.name,
         "target": cfg.model.get("target", "texel"),
-        "train": {k: v for k, v in settings.__dict__.items() if k not in keyless(settings)},
+        "train": {k: v for k, v in settings.__dict__.items() if k not in left_out},
         "model": plain_settings(cfg.btf.network),
         "seed": cfg.seed,
         "heldout_lights": heldout.tolist(),
