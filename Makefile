@@ -22,8 +22,8 @@ demo: $(STAMP)  ## the main job: default experiment on the built-in synthetic BT
 	$(PY) -m pipeline
 
 test: $(STAMP)  ## the default (fast) test suite: lint, format, pytest
-	$(PY) -m ruff check pipeline tests hydra_plugins scripts
-	$(PY) -m ruff format --check pipeline tests hydra_plugins scripts
+	$(PY) -m ruff check pipeline benchmarks tests hydra_plugins scripts
+	$(PY) -m ruff format --check pipeline benchmarks tests hydra_plugins scripts
 	$(PY) -m pytest -q -n 2 --dist worksteal  # two workers (pytest-xdist), the machine's two cores; an idle one takes queued tests from the other
 
 test-slow: $(STAMP)  ## the tests marked slow: paper size, real interpreters and sweeps

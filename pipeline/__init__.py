@@ -6,8 +6,7 @@ One subpackage per method: :mod:`pipeline.btf` (A, Neural BTF with clustering),
 they share and :mod:`pipeline.data` the readers of real file layouts. Importing any of them
 changes nothing outside the module.
 
-The entry points a script uses are importable from here (each loads its module, and
-torch or MLflow with it, only when first used, so that ``import pipeline`` stays cheap):
+The entry points a script uses, each loaded on first use (``import pipeline`` stays cheap):
 
 - :func:`load_compressed` (:class:`CompressedBTF`): a compressed BTF file, which answers
   RGB queries (``query``: every texel at every direction pair; ``query_pairs``: one a row).
@@ -18,8 +17,7 @@ torch or MLflow with it, only when first used, so that ``import pipeline`` stays
   (``.btf``), :func:`load_light_stack` (RTI folder with an ``.lp`` file),
   :func:`read_utia_brdf` and :func:`read_merl_brdf` (measured BRDFs).
 
-A trained model, from a script run in any folder (``runs`` is the jobs' ``paths.runs``;
-MLflow reads ``./mlflow.db`` unless told which store)::
+A trained model, from a script run in any folder (``runs`` is the jobs' ``paths.runs``)::
 
     import mlflow
     import pandas as pd

@@ -1,7 +1,6 @@
 """``python -m pipeline``: the Hydra application (see conf/config.yaml)."""
 
-# First of all: a stop signal during the imports below must end the process with a
-# message that says so, not surface as an error of whatever module was loading.
+# First: a stop during the imports below must end the process saying so.
 from pipeline.core import stopping
 
 if __name__ == "__main__":  # the command only: importing this module installs nothing

@@ -1,9 +1,5 @@
-"""The Hydra job: compose the config, run the method's chain, record it in MLflow.
-
-The job knows no method by name: ``method.spec`` names the method's
-:class:`pipeline.core.methods.Method` (its runner, description, figures, headline
-metrics).
-"""
+"""The Hydra job: run the chain of the method that ``method.spec`` names
+(:class:`pipeline.core.methods.Method`) and record it in MLflow."""
 
 from __future__ import annotations
 
@@ -22,6 +18,7 @@ from pipeline.core.memory import process_peak_mb
 from pipeline.core.methods import Method, method_of
 from pipeline.core.run import job_run
 from pipeline.core.run_log import RunLog
+from pipeline.core.settings import Integer
 from pipeline.core.stage import Context
 from pipeline.core.store import NOTE_TAG, results_url, share_results_view
 from pipeline.core.sweep_run import SweepParentRun
@@ -34,28 +31,21 @@ def run_job(cfg: DictConfig) -> float | None:
     import mlflow
 
     method = method_of(cfg)
-    if not isinstance(cfg.seed, int) or isinstance(cfg.seed, bool) or cfg.seed < 0:
+    if not Integer(0).ok(cfg.seed):
         raise ConfigError(f"seed={cfg.seed!r} must be an integer >= 0")
     threads = cfg.get("threads")
-    if threads is not None and (
-        not isinstance(threads, int) or isinstance(threads, bool) or threads < 1
-    ):
+    if not Integer(1, optional=True).ok(threads):
         raise ConfigError(f"threads={threads!r} must be an integer >= 1 or null (all cores)")
     if method.check is not None:
         method.check(cfg)
     if method.prepare is not None:
         method.prepare(cfg)
-    # SIGTERM/SIGINT end the run FAILED and the process, wherever they land; its temporary
-    # files under these folders go with it (pipeline.core.stopping).
+    # A stop ends the run FAILED; its temporary files under these folders go with it.
     leftovers = [cfg.paths.get(folder) for folder in ("runs", "cache", "data")]
+    name = method.name_run(cfg)
     with (
         stopping.job_scope(leftovers_in=[f for f in leftovers if f]),
-        job_run(
-            cfg,
-            run_name=method.name_run(cfg),
-            description=method.description,
-            unused=method.left_out(cfg),
-        ) as run,
+        job_run(cfg, name, method.description, method.left_out(cfg)) as run,
     ):
         ctx = Context.from_config(cfg, log=RunLog(on=True))
         try:
@@ -65,14 +55,12 @@ def run_job(cfg: DictConfig) -> float | None:
             first = {name: metrics[name] for name in method.headline if name in metrics}
             ctx.log.metrics(first)
             ctx.log.metrics({k: v for k, v in metrics.items() if k not in first})
-            if first and method.description:
-                # A run page shows its description before its metrics: lead with the result.
+            if first and method.description:  # the run page shows its note first
                 result = ", ".join(f"`{name}` {value:.4g}" for name, value in first.items())
                 ctx.log.tags({NOTE_TAG: f"**Result:** {result}\n\n{method.description}"})
             share_results_view(run.info.experiment_id, list(first), cfg)
         except BaseException:
-            # The job's error is the answer, not a second one from logging (a full disk
-            # fails both).
+            # The job's error is the answer, not a second one from logging (a full disk).
             with contextlib.suppress(Exception):
                 log_usage(ctx)
             raise
@@ -82,21 +70,15 @@ def run_job(cfg: DictConfig) -> float | None:
                 log_job_figures(ctx, method)  # reads the entries: released after it
         finally:
             ctx.cache.release()  # the entries it used may go now (pipeline.cache gc)
-        print_result(
-            method,
-            method.name_run(cfg),
-            metrics,
-            run.info.run_id,
-            mlflow.get_artifact_uri(),
-            cfg.paths.runs,
-        )
+        artifacts = mlflow.get_artifact_uri()
+        print_result(method, name, metrics, run.info.run_id, artifacts, cfg.paths.runs)
     headline = [metrics[name] for name in method.headline if name in metrics]
     return headline[0] if headline else None
 
 
 def log_usage(ctx: Context) -> None:
-    """Log the stages' cache keys (tags), seconds and peak memory to the job's run,
-    grouped under "time/" and "memory/" (the UI folds names by their prefix)."""
+    """Log the stages' cache keys (tags), seconds and peak memory to the job's run, under
+    "time/" and "memory/" (the UI folds names by their prefix)."""
     ctx.log.tags({f"cache.{stage}": key for stage, key in ctx.keys.items()})
     ctx.log.metrics({f"time/{s}_seconds": t for s, t in ctx.seconds.items()})
     ctx.log.metrics({f"memory/{s}_peak_rss_mb": v for s, v in ctx.peak_rss_mb.items()})
@@ -129,9 +111,8 @@ def print_result(
 
 
 class SweepRun(SweepParentRun):
-    """The sweep's MLflow parent run (``conf/config.yaml``, ``hydra.callbacks``) and, with
-    ``run_tables``, the tables of its experiment after the last job, then a few lines of
-    what it found (:func:`print_sweep_result`)."""
+    """The sweep's MLflow parent run (``hydra.callbacks``) and, with ``run_tables``, its
+    experiment's tables after the last job (:func:`print_sweep_result`)."""
 
     def __init__(self, run_tables: bool = False) -> None:
         super().__init__()
@@ -146,9 +127,9 @@ class SweepRun(SweepParentRun):
 
 
 def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | None) -> None:
-    """Build the tables of the sweep's experiment, then print what the sweep found in a few
-    lines (each method's verdict on its jobs: :func:`pipeline.tables.verdict`) and where
-    the tables are; the parent run's description leads with the same lines."""
+    """Build the tables of the sweep's experiment, then print what the sweep found
+    (:func:`pipeline.tables.verdict`) and where the tables are; the parent run's note
+    leads with the same lines."""
     from pipeline.core.report import fetch_runs
     from pipeline.tables import build_tables, default_settings, verdict
 
@@ -161,9 +142,8 @@ def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | Non
     if parent_id is not None and "tags.mlflow.parentRunId" in runs:
         runs = runs[runs["tags.mlflow.parentRunId"] == parent_id]
     found = verdict(runs)
-    head = (
-        f"Sweep finished: {len(runs)} job{'s' * (len(runs) != 1)}, MLflow experiment {experiment!r}"
-    )
+    jobs = f"{len(runs)} job{'s' * (len(runs) != 1)}"
+    head = f"Sweep finished: {jobs}, MLflow experiment {experiment!r}"
     if parent_id is not None:
         head += f", parent run {parent_id}"
     tables = Path(config.paths.runs) / "tables"
@@ -181,15 +161,14 @@ def print_sweep_result(config: DictConfig, uri: str | None, parent_id: str | Non
 
         client = MlflowClient(uri)
         note = client.get_run(parent_id).data.tags.get(NOTE_TAG, "")
-        client.set_tag(
-            parent_id, NOTE_TAG, "**Result**\n\n```\n" + "\n".join(found) + "\n```\n\n" + note
-        )
+        result = "**Result**\n\n```\n" + "\n".join(found) + "\n```\n\n"
+        client.set_tag(parent_id, NOTE_TAG, result + note)
 
 
 def log_headlines(uri: str, parent_id: str) -> None:
-    """Log each finished child run's headline metrics to the sweep's parent run, as
-    ``<job>/<metric>``: the parent shows what the sweep found. ``<job>`` is the child's run
-    name, followed by its swept settings where two children share a name."""
+    """Log each finished child run's headline metrics to the sweep's parent run as
+    ``<job>/<metric>``: ``<job>`` is the child's run name, with its swept settings where
+    two children share a name."""
     from collections import Counter
 
     from mlflow.entities import Metric
@@ -200,11 +179,10 @@ def log_headlines(uri: str, parent_id: str) -> None:
     client = MlflowClient(uri)
     parent = client.get_run(parent_id)
     swept = {key for key, value in parent.data.params.items() if "," in value}  # a list
+    query = f"tags.mlflow.parentRunId = '{parent_id}'"
     children = [
         child
-        for child in client.search_runs(
-            [parent.info.experiment_id], f"tags.mlflow.parentRunId = '{parent_id}'"
-        )
+        for child in client.search_runs([parent.info.experiment_id], query)
         if child.info.status == "FINISHED" and child.data.params.get("method.spec")
     ]
     names = Counter(child.info.run_name for child in children)
@@ -219,10 +197,9 @@ def log_headlines(uri: str, parent_id: str) -> None:
             )
         # MLflow takes letters, digits and "_-. :/" in a metric's name.
         job = re.sub(r"[^\w\-. :/]", "_", job.strip())
+        ended = child.info.end_time or 0
         for name in resolve(child.data.params["method.spec"]).headline:
             if name in child.data.metrics:
-                values.append(
-                    Metric(f"{job}/{name}", child.data.metrics[name], child.info.end_time or 0, 0)
-                )
+                values.append(Metric(f"{job}/{name}", child.data.metrics[name], ended, 0))
     if values:
         client.log_batch(parent_id, metrics=values)

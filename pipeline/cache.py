@@ -6,34 +6,22 @@
     python -m pipeline.cache gc unused_days=30    # remove what no job used for 30 days
     python -m pipeline.cache gc max_gb=50         # the least recently used, down to 50 GB
 
-Settings are ``key=value`` after the command (:data:`KEYS`; :mod:`pipeline.core.cli` reads
-them): ``paths.runs`` (default ``runs``) says where the MLflow store is
-(``MLFLOW_TRACKING_URI`` wins, as for the jobs), ``paths.cache`` (default
-``<paths.runs>/cache``) where the cache is::
+Settings are ``key=value`` after the command (:data:`KEYS`): ``paths.runs`` (default
+``runs``) is where the MLflow store is (``MLFLOW_TRACKING_URI`` wins, as for the jobs),
+``paths.cache`` (default ``<paths.runs>/cache``) where the cache is. An unknown key is
+refused, naming the closest real one; the command line is read before MLflow, Hydra or
+pandas is imported.
 
-    python -m pipeline.cache gc dry_run=true paths.runs=/data/runs
+``gc`` keeps every entry whose key a FINISHED run records (its tags ``cache.<stage>``), the
+entries those were computed from, and anything used since the oldest RUNNING run started
+(:class:`~pipeline.core.cache.StageCache` marks each hit on the manifest's mtime). It removes
+nothing when the store cannot be read or knows none of the entries (the wrong
+``paths.runs``). A RUNNING run whose process is gone from this machine is marked FAILED
+first (``ls`` and ``dry_run`` only leave it out).
 
-An unknown key is refused, naming the closest real one.
-
-``gc`` keeps every entry whose key a FINISHED run records (its tags ``cache.<stage>``,
-:func:`pipeline.app.run_job`), the entries those were computed from (each manifest lists
-its inputs' keys), and anything used since the oldest RUNNING run started (a job records
-its keys when it ends; :class:`~pipeline.core.cache.StageCache` marks each hit on the
-manifest's mtime). Keys are matched whatever the stage. It removes nothing when the store
-cannot be read, nor when the store knows none of the entries (the wrong ``paths.runs``).
-A RUNNING run whose process is gone from this machine (killed with ``kill -9``) is not
-running: ``gc`` marks it FAILED first (``ls`` and ``dry_run`` only leave it out).
-
-The cache is a memo: every table and figure is drawn from what the runs logged, and a job
-recomputes what it misses. So ``gc unused_days=D`` and ``gc max_gb=G`` clear it by age
-or size without reading the store: entries no job has used for ``D`` days, or the least
-recently used until at most ``G`` GB remain; an entry goes with every entry computed from
-it (a crop without its decoded images is of no use), and never one a running job holds
-(every entry a job was handed stays held until it ends: :class:`~pipeline.core.cache.StageCache`)
-or used since ``gc`` started.
-
-The command line is read before anything heavy (MLflow, Hydra, pandas) is imported, so
-that a mistyped setting is answered at once.
+The cache is a memo (tables are drawn from what the runs logged), so ``gc unused_days=D``
+and ``gc max_gb=G`` clear it by age or size without reading the store; an entry goes with
+every entry computed from it, never one a running job holds or used since ``gc`` started.
 """
 
 from __future__ import annotations
@@ -83,8 +71,7 @@ class Row:
 
 def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
     """The keys that FINISHED runs of the store of ``runs`` record, over all experiments.
-    RUNNING runs whose process is gone from this machine count as ended (``fail_dead``:
-    they are marked FAILED in the store)."""
+    RUNNING runs whose process is gone count as ended (``fail_dead``: marked FAILED)."""
     from pipeline.core.errors import StoreError
     from pipeline.core.store import (
         all_pages,
@@ -106,24 +93,17 @@ def read_usage(runs: Path, fail_dead: bool = False) -> Usage:
         from mlflow.tracking import MlflowClient
 
         client = MlflowClient(uri)
-        experiments = [
-            e.experiment_id
-            for e in all_pages(client.search_experiments, view_type=ViewType.ACTIVE_ONLY)
-        ]
+        active = ViewType.ACTIVE_ONLY
+        found = all_pages(client.search_experiments, view_type=active)
+        experiments = [e.experiment_id for e in found]
         usage = Usage(uri)
-        if fail_dead and experiments:
-            usage.dead = fail_dead_runs(
-                client, experiments, ended_by="its process was gone at a cache gc"
-            )
+        if not experiments:
+            return usage
+        if fail_dead:
+            gone = "its process was gone at a cache gc"
+            usage.dead = fail_dead_runs(client, experiments, ended_by=gone)
         starts = []
-        runs_found = (
-            all_pages(
-                client.search_runs, experiment_ids=experiments, run_view_type=ViewType.ACTIVE_ONLY
-            )
-            if experiments
-            else []
-        )
-        for run in runs_found:
+        for run in all_pages(client.search_runs, experiment_ids=experiments, run_view_type=active):
             if run.info.status == "FINISHED":
                 usage.n_finished += 1
                 usage.finished |= {
@@ -220,9 +200,8 @@ def ls(cache: StageCache, runs: Path, entries: bool) -> int:
 
 
 def verify(cache: StageCache, fix: bool) -> int:
-    """Check every entry's files, sizes and hashes, and its lineage; an entry computed
-    from a damaged one is damaged too. ``fix``: remove them all (unless a job is
-    computing them again)."""
+    """Check every entry's files and lineage; an entry computed from a damaged one is
+    damaged too. ``fix``: remove them (unless a job is computing them again)."""
     from tqdm import tqdm
 
     from pipeline.core.cache import folder_bytes
@@ -256,9 +235,8 @@ def verify(cache: StageCache, fix: bool) -> int:
         parent = todo.pop()
         for child in children.get(parent, []):
             if child not in problems:
-                problems[child] = (
-                    f"computed from the damaged entry {cache.entry_path(stage_of[parent], parent)}"
-                )
+                damaged = cache.entry_path(stage_of[parent], parent)
+                problems[child] = f"computed from the damaged entry {damaged}"
                 todo.append(child)
     damaged = [(stage, key) for stage, key in folders if key in problems]
     for stage, key in damaged:
@@ -276,9 +254,8 @@ def verify(cache: StageCache, fix: bool) -> int:
 def stale(
     rows: list[Row], unused_days: float | None, max_gb: float | None, now: float
 ) -> dict[str, str]:
-    """``{key: why}`` of the entries to remove by age (not used for ``unused_days``) or by
-    size (the least recently used first, until at most ``max_gb`` remain), each with the
-    entries computed from it."""
+    """``{key: why}`` of the entries to remove by age (unused for ``unused_days``) or size
+    (least recently used first, down to ``max_gb``), each with those computed from it."""
     children: dict[str, list[Row]] = {}
     for row in rows:
         for key in row.inputs:
@@ -323,22 +300,34 @@ def gc_by_age_or_size(
     rows = scan(cache)
     why = stale(rows, unused_days, max_gb, started)
     verb = "would remove" if dry_run else "removed"
-    freed, n_removed = 0, 0
-    for row in sorted(rows, key=lambda r: r.used):
-        if row.key not in why:
-            continue
-        # Used since gc started (on any host whose clock is within CLOCK_SKEW_S): kept.
-        if dry_run or cache.remove(row.stage, row.key, unless_used_since=started - CLOCK_SKEW_S):
-            print(f"{verb} {row.path} ({human(row.bytes)}; {why[row.key]})")
-            freed, n_removed = freed + row.bytes, n_removed + 1
-        else:
-            print(f"kept {row.path}: used or locked by a job meanwhile")
+    doomed = [row for row in sorted(rows, key=lambda r: r.used) if row.key in why]
+    # Used since gc started (on any host whose clock is within CLOCK_SKEW_S): kept.
+    freed, n_removed = _remove(cache, doomed, started - CLOCK_SKEW_S, dry_run, why)
     kept_bytes = sum(r.bytes for r in rows if r.key not in why)
     print(
         f"{verb} {n_removed} entries: {human(freed)} {'would be ' if dry_run else ''}freed; "
         f"{len(rows) - len(why)} entries ({human(kept_bytes)}) kept"
     )
     return 0
+
+
+def _remove(
+    cache: StageCache, rows: list[Row], since: float, dry_run: bool, why: dict | None = None
+) -> tuple[int, int]:
+    """Remove ``rows`` but those used since ``since``, a line for each (with ``why`` its
+    reason); returns the bytes freed and the entries removed."""
+    from pipeline.core.files import human
+
+    verb = "would remove" if dry_run else "removed"
+    freed, n_removed = 0, 0
+    for row in rows:
+        if dry_run or cache.remove(row.stage, row.key, unless_used_since=since):
+            reason = f"; {why[row.key]}" if why else ""
+            print(f"{verb} {row.path} ({human(row.bytes)}{reason})")
+            freed, n_removed = freed + row.bytes, n_removed + 1
+        else:
+            print(f"kept {row.path}: used or locked by a job meanwhile")
+    return freed, n_removed
 
 
 def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
@@ -368,25 +357,16 @@ def gc(cache: StageCache, runs: Path, dry_run: bool) -> int:
         )
         return 2
     verb = "would remove" if dry_run else "removed"
-    freed, n_removed = 0, 0
-    for row in rows:
-        if row.key in why:
-            continue
-        if dry_run or cache.remove(row.stage, row.key, unless_used_since=started):
-            print(f"{verb} {row.path} ({human(row.bytes)})")
-            freed, n_removed = freed + row.bytes, n_removed + 1
-        else:
-            print(f"kept {row.path}: used or locked by a job meanwhile")
+    doomed = [row for row in rows if row.key not in why]
+    freed, n_removed = _remove(cache, doomed, started, dry_run)
     sizes = {folder: folder_bytes(folder) for folder in cache.temporaries()}
     stale = cache.remove_stale_temporaries(dry_run=dry_run)
     for folder, reason in stale:
         print(f"{verb} {folder} ({human(sizes.get(folder, 0))}; {reason})")
         freed += sizes.get(folder, 0)
-    running = (
-        ""
-        if usage.running_since is None
-        else (f", and what was used since {_when(usage.running_since)} (a run is still RUNNING)")
-    )
+    running = ""
+    if usage.running_since is not None:
+        running = f", and what was used since {_when(usage.running_since)} (a run is still RUNNING)"
     print(
         f"kept {len(why)} entries ({human(sum(r.bytes for r in rows if r.key in why))}): those "
         f"of {usage.n_finished} finished runs and their inputs{running}"
@@ -479,8 +459,7 @@ def parse(argv: list[str]) -> CacheSettings:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the command; a bad command line prints one line and exits 2
-    (:func:`pipeline.core.cli.parse_args`)."""
+    """Run the command; a bad command line prints one line and exits 2."""
     args = COMMAND.parse_args(argv, parse)
     from pipeline.core.cache import StageCache
 

@@ -1,16 +1,12 @@
 r"""``python -m pipeline.tables``: regenerate the papers' tables and figures from MLflow.
 
-Reads the finished runs back once (``mlflow.search_runs``, with the user's experiments and
-filter) and, one MLflow experiment at a time, hands them to the reports of the registered
-methods that have runs there (:func:`pipeline.core.methods.registered`), which write their
-tables (Markdown, CSV, LaTeX) and figures (PNG, EXR). A table never mixes experiments: a
-smoke run is not a column beside the demo's. Each experiment's files go into
-``${paths.runs}/tables/<experiment>/`` with its own ``summary.md``/``.html``;
-``tables/summary.md``/``.html`` hold every experiment's sections. The set is written whole
-into a new folder that then replaces ``tables/``: no file of an earlier run is left beside
-it (with ``tables.experiments`` set, the other experiments' folders are kept as they were).
-Experiments or a filter that match nothing are an error, and so is a ``paths.runs`` that
-holds no store. Options (Hydra overrides): ``paths.runs=...``,
+The finished runs are read once and, one MLflow experiment at a time (a table never mixes
+experiments), handed to the reports of the registered methods that have runs there, which
+write tables (Markdown, CSV, LaTeX) and figures into ``${paths.runs}/tables/<experiment>/``
+with its ``summary.md``/``.html``; ``tables/summary.md``/``.html`` hold them all. The set is
+written into a new folder that replaces ``tables/`` whole (with ``tables.experiments`` set,
+the other experiments' folders are kept). Experiments or a filter that match nothing are an
+error, as is a ``paths.runs`` without a store. Options (Hydra overrides): ``paths.runs=...``,
 ``tables.experiments=[btf,...]``, ``"tables.filter=\"tags.note = 'x'\""`` (quoted for the shell).
 """
 
@@ -49,9 +45,7 @@ def build_tables(
     runs_dir: str | Path, settings: DictConfig | None = None, log_to: str | None = None
 ) -> Path:
     """Write every method's tables and figures, one folder per MLflow experiment; returns
-    the folder written: ``tables/<experiment>/`` when the runs read are of one experiment,
-    else ``tables/`` (each experiment in its folder, ``summary.html`` holding them all).
-
+    ``tables/<experiment>/`` when the runs read are of one experiment, else ``tables/``.
     Everything written is also logged under ``tables/`` to the MLflow run ``log_to`` (the
     sweep's parent) or, when None, to a run of its own in the experiment ``tables``.
 
@@ -74,25 +68,20 @@ def build_tables(
     try:
         if chosen and out.is_dir():  # the other experiments' tables stay as they were
             for kept in out.iterdir():
-                if kept.is_dir() and kept.name not in {folder_name(e) for e in chosen}:
+                if kept.is_dir() and kept.name not in {safe_stem(e) for e in chosen}:
                     shutil.copytree(kept, new / kept.name)
         for experiment, of_experiment in by_experiment.items():
             write_experiment(
-                runs_dir, experiment, of_experiment, new / folder_name(experiment), settings
+                runs_dir, experiment, of_experiment, new / safe_stem(experiment), settings
             )
         write_index(new, tracking_uri(runs_dir))
         replace_folder(out, new)
     finally:
         shutil.rmtree(new, ignore_errors=True)
-    written = out / folder_name(next(iter(by_experiment))) if len(by_experiment) == 1 else out
+    written = out / safe_stem(next(iter(by_experiment))) if len(by_experiment) == 1 else out
     log.info("tables written to %s", written)
     log_tables(runs_dir, written, settings, log_to, n_runs=len(runs))
     return written
-
-
-def folder_name(experiment: str) -> str:
-    """The folder of an experiment's tables under ``tables/`` (its name, made safe)."""
-    return safe_stem(experiment)
 
 
 def _by_experiment(runs: pd.DataFrame, chosen: list[str]) -> dict[str, pd.DataFrame]:
@@ -114,8 +103,7 @@ def write_experiment(
     runs_dir, experiment: str, runs: pd.DataFrame, folder: Path, settings: DictConfig
 ) -> str:
     """Write one experiment's tables and figures into ``folder`` (made here) with its
-    ``summary.md`` and ``summary.html``; return the summary. Only the reports of methods
-    with runs in it are asked for sections."""
+    ``summary.md`` and ``summary.html``; return the summary."""
     folder.mkdir(parents=True)
     sections = []
     for report, methods in report_methods():
@@ -132,18 +120,15 @@ def write_experiment(
 
 
 def write_index(tables: Path, uri: str) -> None:
-    """``summary.md`` and ``summary.html`` of ``tables``: the summaries of its experiment
-    folders one after the other, their figures linked into the folders."""
+    """``summary.md`` and ``summary.html`` of ``tables``: its experiment folders' summaries
+    one after the other."""
     folders = sorted(p for p in tables.iterdir() if (p / SUMMARY).is_file())
     parts = [f"# Tables regenerated from MLflow ({uri})\n"]
     if not folders:
         parts.append("No finished run in the store: `python -m pipeline` runs the demo.\n")
     else:
-        parts.append(
-            "One section per MLflow experiment, its files in its folder: "
-            + ", ".join(f"[{p.name}/]({p.name}/summary.html)" for p in folders)
-            + "\n"
-        )
+        links = ", ".join(f"[{p.name}/]({p.name}/summary.html)" for p in folders)
+        parts.append(f"One section per MLflow experiment, its files in its folder: {links}\n")
     for folder in folders:
         text = (folder / SUMMARY).read_text()
         # Figures are linked by name from their folder's summary: here, by folder/name.
@@ -154,9 +139,8 @@ def write_index(tables: Path, uri: str) -> None:
 
 
 def replace_folder(old: Path, new: Path) -> None:
-    """Put the complete folder ``new`` in the place of ``old`` (two renames, so a reader
-    sees the old set or the new one; a crash between them leaves ``old`` absent, never
-    mixed)."""
+    """Put the complete folder ``new`` in the place of ``old`` (two renames: a reader sees
+    the old set or the new one, never a mix)."""
     trash = old.with_name(f".{old.name}.old-{os.getpid()}")
     if old.exists():
         old.rename(trash)
@@ -166,7 +150,7 @@ def replace_folder(old: Path, new: Path) -> None:
 
 def log_tables(runs_dir, out: Path, settings: DictConfig, run_id: str | None, n_runs: int) -> str:
     """Log the ``tables`` folder to run ``run_id``, or to a new run of the experiment
-    ``tables`` recording what it read (experiments, filter, number of runs)."""
+    ``tables`` recording what it read."""
     from mlflow.tracking import MlflowClient
 
     client = MlflowClient(tracking_uri(runs_dir))
@@ -183,23 +167,23 @@ def log_tables(runs_dir, out: Path, settings: DictConfig, run_id: str | None, n_
                 "tables it wrote (open `tables/summary.html`), its params what it read."
             ),
         )
-        tags = environment_tags()
-        tags[NOTE_TAG] = note
+        tags = {**environment_tags(), NOTE_TAG: note}
         run = client.create_run(experiment_id, run_name=f"tables {out.name}", tags=tags)
-        run_id = run.info.run_id
-        client.log_param(run_id, "tables.experiments", str(list(settings.experiments or [])))
-        client.log_param(run_id, "tables.filter", str(settings.filter))
-        client.log_param(run_id, "tables.runs_read", str(n_runs))
-        client.log_artifacts(run_id, str(out), "tables")
-        client.set_terminated(run_id, "FINISHED")
-    else:
-        client.log_artifacts(run_id, str(out), "tables")
+        client.log_param(
+            run.info.run_id, "tables.experiments", str(list(settings.experiments or []))
+        )
+        client.log_param(run.info.run_id, "tables.filter", str(settings.filter))
+        client.log_param(run.info.run_id, "tables.runs_read", str(n_runs))
+        client.log_artifacts(run.info.run_id, str(out), "tables")
+        client.set_terminated(run.info.run_id, "FINISHED")
+        return run.info.run_id
+    client.log_artifacts(run_id, str(out), "tables")
     return run_id
 
 
 def verdict(runs: pd.DataFrame, limit: int = LIMIT) -> list[str]:
-    """A few lines saying what ``runs`` (a sweep's, say) found: each method's report's
-    ``verdict(runs, limit)`` where it has one, else each run's headline metrics."""
+    """A few lines saying what ``runs`` found: each method's report's ``verdict(runs,
+    limit)`` where it has one, else each run's headline metrics."""
     lines: list[str] = []
     for report, methods in report_methods():
         of_methods = runs_of(runs, [m.name for m in methods])
@@ -223,8 +207,8 @@ def verdict(runs: pd.DataFrame, limit: int = LIMIT) -> list[str]:
 
 
 def refuse_a_missing_store(argv: list[str]) -> None:
-    """Before Hydra makes its output folder under ``paths.runs``: a command line whose
-    ``paths.runs`` holds no MLflow store ends in one line naming the path."""
+    """Before Hydra makes its output folder: a ``paths.runs`` without an MLflow store ends
+    the command in one line naming the path."""
     from hydra import compose, initialize_config_dir
 
     from pipeline.core.errors import ConfigError, StoreError

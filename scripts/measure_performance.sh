@@ -50,12 +50,12 @@ for part in $parts; do
       measure typo_plus $py -m pipeline experiment=smoke +btf.crop.szie=32 paths.runs="$out/runs_typo"
       measure typo_tables $py -m pipeline.tables 'tables.experiments=[btff]' paths.runs="$out/runs_smoke"
       measure typo_cache $py -m pipeline.cache ls bogus=1
-      measure typo_bench $py -m pipeline.bench bogus=1 ;;
+      measure typo_bench $py -m benchmarks.train bogus=1 ;;
     benches)
-      measure bench $py -m pipeline.bench steps=10 threads=2 mlflow=false
-      measure profile_step $py -m pipeline.btf.fast.profile_step threads=1 steps=30 rounds=3
-      measure ubo2014_bench $py -m pipeline.data.ubo2014_bench bench components=16
-      measure render_bench $py -m pipeline.btf.render.bench size=256 spp=128 crop=100 ;;
+      measure bench $py -m benchmarks.train steps=10 threads=2 mlflow=false
+      measure profile_step $py -m benchmarks.profile_step threads=1 steps=30 rounds=3
+      measure ubo2014_bench $py -m benchmarks.ubo2014_load components=16
+      measure render_bench $py -m benchmarks.render size=256 spp=128 crop=100 ;;
     *) echo "unknown part $part (setup, runs, benches)" >&2; exit 2 ;;
   esac
 done

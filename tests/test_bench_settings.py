@@ -1,12 +1,14 @@
-"""``python -m pipeline.bench key=value ...``: its settings, read and refused without torch."""
+"""``python -m benchmarks.train key=value ...``: its settings, read and refused without torch."""
 
+import doctest
 import re
 from dataclasses import fields
 
 import pytest
 from helpers import exits_before_torch
 
-from pipeline.btf.fast.bench_settings import KEYS, BenchSettings, parse, parse_args, usage
+from benchmarks import train_settings
+from benchmarks.train_settings import KEYS, BenchSettings, parse, parse_args, usage
 from pipeline.core.errors import ConfigError
 
 
@@ -70,7 +72,13 @@ def test_a_bad_argument_is_answered_before_torch_loads():
     """The command's error (exit 2, as argparse's) and its --help come before the seconds
     torch takes to import."""
     codes, torch_loaded, stderr = exits_before_torch(
-        [("pipeline.bench", ["steps=abc"]), ("pipeline.bench", ["--help"])]
+        [("benchmarks.train", ["steps=abc"]), ("benchmarks.train", ["--help"])]
     )
     assert codes == [2, 0] and not torch_loaded
-    assert "python -m pipeline.bench: error: steps='abc' must be" in stderr
+    assert "python -m benchmarks.train: error: steps='abc' must be" in stderr
+
+
+def test_the_docstring_examples_run():
+    """The module's ``>>>`` examples (tests/test_layout.py runs the package's, not these)."""
+    results = doctest.testmod(train_settings, optionflags=doctest.ELLIPSIS)
+    assert results.attempted > 0 and results.failed == 0

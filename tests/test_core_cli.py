@@ -7,12 +7,12 @@ from dataclasses import dataclass
 import pytest
 from helpers import exits_before_torch
 
-from pipeline.btf.fast import profile_step
-from pipeline.btf.render import bench as render_bench
+from benchmarks import profile_step, ubo2014_load
+from benchmarks import render as render_bench
 from pipeline.core import cli
 from pipeline.core.errors import ConfigError
 from pipeline.core.settings import Integer, ListOf, OneOf
-from pipeline.data import ubo2014_bench
+from pipeline.data import ubo2014_info
 
 
 @dataclass(frozen=True)
@@ -117,31 +117,31 @@ def test_the_render_benchmark_takes_key_value_settings():
         render_bench.parse(["sze=16"])
 
 
-def test_the_ubo2014_bench_takes_a_command_and_key_value_settings():
-    settings = ubo2014_bench.parse(
-        ["bench", "crop=[0,0,10,10]", "components=4", "dtype=float32", "workdir=/tmp"]
+def test_the_ubo2014_commands_take_key_value_settings():
+    settings = ubo2014_load.parse(
+        ["crop=[0,0,10,10]", "components=4", "dtype=float32", "workdir=/tmp"]
     )
-    assert settings == ubo2014_bench.UBO2014BenchSettings(
-        "bench", None, (0, 0, 10, 10), 4, "float32", "/tmp"
-    )
-    assert ubo2014_bench.parse(["info", "file=a.btf"]).file == "a.btf"
+    assert settings == ubo2014_load.UBO2014LoadSettings(None, (0, 0, 10, 10), 4, "float32", "/tmp")
+    assert ubo2014_info.parse(["file=a.btf"]).file == "a.btf"
     with pytest.raises(ConfigError, match=r"\(did you mean components\?\)"):
-        ubo2014_bench.parse(["bench", "component=4"])
+        ubo2014_load.parse(["component=4"])
     with pytest.raises(ConfigError, match="info needs file=PATH"):
-        ubo2014_bench.parse(["info"])
-    with pytest.raises(ConfigError, match="crop: settings of bench, not of info"):
-        ubo2014_bench.parse(["info", "file=a.btf", "crop=[0,0,1,1]"])
+        ubo2014_info.parse([])
+    with pytest.raises(
+        ConfigError, match=r"'crop=\[0,0,1,1\]' is not a setting of the info command"
+    ):
+        ubo2014_info.parse(["file=a.btf", "crop=[0,0,1,1]"])
     # components and dtype describe the file bench writes: with file= they would be ignored
     with pytest.raises(ConfigError, match="components, dtype: settings of the file bench"):
-        ubo2014_bench.parse(["bench", "file=a.btf", "dtype=float32", "components=4"])
-    assert ubo2014_bench.parse(["bench", "file=a.btf", "crop=[0,0,1,1]"]).file == "a.btf"
+        ubo2014_load.parse(["file=a.btf", "dtype=float32", "components=4"])
+    assert ubo2014_load.parse(["file=a.btf", "crop=[0,0,1,1]"]).file == "a.btf"
 
 
 def test_the_ubo2014_info_command_describes_a_file(tmp_path, capsys):
-    path = ubo2014_bench.write_paper_shaped(
+    path = ubo2014_load.write_paper_shaped(
         tmp_path / "small.btf", components=2, n_views=2, n_lights=3, size=4
     )
-    ubo2014_bench.main(["info", f"file={path}"])
+    ubo2014_info.main([f"file={path}"])
     assert "lights of view 0" in capsys.readouterr().out
 
 
@@ -164,9 +164,9 @@ def test_each_command_refuses_a_bad_key_before_torch_loads():
     torch not imported."""
     codes, torch_loaded, stderr = exits_before_torch(
         [
-            ("pipeline.btf.fast.profile_step", ["step=1"]),
-            ("pipeline.btf.render.bench", ["sze=1"]),
-            ("pipeline.data.ubo2014_bench", ["bench", "dtype=float64"]),
+            ("benchmarks.profile_step", ["step=1"]),
+            ("benchmarks.render", ["sze=1"]),
+            ("benchmarks.ubo2014_load", ["dtype=float64"]),
         ]
     )
     assert codes == [2, 2, 2] and not torch_loaded

@@ -1,11 +1,11 @@
 """The encoder's hand-written training step (pipeline/btf/fast/encoder_step.py) against the
-plain layers (Encoder.reference), and the step profiler (pipeline/btf/fast/profile_step.py)."""
+plain layers (Encoder.reference), and the step profiler (benchmarks/profile_step.py)."""
 
 import pytest
 import torch
 
+from benchmarks import profile_step
 from pipeline.btf import model
-from pipeline.btf.fast import profile_step
 from pipeline.btf.fast.encoder_step import encode_for_training
 from pipeline.btf.model import Encoder
 

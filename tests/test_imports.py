@@ -3,7 +3,7 @@ renderer imports no method, no import cycle, no private names across modules.
 
 Packages (see ``pipeline/__init__.py``): ``core`` (shared), ``data`` (readers), the general
 renderer ``render``, one per method (``btf`` A, ``brdf_map`` B, ``fourier`` C), and the
-commands (``__main__``, ``app``, ``tables``, ``bench``, ``cache``).
+commands (``__main__``, ``app``, ``tables``, ``cache``).
 
 The rules between modules are import-linter contracts in ``.importlinter`` (run by
 :func:`test_import_contracts_hold`). The rest stays here because import-linter cannot say it:
@@ -59,7 +59,7 @@ def test_import_contracts_hold():
 # A package that looks like the real one, each fault commented with the contract it breaks.
 FAULTY_PACKAGE = {
     "__init__.py": "",
-    **{f"{command}.py": "" for command in ("__main__", "app", "tables", "bench", "cache")},
+    **{f"{command}.py": "" for command in ("__main__", "app", "tables", "cache")},
     "core/__init__.py": "",
     "core/errors.py": "def f():\n    from pipeline import app\n",  # layers
     "data/__init__.py": "import typing\nif typing.TYPE_CHECKING:\n    import pipeline.btf\n",  # layers

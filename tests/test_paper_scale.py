@@ -1,5 +1,5 @@
 """The paper experiment at full size (M = 10000, N = 6561) on the synthetic BTF (slow), and
-the sizes that ``python -m pipeline.bench`` counts its figures with."""
+the sizes that ``python -m benchmarks.train`` counts its figures with."""
 
 import subprocess
 import sys
@@ -56,7 +56,7 @@ def test_paper_experiment_produces_table1_with_the_papers_bytes(tmp_path):
 def test_bench_prints_its_figures_as_json(capsys):
     import json
 
-    from pipeline.btf.fast.bench import main
+    from benchmarks.train import main
 
     figures = main(["steps=2", "mlflow=false"])
     last = capsys.readouterr().out.strip().splitlines()[-1]
@@ -128,8 +128,8 @@ def _decoder_multiply_adds() -> int:
 def test_bench_counts_the_decoders_flops_and_the_papers_sizes():
     """Catches the bench's written-out multiply-adds or paper sizes drifting from the
     decoder and the paper's config: every GFLOP/s and reconstruction time would be off."""
-    from pipeline.btf.fast.bench import DECODER_MACS, M_PAPER, TRAIN_FLOPS_PER_QUERY
-    from pipeline.btf.fast.bench_loops import N_PAPER
+    from benchmarks.train_figures import DECODER_MACS, M_PAPER, TRAIN_FLOPS_PER_QUERY
+    from benchmarks.train_loops import N_PAPER
 
     assert DECODER_MACS == _decoder_multiply_adds()
     assert TRAIN_FLOPS_PER_QUERY == 3 * 2 * _decoder_multiply_adds()
@@ -142,8 +142,8 @@ def test_the_gpu_figures_print_on_a_machine_without_one(capsys):
     every loop, the ratios and the time a paper_cpu model's steps take at its rate."""
     from omegaconf import OmegaConf
 
-    from pipeline.btf.fast.bench_loops import CONF
-    from pipeline.btf.fast.bench_report import print_cuda
+    from benchmarks.train_report import print_cuda
+    from pipeline.core.methods import CONF_DIR as CONF
 
     recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
 

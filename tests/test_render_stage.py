@@ -338,7 +338,7 @@ def test_measured_data_is_scored_against_the_reference_with_every_material_clamp
 
 
 def test_the_render_benchmark_runs_each_material_on_the_same_rays(capsys):
-    from pipeline.btf.render.bench import main
+    from benchmarks.render import main
 
     found = main(["size=16", "spp=1", "crop=4"])
     assert set(found) == {"lambertian", "measured", "neural", "truth", "beyond grid"}

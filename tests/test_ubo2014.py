@@ -446,7 +446,7 @@ def test_loading_a_crop_of_a_paper_shaped_file_keeps_the_heap_below_the_decoded_
     """151 × 151 directions, 400 × 400 texels: loading a 100 × 100 crop of 24 views into a
     memory map holds a block of directions at a time, not the decoded crop (let alone the
     whole texture's 22801 × 400 × 400 values)."""
-    from pipeline.data.ubo2014_bench import bench_crop_load, write_paper_shaped
+    from benchmarks.ubo2014_load import bench_crop_load, write_paper_shaped
 
     path = write_paper_shaped(tmp_path / "paper.btf", components=8)
     result = bench_crop_load(path, tmp_path, crop=(100, 200, 100, 100), views=list(range(24)))

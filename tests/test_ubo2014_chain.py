@@ -20,7 +20,7 @@ from pipeline.btf.stereographic import direction_features
 from pipeline.btf.synthetic import SyntheticBTF
 from pipeline.btf.ubo2014_chain import direction_pairs
 from pipeline.core.stage import Context
-from pipeline.data.ubo2014_bench import hemisphere_angles
+from pipeline.data.ubo2014_info import hemisphere_angles
 from pipeline.data.ubo2014_write import write_dfmf
 
 N_VIEWS, N_LIGHTS, SIZE, CROP, OFFSET = 12, 20, 12, 6, (2, 3)  # 240 directions

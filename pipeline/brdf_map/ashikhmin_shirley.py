@@ -9,7 +9,7 @@ from scipy.optimize import least_squares
 
 from pipeline.brdf_map.microfacet_model import ashikhmin_shirley_brdf
 from pipeline.core.errors import ConfigError, DataError
-from pipeline.data.brdf import MeasuredBRDF
+from pipeline.data.brdf import MeasuredBRDF, above_horizon
 
 
 @dataclass(frozen=True)
@@ -50,21 +50,14 @@ def fit_ashikhmin_shirley(
 
     Parameters
     ----------
-    brdf : MeasuredBRDF
     rng : numpy.random.Generator, optional
         Draws the subsample when ``max_samples`` is smaller than the measured count.
     max_samples : int, optional
         Fit on at most this many measured samples (speed).
     exponent_starts : tuple of (nu, nv)
         Starting exponents; the best of the local fits is kept.
-
-    Returns
-    -------
-    AshikhminShirleyFit
     """
-    use = np.flatnonzero(
-        brdf.measured & (brdf.light[:, 0] < 0.5 * np.pi) & (brdf.view[:, 0] < 0.5 * np.pi)
-    )
+    use = np.flatnonzero(brdf.measured & above_horizon(brdf.light, brdf.view))
     if use.size < 10:
         raise DataError(f"{brdf.source}: {use.size} measured samples above the horizon, need >= 10")
     if max_samples is not None and use.size > max_samples:

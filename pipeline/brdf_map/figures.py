@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.report import save_figure
-from pipeline.data.brdf import to_angles
+from pipeline.data.brdf import to_angles, to_unit_vectors
 
 MISSING_RGB = (1.0, 0.0, 1.0)  # magenta: no value can be computed there
 BACKGROUND_RGB = (0.35, 0.35, 0.35)
@@ -76,18 +76,11 @@ def plot_distribution_heatmaps(
     observed, fitted : ndarray of shape (n_theta, n_phi) or (n_theta, n_phi, 3)
         d and f (RGB maps are summed over channels).
     out_dir : path-like
-        Folder to write into (created if needed).
+        Folder to write ``name``.png into (created if needed); the path is returned in a list.
     observed_mask : ndarray of shape (n_theta, n_phi), bool, optional
         Cells holding a measurement; the others are drawn grey ("no data").
-    name : str
-        File stem.
     gamma : float
         Power-law colour scale exponent (< 1 shows the tails of a peaked lobe).
-
-    Returns
-    -------
-    list of Path
-        The PNG written.
     """
     theta_h, phi_h, d, f = _prepare(theta_h, phi_h, observed, fitted, observed_mask)
     finite = d[np.isfinite(d)]
@@ -125,19 +118,9 @@ def plot_distribution_slices(
 ) -> list[Path]:
     """1-D slices of d (markers) and f (lines): along theta_h at fixed phi_h, and vice versa.
 
-    Parameters
-    ----------
-    theta_h, phi_h, observed, fitted, observed_mask
-        As in :func:`plot_distribution_heatmaps`.
-    out_dir : path-like
-    phi_values_deg, theta_values_deg : sequence of float
-        Slice positions (degrees); the nearest grid column / row is drawn.
-    name : str
-        File stem.
-
-    Returns
-    -------
-    list of Path
+    Arguments as :func:`plot_distribution_heatmaps`; ``phi_values_deg`` and
+    ``theta_values_deg`` are the slice positions (degrees): the nearest grid column / row
+    is drawn.
     """
     theta_h, phi_h, d, f = _prepare(theta_h, phi_h, observed, fitted, observed_mask)
     fig = Figure(figsize=(10, 4), constrained_layout=True)
@@ -163,13 +146,14 @@ def plot_distribution_slices(
 
 
 def render_sphere(
-    brdf: BRDFFunction, light: tuple[float, float], size: int = 64, intensity: float = 1.0
+    brdf: BRDFFunction, light: tuple[float, float], size: int = 64
 ) -> tuple[np.ndarray, np.ndarray]:
     """Render a sphere seen orthographically along +z, lit by one distant light (eq. 22-23).
 
     Each visible point has normal n = (x, y, sqrt(1 - x^2 - y^2)) and tangent along the
     projection of the image x axis, so an anisotropic BRDF shows horizontal "brushing".
-    Pixel = brdf(k1, k2) cos(theta_1) * intensity; points facing away from the light are 0.
+    Pixel = brdf(k1, k2) cos(theta_1) (a light of unit L_i omega_i); points facing away from
+    the light are 0.
 
     Parameters
     ----------
@@ -180,8 +164,6 @@ def render_sphere(
         view direction, phi from the image x axis towards image up).
     size : int
         Image side in pixels.
-    intensity : float
-        L_i omega_i of the light.
 
     Returns
     -------
@@ -199,11 +181,7 @@ def render_sphere(
     tangent = np.array([1.0, 0.0, 0.0]) - normal[:, :1] * normal
     tangent /= np.maximum(np.linalg.norm(tangent, axis=-1, keepdims=True), 1e-12)
     bitangent = np.cross(normal, tangent)
-    theta_l, phi_l = light
-    k_light = np.array(
-        [np.sin(theta_l) * np.cos(phi_l), np.sin(theta_l) * np.sin(phi_l), np.cos(theta_l)]
-    )
-    k_view = np.array([0.0, 0.0, 1.0])
+    k_light, k_view = to_unit_vectors(light), np.array([0.0, 0.0, 1.0])
 
     def local(k):
         return np.stack([tangent @ k, bitangent @ k, normal @ k], axis=-1)
@@ -215,7 +193,7 @@ def render_sphere(
         rho = np.asarray(
             brdf(to_angles(light_local[lit]), to_angles(view_local[lit])), dtype=np.float64
         )
-        values[lit] = rho * light_local[lit, 2:3] * intensity
+        values[lit] = rho * light_local[lit, 2:3]
     image = np.zeros((size, size, 3))
     image[inside] = values
     return image, inside
@@ -236,9 +214,8 @@ def plot_sphere_pair(
     ----------
     brdf : callable
         ``brdf(light, view) -> (n, 3)``, NaN where undefined (drawn in magenta).
-    out_dir : path-like
-    name : str
-        File stem.
+    out_dir, name
+        As in :func:`plot_distribution_heatmaps`.
     near_light, far_light : (float, float)
         Light directions (see :func:`render_sphere`).
     size : int
@@ -246,10 +223,6 @@ def plot_sphere_pair(
     exposure : float, optional
         Radiance shown as white; by default the 99th percentile of the defined pixels, so
         pass the same value to compare raw and reconstructed renders.
-
-    Returns
-    -------
-    list of Path
     """
     renders = [render_sphere(brdf, light, size) for light in (near_light, far_light)]
     if exposure is None:

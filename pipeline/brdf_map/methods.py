@@ -26,6 +26,11 @@ def check(cfg: DictConfig) -> None:
     em_settings(cfg)
 
 
+# method.*: the EM's settings (defaults in MicrofacetEMSettings) and what the YAML adds.
+_SCHEMA = schema(
+    MicrofacetEMSettings, "BrdfMapSchema", name="brdf_map", spec="", baselines={}, figures={}
+)
+
 BRDF_MAP = Method(
     name="brdf_map",
     paper="B",
@@ -38,21 +43,7 @@ BRDF_MAP = Method(
     ),
     headline=("rmse_missing", "rmse_missing_noprior", "rmse_missing_as", "rmse_measured"),
     reports=("pipeline.brdf_map.report",),
-    # method.*: the EM's settings (defaults in MicrofacetEMSettings) and what the YAML adds.
-    schemas=(
-        (
-            "schema",
-            "brdf_map",
-            schema(
-                MicrofacetEMSettings,
-                "BrdfMapSchema",
-                name="brdf_map",
-                spec="",
-                baselines={},
-                figures={},
-            ),
-        ),
-    ),
+    schemas=(("schema", "brdf_map", _SCHEMA),),
     check=check,
     settings=(("method", MicrofacetEMSettings),),
 )

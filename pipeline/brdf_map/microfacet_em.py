@@ -96,7 +96,7 @@ from pipeline.brdf_map.microfacet_model import (
 )
 from pipeline.brdf_map.settings import MicrofacetEMSettings
 from pipeline.core.errors import DataError
-from pipeline.data.brdf import MeasuredBRDF, half_vector_angles
+from pipeline.data.brdf import MeasuredBRDF, above_horizon, half_vector_angles
 
 # ----------------------------------------------------------------------------- EM kernels
 
@@ -159,21 +159,9 @@ def _log_likelihood(mass: np.ndarray, log_density: np.ndarray) -> float:
 def map_objective(
     d_hat: np.ndarray, grid: HemisphereGrid, params: MixtureParams, prior_strength: float
 ) -> float:
-    """J = sum A d_hat log q + w_u sum alpha_m log u_m (maximised; module docstring).
-
-    Parameters
-    ----------
-    d_hat : ndarray of shape (n_theta, n_phi)
-        Observed distribution normalised to unit mass (sum(d_hat) * cell_area = 1).
-    grid : HemisphereGrid
-    params : MixtureParams
-    prior_strength : float
-        w_u.
-
-    Returns
-    -------
-    float
-    """
+    """J = sum A d_hat log q + w_u sum alpha_m log u_m (maximised; module docstring), for
+    ``d_hat`` (n_theta, n_phi) the observed distribution normalised to unit mass
+    (sum(d_hat) * cell_area = 1) and ``prior_strength`` = w_u."""
     return _em_iteration(d_hat, grid, params, prior_strength, (0.0, 0.0))[1]
 
 
@@ -184,25 +172,9 @@ def em_step(
     prior_strength: float,
     min_std: tuple[float, float] = (0.0, 0.0),
 ) -> MixtureParams:
-    """One EM iteration (E-step eq. 16, closed-form M-step) on a normalised d.
-
-    Parameters
-    ----------
-    d_hat : ndarray of shape (n_theta, n_phi)
-        Observed distribution with sum(d_hat) * cell_area = 1.
-    grid : HemisphereGrid
-    params : MixtureParams
-        Current parameters.
-    prior_strength : float
-        w_u of the Dirichlet prior on u.
-    min_std : (float, float)
-        Lower bounds on tau and sigma.
-
-    Returns
-    -------
-    MixtureParams
-        Parameters that do not decrease :func:`map_objective`.
-    """
+    """One EM iteration (E-step eq. 16, closed-form M-step) from ``params``: parameters that
+    do not decrease :func:`map_objective` (same arguments), with tau and sigma at least
+    ``min_std``."""
     return _em_iteration(d_hat, grid, params, prior_strength, min_std)[0]
 
 
@@ -250,21 +222,9 @@ def initial_params(
 
 
 def separate_diffuse(reflectance: np.ndarray, percentile: float) -> tuple[np.ndarray, np.ndarray]:
-    """Diffuse albedo and specular residual of measured samples.
-
-    Parameters
-    ----------
-    reflectance : ndarray of shape (n, 3)
-        Measured BRDF values.
-    percentile : float
-        rho_d / pi is this percentile of each channel (0 = the minimum).
-
-    Returns
-    -------
-    rho_d : ndarray of shape (3,)
-    specular : ndarray of shape (n, 3)
-        max(reflectance - rho_d / pi, 0).
-    """
+    """Diffuse albedo rho_d (3,) and specular residual max(reflectance - rho_d / pi, 0)
+    (n, 3) of measured ``reflectance`` (n, 3); rho_d / pi is the ``percentile`` of each
+    channel (0 = the minimum)."""
     rho_d = np.pi * np.percentile(reflectance, percentile, axis=0)
     return rho_d, np.maximum(reflectance - rho_d[None, :] / np.pi, 0.0)
 
@@ -290,21 +250,10 @@ def _kl_on_cells(d: np.ndarray, q: np.ndarray, cells: np.ndarray) -> float:
 def fit_microfacet_em(
     brdf: MeasuredBRDF, settings: MicrofacetEMSettings | None = None
 ) -> MicrofacetFit:
-    """Fit method B to the measured samples of a BRDF (module docstring).
-
-    Parameters
-    ----------
-    brdf : MeasuredBRDF
-        Data with some samples missing; only ``measured`` samples above the horizon are used.
-    settings : MicrofacetEMSettings, optional
-
-    Returns
-    -------
-    MicrofacetFit
-        Evaluable at any pair of directions.
-    """
+    """Fit method B (module docstring) to the ``measured`` samples of ``brdf`` above the
+    horizon; the :class:`MicrofacetFit` is evaluable at any pair of directions."""
     settings = MicrofacetEMSettings() if settings is None else settings  # checked when built
-    use = brdf.measured & (brdf.light[:, 0] < 0.5 * np.pi) & (brdf.view[:, 0] < 0.5 * np.pi)
+    use = brdf.measured & above_horizon(brdf.light, brdf.view)
     if use.sum() < 10:
         raise DataError(
             f"{brdf.source}: {int(use.sum())} measured samples above the horizon, need >= 10"
@@ -398,18 +347,8 @@ def fit_without_prior(
 
 
 def rmse(estimate: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Root-mean-square error over samples (rows) and channels.
-
-    Parameters
-    ----------
-    estimate, reference : ndarray of shape (n, 3)
-    mask : ndarray of shape (n,), bool, optional
-        Rows to include.
-
-    Returns
-    -------
-    float
-    """
+    """Root-mean-square error of ``estimate`` against ``reference``, (n, 3) each, over rows
+    and channels; only the rows where ``mask`` (n,) bool is True when it is given."""
     estimate = np.asarray(estimate, dtype=np.float64)
     reference = np.asarray(reference, dtype=np.float64)
     if estimate.shape != reference.shape:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 
-from pipeline.data.brdf import half_vector_angles, to_unit_vectors
+from pipeline.data.brdf import above_horizon, half_vector_angles, to_unit_vectors
 from pipeline.data.brdf_models import ashikhmin_shirley_lobe, ashikhmin_shirley_normalization
 
 LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
@@ -83,18 +83,10 @@ class HemisphereGrid:
 def constrained_mixture_log_components(
     x: np.ndarray, log_weights: np.ndarray, offset: float, std: float
 ) -> np.ndarray:
-    """log(w_m N(x; offset + std * m, std^2)) for m = 1..M.
+    """log(w_m N(x; offset + std * m, std^2)) for m = 1..M, shape (n, M), at ``x`` (n,).
 
-    Parameters
-    ----------
-    x : ndarray of shape (n,)
-    log_weights : ndarray of shape (M,)
-    offset, std : float
-        Gamma (or Lambda) and tau (or sigma) of eq. 7 (or 8).
-
-    Returns
-    -------
-    ndarray of shape (n, M)
+    ``log_weights`` (M,) are the log w_m; ``offset`` and ``std`` are Gamma (or Lambda) and
+    tau (or sigma) of eq. 7 (or 8).
     """
     m = np.arange(1, log_weights.shape[0] + 1)
     z = (np.asarray(x, dtype=np.float64)[:, None] - offset - std * m[None, :]) / std
@@ -113,17 +105,8 @@ def mixture_images(
     ``mode="wrap"`` makes phi_h periodic (images x + 2 pi k, for every k within 7 std of a
     component mean). The image is a latent variable of the EM, so the M-step stays closed.
 
-    Parameters
-    ----------
-    x : ndarray of shape (n,)
-    offset, std : float
-        Gamma and tau (or Lambda and sigma).
-    n_components : int
-    mode : {"line", "fold", "wrap"}
-
-    Returns
-    -------
-    ndarray of shape (n, n_images)
+    Returns an array of shape (n, n_images) for ``x`` of shape (n,); ``offset`` and ``std``
+    are Gamma and tau (or Lambda and sigma) of a mixture of ``n_components``.
     """
     x = np.asarray(x, dtype=np.float64).reshape(-1)
     if mode == "line":
@@ -206,17 +189,8 @@ def mean_cos_normal(q_grid: np.ndarray, grid: HemisphereGrid) -> float:
 def g_integral(directions: np.ndarray, q_grid: np.ndarray, grid: HemisphereGrid) -> np.ndarray:
     """g(k) = int_{h.k > 0} (h.k) p(h) dw_h (eq. 4) by the midpoint rule on the grid.
 
-    Parameters
-    ----------
-    directions : ndarray of shape (n, 2)
-        ``(theta, phi)`` of k.
-    q_grid : ndarray of shape (n_theta, n_phi)
-        The distribution at the grid's cell centres.
-    grid : HemisphereGrid
-
-    Returns
-    -------
-    ndarray of shape (n,)
+    ``directions`` (n, 2) are the ``(theta, phi)`` of k, ``q_grid`` (n_theta, n_phi) the
+    distribution at the grid's cell centres; returns shape (n,).
     """
     k = to_unit_vectors(np.asarray(directions, dtype=np.float64).reshape(-1, 2))
     h = grid.unit_vectors()
@@ -248,17 +222,8 @@ def g_values(
     direction is exact and cheap; dense queries (renders, MERL) use a bilinear table in
     (theta_k, phi_k) with 1 x 3 degree nodes, accurate because g is smooth in k.
 
-    Parameters
-    ----------
-    directions : ndarray of shape (n, 2)
-    q_grid : ndarray of shape (n_theta, n_phi)
-    grid : HemisphereGrid
-    max_direct : int
-        Largest number of distinct directions integrated directly.
-
-    Returns
-    -------
-    ndarray of shape (n,)
+    Arguments as :func:`g_integral`; ``max_direct`` is the largest number of distinct
+    directions integrated directly.
     """
     directions = np.asarray(directions, dtype=np.float64).reshape(-1, 2)
     wrapped = np.stack([directions[:, 0], np.mod(directions[:, 1], 2 * np.pi)], axis=-1)
@@ -292,7 +257,6 @@ def microfacet_specular(
     Parameters
     ----------
     light, view : ndarray of shape (n, 2)
-    params : MixtureParams
     rho_s : ndarray of shape (3,)
         Per-channel specular magnitude.
     rs : float
@@ -306,7 +270,7 @@ def microfacet_specular(
     """
     light = np.asarray(light, dtype=np.float64).reshape(-1, 2)
     view = np.asarray(view, dtype=np.float64).reshape(-1, 2)
-    above = (light[:, 0] < 0.5 * np.pi) & (view[:, 0] < 0.5 * np.pi)
+    above = above_horizon(light, view)
     q_grid = params.shape_on_grid(grid)
     mean_hn = mean_cos_normal(q_grid, grid)
     g_light = g_values(light, q_grid, grid)
@@ -396,9 +360,8 @@ class MicrofacetFit:
         """
         light = np.asarray(light, dtype=np.float64).reshape(-1, 2)
         view = np.asarray(view, dtype=np.float64).reshape(-1, 2)
-        above = (light[:, 0] < 0.5 * np.pi) & (view[:, 0] < 0.5 * np.pi)
         spec = microfacet_specular(light, view, self.params, self.rho_s, self.rs, self.grid)
-        return spec + above[:, None] * (self.rho_d / np.pi)[None, :]
+        return spec + above_horizon(light, view)[:, None] * (self.rho_d / np.pi)[None, :]
 
 
 def ashikhmin_shirley_brdf(
@@ -423,9 +386,7 @@ def ashikhmin_shirley_brdf(
     rd, rs : ndarray of shape (3,)
         Diffuse and specular (Schlick) reflectances per channel.
     nu, nv : float
-        Phong exponents along and across the axis at azimuth phi0.
-    phi0 : float
-        Azimuth of the ``nu`` axis.
+        Phong exponents along and across the axis at azimuth ``phi0``.
 
     Returns
     -------
@@ -447,12 +408,6 @@ def ashikhmin_shirley_brdf(
     fresnel = rs + (1.0 - rs) * (1.0 - cos_kh[:, None]) ** 5
     c1 = np.clip(cos1, 0.0, 1.0)[:, None]
     c2 = np.clip(cos2, 0.0, 1.0)[:, None]
-    diffuse = (
-        28.0
-        * rd
-        / (23.0 * np.pi)
-        * (1.0 - rs)
-        * (1.0 - (1.0 - c1 / 2.0) ** 5)
-        * (1.0 - (1.0 - c2 / 2.0) ** 5)
-    )
+    diffuse = 28.0 * rd / (23.0 * np.pi) * (1.0 - rs)
+    diffuse = diffuse * (1.0 - (1.0 - c1 / 2.0) ** 5) * (1.0 - (1.0 - c2 / 2.0) ** 5)
     return np.where(above[:, None], diffuse + lobe[:, None] * fresnel, 0.0)

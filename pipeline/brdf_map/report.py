@@ -152,17 +152,9 @@ def prior_study_table(runs: pd.DataFrame, metric: str = "rmse_missing") -> pd.Da
         rows[(source, label)] = row
     table = pd.DataFrame.from_dict(rows, orient="index")
     table.index = pd.MultiIndex.from_tuples(table.index, names=["BRDF", "missing above (°)"])
-    strengths = sorted(c for c in runs["w_u"].unique())
-    order = (
-        ["samples"]
-        + [_w_label(w) for w in strengths]
-        + [
-            c
-            for c in ("no prior", "Ashikhmin-Shirley", "best w_u > 0", "change vs no prior (%)")
-            if c in table
-        ]
-    )
-    return table[order]
+    strengths = sorted(runs["w_u"].unique())
+    baselines = ("no prior", "Ashikhmin-Shirley", "best w_u > 0", "change vs no prior (%)")
+    return table[["samples", *map(_w_label, strengths), *(c for c in baselines if c in table)]]
 
 
 def plot_prior_study(runs: pd.DataFrame, path: Path) -> Path:
@@ -228,22 +220,17 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
         if table.empty:
             continue
         counts = study_runs(runs, metric).groupby(["source", "cutoff", "w_u"]).size()
-        pooled = (
-            f"{counts.min()}"
-            if counts.min() == counts.max()
-            else (f"{counts.min()}-{counts.max()}")
-        )
-        extra = (
-            ""
-            if metric == "rmse_missing"
-            else (
+        low, high = counts.min(), counts.max()
+        pooled = f"{low}" if low == high else f"{low}-{high}"
+        extra = ""
+        if metric != "rmse_missing":
+            extra = (
                 f" The split is at θh = {NEAR_MIRROR_DEG:g}° (the half vector's polar angle): "
                 "near the mirror direction, the missing samples are the mirror pairs with light "
                 "and view both beyond the cutoff: few samples (the 'samples' column) with large "
                 "values and errors; their share of the squared error on all missing samples is "
                 "samples x RMSE² against the other part's."
             )
-        )
         table = table.round(4).astype({"samples": "Int64"})
         if "change vs no prior (%)" in table:
             table["change vs no prior (%)"] = table["change vs no prior (%)"].round(1) + 0.0

@@ -33,16 +33,9 @@ import numpy as np
 
 from pipeline.brdf_map.ashikhmin_shirley import AshikhminShirleyFit, fit_ashikhmin_shirley
 from pipeline.brdf_map.microfacet_em import fit_microfacet_em, fit_without_prior, rmse
-from pipeline.brdf_map.microfacet_model import (
-    HemisphereGrid,
-    MicrofacetFit,
-    MixtureParams,
-)
+from pipeline.brdf_map.microfacet_model import HemisphereGrid, MicrofacetFit, MixtureParams
 from pipeline.brdf_map.settings import em_settings
-from pipeline.brdf_map.synthetic import (
-    SyntheticAnisotropicBRDF,
-    write_synthetic_utia_brdf,
-)
+from pipeline.brdf_map.synthetic import SyntheticAnisotropicBRDF, write_synthetic_utia_brdf
 from pipeline.core.cache import Entry, canonical_json, save_arrays, save_json
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.report import save_figure
@@ -114,7 +107,7 @@ def data_stage(ctx: Context) -> Entry:
         elif ds.missing_above_deg is not None:
             arrays["truth"], arrays["truth_known"] = data.reflectance, in_file
         save_arrays(folder, **arrays)
-        missing = _above(data.light, data.view) & ~data.measured
+        missing = brdf_io.above_horizon(data.light, data.view) & ~data.measured
         return {
             "n_samples": data.n_samples,
             "n_measured": int(data.measured.sum()),
@@ -125,10 +118,6 @@ def data_stage(ctx: Context) -> Entry:
     # Version 2: the MERL reader places each entry at its own half-vector azimuth (phi_h = 0
     # before), so MERL samples cached by version 1 are stale.
     return ctx.run("brdf_data", settings, {}, compute, version="2")
-
-
-def _above(light: np.ndarray, view: np.ndarray) -> np.ndarray:
-    return (light[:, 0] < 0.5 * np.pi) & (view[:, 0] < 0.5 * np.pi)
 
 
 def measured_brdf(data: Entry) -> brdf_io.MeasuredBRDF:
@@ -244,13 +233,9 @@ def baselines_stage(ctx: Context, data: Entry) -> Entry:
 
 def _load_as(path: Path) -> AshikhminShirleyFit:
     p = json.loads(path.read_text())
+    scalars = {name: float(p[name]) for name in ("nu", "nv", "phi0", "cost")}
     return AshikhminShirleyFit(
-        rd=np.asarray(p["rd"], float),
-        rs=np.asarray(p["rs"], float),
-        nu=float(p["nu"]),
-        nv=float(p["nv"]),
-        phi0=float(p["phi0"]),
-        cost=float(p["cost"]),
+        rd=np.asarray(p["rd"], float), rs=np.asarray(p["rs"], float), **scalars
     )
 
 
@@ -294,28 +279,15 @@ def _figures(folder: Path, fig_cfg: dict, raw, models: dict) -> None:
 
     fit = models["reconstruction"]
     grid = fit.grid
-    brdf_figures.plot_distribution_heatmaps(
-        grid.theta, grid.phi, fit.observed, fit.distribution_grid(), folder, fit.cell_measured
-    )
+    for name, model in (("distribution", fit), ("distribution_noprior", models["noprior"])):
+        observed, fitted = model.observed, model.distribution_grid()
+        brdf_figures.plot_distribution_heatmaps(
+            grid.theta, grid.phi, observed, fitted, folder, model.cell_measured, name=name
+        )
+    phis, thetas = fig_cfg["slice_phi_deg"], fig_cfg["slice_theta_deg"]
+    fitted = fit.distribution_grid()
     brdf_figures.plot_distribution_slices(
-        grid.theta,
-        grid.phi,
-        fit.observed,
-        fit.distribution_grid(),
-        folder,
-        fig_cfg["slice_phi_deg"],
-        fig_cfg["slice_theta_deg"],
-        fit.cell_measured,
-    )
-    noprior = models["noprior"]
-    brdf_figures.plot_distribution_heatmaps(
-        grid.theta,
-        grid.phi,
-        noprior.observed,
-        noprior.distribution_grid(),
-        folder,
-        noprior.cell_measured,
-        name="distribution_noprior",
+        grid.theta, grid.phi, fit.observed, fitted, folder, phis, thetas, fit.cell_measured
     )
     lights = [tuple(np.deg2rad(fig_cfg[k])) for k in ("near_light_deg", "far_light_deg")]
     size = int(fig_cfg["sphere_size"])
@@ -349,7 +321,7 @@ def evaluate_stage(ctx: Context, data: Entry, fitted: Entry, baselines: Entry) -
             "noprior": load_reconstruction(baselines.path / "noprior"),
             "as": _load_as(baselines.file("ashikhmin_shirley.json")),
         }
-        above = _above(brdf.light, brdf.view)
+        above = brdf_io.above_horizon(brdf.light, brdf.view)
         has_truth = (data.path / "truth.npy").is_file()
         metrics = {"n_parameters": fit.n_parameters, "n_parameters_as": models["as"].n_parameters}
         if has_truth:
@@ -409,15 +381,10 @@ def run(ctx: Context) -> dict[str, float]:
     # The objective J at every EM iteration as the metric ``objective`` (step = iteration).
     ctx.log.series("objective", list(enumerate(fitted.array("objective", mmap=False))))
     ctx.log.folder(evaluated.path / "figures", "figures")
-    for name in (
-        "parameters.json",
-        "objective.npy",
-        "objective_outer.npy",
-        "observed.npy",
-        "cell_measured.npy",
-        "reconstruction_utia.bin",
-    ):
-        ctx.log.file((evaluated if name.endswith(".bin") else fitted).file(name), "fit")
+    arrays = ("objective", "objective_outer", "observed", "cell_measured")
+    for name in ("parameters.json", *(f"{array}.npy" for array in arrays)):
+        ctx.log.file(fitted.file(name), "fit")
+    ctx.log.file(evaluated.file("reconstruction_utia.bin"), "fit")
     ctx.log.file(baselines.file("ashikhmin_shirley.json"), "baselines")
     ctx.log.file(baselines.path / "noprior" / "parameters.json", "baselines/noprior")
     return metrics

@@ -6,14 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 from pipeline.core.errors import ConfigError
-from pipeline.core.settings import (
-    Integer,
-    ListOf,
-    OneOf,
-    Real,
-    check_fields,
-    setting,
-)
+from pipeline.core.settings import Integer, ListOf, OneOf, Real, check_fields, setting
 
 RS_RANGE_METAL = (0.5, 0.9)
 RS_RANGE_DIELECTRIC = (0.02, 0.2)

@@ -49,6 +49,7 @@ from scipy.special import erf
 
 from pipeline.core.errors import ConfigError
 from pipeline.data.brdf import (
+    above_horizon,
     half_vector_angles,
     to_unit_vectors,
     utia_directions,
@@ -100,17 +101,9 @@ class SyntheticAnisotropicBRDF:
             )
 
     def distribution(self, theta_h: np.ndarray, phi_h: np.ndarray) -> np.ndarray:
-        """Microfacet density p(h) per unit solid angle; 0 below the horizon.
-
-        Parameters
-        ----------
-        theta_h, phi_h : ndarray of the same shape
-            Polar and azimuthal angles (radians) of the microfacet normal.
-
-        Returns
-        -------
-        ndarray of that shape
-        """
+        """Microfacet density p(h) per unit solid angle at the polar and azimuthal angles
+        ``theta_h``, ``phi_h`` (radians, same shape) of the microfacet normal; 0 below the
+        horizon."""
         theta_h = np.asarray(theta_h, dtype=np.float64)
         cos_t = np.cos(theta_h)
         above = cos_t > 1e-12
@@ -128,19 +121,9 @@ class SyntheticAnisotropicBRDF:
         return np.where(above, value, 0.0)
 
     def g(self, directions: np.ndarray) -> np.ndarray:
-        """g(k) = int (h.k)_+ p(h) dw_h: closed form cos(theta_k)(1 + Lambda(k)) for Beckmann.
-
-        For ``kind="separable"`` it is integrated numerically once per distinct direction.
-
-        Parameters
-        ----------
-        directions : ndarray of shape (n, 2)
-            ``(theta, phi)`` with theta in [0, pi/2).
-
-        Returns
-        -------
-        ndarray of shape (n,)
-        """
+        """g(k) = int (h.k)_+ p(h) dw_h, shape (n,), at ``directions`` (n, 2) ``(theta, phi)``
+        with theta in [0, pi/2): the closed form cos(theta_k)(1 + Lambda(k)) for Beckmann,
+        from two tabulated harmonics for ``kind="separable"`` (module docstring)."""
         directions = np.asarray(directions, dtype=np.float64).reshape(-1, 2)
         if self.kind == "separable":
             return self._numeric_g(directions)
@@ -176,7 +159,7 @@ class SyntheticAnisotropicBRDF:
         """Specular BRDF of shape (n, 3) at light/view pairs of shape (n, 2); 0 below horizon."""
         light = np.asarray(light, dtype=np.float64).reshape(-1, 2)
         view = np.asarray(view, dtype=np.float64).reshape(-1, 2)
-        above = (light[:, 0] < np.pi / 2) & (view[:, 0] < np.pi / 2)
+        above = above_horizon(light, view)
         theta_h, phi_h, cos_kh = half_vector_angles(light, view)
         fresnel = self.fresnel_rs + (1.0 - self.fresnel_rs) * (1.0 - cos_kh) ** 5
         g1 = self.g(np.where(above[:, None], light, 0.0))
@@ -190,7 +173,7 @@ class SyntheticAnisotropicBRDF:
         """Lambertian BRDF rho_d / pi of shape (n, 3); 0 below the horizon."""
         light = np.asarray(light, dtype=np.float64).reshape(-1, 2)
         view = np.asarray(view, dtype=np.float64).reshape(-1, 2)
-        above = (light[:, 0] < np.pi / 2) & (view[:, 0] < np.pi / 2)
+        above = above_horizon(light, view)
         return above[:, None] * (np.asarray(self.diffuse_albedo)[None, :] / np.pi)
 
     def evaluate(self, light: np.ndarray, view: np.ndarray) -> np.ndarray:
@@ -202,19 +185,9 @@ _G_TABLE_NODES = np.deg2rad(np.linspace(0.0, 90.0, 361))  # 0.25 deg
 
 
 def _separable_g_harmonics(theta: np.ndarray, alpha2: float) -> tuple[np.ndarray, np.ndarray]:
-    """A(theta_k) and B(theta_k) of the separable distribution (module docstring).
-
-    Parameters
-    ----------
-    theta : ndarray of shape (n,)
-        Polar angles of k (its azimuth is taken as 0).
-    alpha2 : float
-        a^2 = a_x a_y of the radial factor.
-
-    Returns
-    -------
-    a, b : ndarray of shape (n,)
-    """
+    """A(theta_k) and B(theta_k), shape (n,) each, of the separable distribution (module
+    docstring) at polar angles ``theta`` (n,) of k (its azimuth taken as 0); ``alpha2`` is
+    a^2 = a_x a_y of the radial factor."""
     h, solid_angle, theta_h, phi_h = _fine_hemisphere()
     cos_t = np.cos(theta_h)
     radial = np.exp(-(np.tan(theta_h) ** 2) / alpha2) / (np.pi * alpha2 * cos_t**4)
@@ -244,28 +217,14 @@ def _fine_hemisphere(n_theta: int = 180, n_phi: int = 720):
 
 
 def write_synthetic_utia_brdf(
-    path: str | os.PathLike,
-    brdf: SyntheticAnisotropicBRDF | None = None,
-    missing_above_deg: float | None = None,
+    path: str | os.PathLike, brdf: SyntheticAnisotropicBRDF, missing_above_deg: float | None = None
 ) -> SyntheticAnisotropicBRDF:
-    """Evaluate a synthetic BRDF on the UTIA grid and write it as a UTIA binary.
+    """Evaluate ``brdf`` on the UTIA grid, write it at ``path`` as a UTIA binary
+    (atomically) and return it.
 
-    Parameters
-    ----------
-    path : path-like
-        Destination file (written atomically: temporary file, then rename).
-    brdf : SyntheticAnisotropicBRDF, optional
-        The ground truth; the default instance when omitted.
-    missing_above_deg : float, optional
-        When given, samples whose light or view polar angle exceeds it are written as
-        missing (-1), mimicking a device that cannot measure grazing directions.
-
-    Returns
-    -------
-    SyntheticAnisotropicBRDF
-        The ground truth, evaluable at any direction pair.
+    With ``missing_above_deg``, samples whose light or view polar angle exceeds it are
+    written as missing (-1), mimicking a device that cannot measure grazing directions.
     """
-    brdf = SyntheticAnisotropicBRDF() if brdf is None else brdf
     light, view = utia_directions()
     measured = None
     if missing_above_deg is not None:

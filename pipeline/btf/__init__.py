@@ -4,6 +4,6 @@
 evaluate, the PCA baseline) are the chain; ``preprocess``, ``clustering``, ``model``,
 ``train``, ``evaluate``, ``interpolation``, ``linear`` and ``stereographic`` its pure
 functions; ``synthetic`` the built-in woven BTF; ``report`` (with ``tables``, ``curves``,
-``fig7``) the tables and figures; ``fast`` the fused training step, its C++ kernels, the
-opt-in machine tuning and the benchmark.
+``fig7``) the tables and figures; ``fast`` the fused training step, its C++ kernels and
+the opt-in machine tuning.
 """

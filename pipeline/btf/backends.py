@@ -1,11 +1,9 @@
 """How a training step computes its gradients (``train.backend``).
 
-- ``autograd`` (:class:`AutogradStep`): plain PyTorch. The encoder maps the batch's ABRDFs
-  to latents, the decoder maps each (latent, direction) query to RGB, the loss is the mean
-  squared error and ``loss.backward()`` computes every gradient. Always available, and
-  the reference the other backend is tested against (``tests/test_backends.py``). With
-  ``train.precision=bfloat16`` the decoder runs under ``torch.autocast`` (CUDA's, or the
-  CPU's), which rounds its products to bfloat16 as the fused step does.
+- ``autograd`` (:class:`AutogradStep`): plain PyTorch, mean squared error and
+  ``loss.backward()``. Always available, and the reference the other backend is tested
+  against (``tests/test_backends.py``). With ``train.precision=bfloat16`` the decoder runs
+  under ``torch.autocast``, which rounds its products to bfloat16 as the fused step does.
 - ``fused`` (:class:`FusedStep`): the encoder under autograd, the decoder's forward and
   backward by :class:`pipeline.btf.fast.fused.DecoderStep`, chunked to stay in a CPU
   core's cache, on threads, with C++ kernels where they build. On CUDA it runs torch ops
@@ -14,10 +12,9 @@
   autograd with a warning; autograd on CUDA, where the decoder's products are large
   enough for the GPU and there are no CPU caches to fit.
 
-A step object takes a :class:`pipeline.btf.batches.StepBatch`, leaves the gradients of
-every parameter in its ``.grad`` (the caller zeroes them before and steps the optimizer
-after) and returns the batch's mean squared error, a float or a 0-d tensor (left on the
-device, so that a CUDA step does not wait for the device to report it).
+A step takes a :class:`pipeline.btf.batches.StepBatch`, leaves each parameter's gradient in
+its ``.grad`` (the caller zeroes them and steps the optimizer) and returns the batch's mean
+squared error: a float, or a 0-d tensor left on the device (a CUDA step does not wait).
 
 ``torch.compile`` is not used: its benefit on the GPU has not been measured here.
 """

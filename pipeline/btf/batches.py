@@ -4,16 +4,11 @@ A batch is ``batch_size`` texels of a seeded random pass over the M texels (sort
 that a memory map is read in order), each with its encoder input (its own ABRDF, or its
 cluster's representative) and ``q`` queried training directions with their targets.
 
-- :class:`HostBatches` gathers each batch with numpy from the (possibly memory-mapped)
-  arrays and normalizes it there; on CUDA each batch is then copied to the device. The
-  training on the CPU always uses it.
-- :class:`DeviceBatches` copies the raw ABRDFs to the device once and gathers, normalizes
-  and samples the queries there, so that a CUDA step copies nothing from the host but
-  the pass's order (once per pass). :func:`fits_on_device` says when it may be used.
-
-Both draw the order of each pass from the same numpy generator, so that their texels are
-the same for a seed; :class:`DeviceBatches` draws the random queries with a torch
-generator on the device (other queries than the host's for the same seed).
+:class:`HostBatches` gathers each batch with numpy on the host (the CPU training's
+batches); :class:`DeviceBatches` keeps the raw ABRDFs on a CUDA device where they fit
+(:func:`fits_on_device`), so that a step copies nothing from the host but the pass's order.
+Both draw the order of each pass from the same numpy generator: their texels are the same
+for a seed, their random queries not.
 """
 
 from __future__ import annotations
@@ -68,7 +63,8 @@ class Sampling:
 
 
 class HostBatches:
-    """Batches gathered and normalized with numpy, then moved to ``device``.
+    """Batches gathered and normalized with numpy from the (possibly memory-mapped) arrays,
+    then moved to ``device``.
 
     Parameters
     ----------
@@ -143,8 +139,8 @@ def fits_on_device(nbytes: int, device: torch.device) -> bool:
 
 class DeviceBatches:
     """The same batches as :class:`HostBatches` (up to the random queries, drawn on the
-    device, and float rounding), gathered and normalized on ``device`` from raw ABRDFs
-    copied there once. Same parameters, plus ``seed`` for the queries' generator."""
+    device by a torch generator seeded with ``seed``, and float rounding), gathered and
+    normalized on ``device`` from raw ABRDFs copied there once. Same parameters."""
 
     def __init__(
         self,
@@ -160,10 +156,8 @@ class DeviceBatches:
         self.sampling, self.rng, self.device = sampling, rng, device
         self.m = abrdf.shape[0]
         self.sources = _upload(sources, device)
-        if sampling.target_from_source:
-            self.values = self.sources
-        else:
-            self.values = self.sources if abrdf is sources else _upload(abrdf, device)
+        shared = sampling.target_from_source or abrdf is sources  # the targets are the sources
+        self.values = self.sources if shared else _upload(abrdf, device)
         self.source_of_texel = torch.from_numpy(np.asarray(source_of_texel, np.int64)).to(device)
         self.mean = torch.from_numpy(norm.mean).to(device)
         self.std = torch.from_numpy(norm.std).to(device)

@@ -20,28 +20,19 @@ from pipeline.core.progress import progress
 def pca_reduce(
     features: np.ndarray, n_components: int, random_state: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Project ABRDFs on their first principal components.
+    """Project ABRDFs on their first principal components: scores (M, n_components)
+    float32, and the explained variance ratio (n_components,).
 
     Parameters
     ----------
-    features : ndarray of shape (M, D), float32
-        Preprocessed ABRDFs, one row per texel (D = 3N).
-    n_components : int
-        Number of components kept.
+    features : ndarray of shape (M, D), float32, preprocessed ABRDFs (D = 3N).
+    n_components : int, components kept.
     random_state : int
         Seed of the randomized SVD. It is a PCA setting, not the run's seed, so that runs
         with different seeds share one cached PCA.
-
-    Returns
-    -------
-    scores : ndarray of shape (M, n_components), float32
-    explained_variance_ratio : ndarray of shape (n_components,)
     """
     m, d = features.shape
-    if not 1 <= n_components <= min(m, d):
-        raise ConfigError(
-            f"btf.pca.n_components={n_components} must be between 1 and min(M={m}, D={d})"
-        )
+    _check_components(n_components, m, d)
     # Randomized SVD keeps float32 input as float32 and is far cheaper than a full SVD
     # when n_components << D (paper size: D = 19683).
     pca = PCA(n_components=n_components, svd_solver="randomized", random_state=random_state)
@@ -57,15 +48,20 @@ def streamed_pca(
     (:func:`pipeline.btf.streamed_svd.streamed_svd`)."""
     from pipeline.btf.streamed_svd import streamed_svd
 
-    if not 1 <= n_components <= min(m, d):
-        raise ConfigError(
-            f"btf.pca.n_components={n_components} must be between 1 and min(M={m}, D={d})"
-        )
+    _check_components(n_components, m, d)
     u, s, _, _, total = streamed_svd(rows, m, d, n_components, seed=random_state, what="PCA")
     return (u * s.astype(np.float32)), (np.square(s) / total).astype(np.float64)
 
 
+def _check_components(n_components: int, m: int, d: int) -> None:
+    if not 1 <= n_components <= min(m, d):
+        raise ConfigError(
+            f"btf.pca.n_components={n_components} must be between 1 and min(M={m}, D={d})"
+        )
+
+
 def check_k(k: int, n_texels: int) -> None:
+    """Refuse a ``model.k`` that is not a positive integer or exceeds the M texels."""
     if not isinstance(k, int) or k < 1:
         raise ConfigError(f"model.k={k!r} must be a positive integer")
     if k > n_texels:
@@ -78,14 +74,8 @@ def check_k(k: int, n_texels: int) -> None:
 def kmeans_pp(
     scores: np.ndarray, k: int, seed: int, n_init: int = 1, max_iter: int = 300
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """k-means with k-means++ seeding (Arthur & Vassilvitskii 2007) via scikit-learn.
-
-    Returns
-    -------
-    labels : ndarray of shape (M,), int32 — the paper's "list"
-    centers : ndarray of shape (k, n_components), float32
-    inertia : float
-    """
+    """k-means with k-means++ seeding (Arthur & Vassilvitskii 2007) via scikit-learn:
+    labels (M,) int32 (the paper's "list"), centers (k, n_components) float32, inertia."""
     check_k(k, scores.shape[0])
     kmeans = KMeans(
         n_clusters=k, init="k-means++", n_init=n_init, max_iter=max_iter, random_state=seed
@@ -105,17 +95,8 @@ def kmeans_pp(
 
 
 def cluster_medians(abrdf: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
-    """Element-wise median ABRDF of each cluster.
-
-    Parameters
-    ----------
-    abrdf : ndarray of shape (M, N, 3)
-    labels : ndarray of shape (M,), values in [0, k)
-
-    Returns
-    -------
-    representatives : ndarray of shape (k, N, 3), float32
-    """
+    """Element-wise median ABRDF of each cluster: ``abrdf`` (M, N, 3) and ``labels`` (M,)
+    in [0, k) -> representatives (k, N, 3), float32."""
     if labels.shape != (abrdf.shape[0],):
         raise ValueError(f"labels has shape {labels.shape}, expected ({abrdf.shape[0]},)")
     order = np.argsort(labels, kind="stable")

@@ -10,6 +10,7 @@ scale to ``extra_dtype``, so that a float16 model's RMSE is the float16 model's.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,18 +67,13 @@ def round_to(values: np.ndarray, dtype: str) -> np.ndarray:
 def as_stored(
     decoder: Decoder, latents: np.ndarray, weight_dtype: str
 ) -> tuple[Decoder, np.ndarray]:
-    """The model as its compressed file holds it: a copy of ``decoder`` whose parameters
-    are rounded to ``weight_dtype``, and ``latents`` (R, latent) rounded to it, as float32;
-    float32: the same decoder.
-
-    The evaluation scores what is stored (Table 1's bytes), not the float32 model that
-    training left (:mod:`pipeline.btf.compressed` writes the same rounded values).
-    """
+    """The model as its compressed file holds it (:mod:`pipeline.btf.compressed` writes the
+    same rounded values): a copy of ``decoder`` whose parameters are rounded to
+    ``weight_dtype``, and ``latents`` (R, latent) rounded to it, as float32; float32: the
+    same decoder."""
     latents = round_to(latents, weight_dtype)
     if weight_dtype == "float32":
         return decoder, latents
-    import copy
-
     rounded = copy.deepcopy(decoder)
     for parameter in rounded.parameters():
         parameter.copy_(parameter.to(getattr(torch, weight_dtype)).to(parameter.dtype))
@@ -147,16 +143,11 @@ def reconstruction_error(
     if not clustered:
         return Reconstruction(rmse_unscaled, rmse_per_direction)
     rmse_scaled = float(np.sqrt(sq_dir_scaled.sum() / (m * n * 3)))
-    use_scale = texel_scale != "none"
-    if use_scale:  # every figure of a run describes what that run stores
-        rmse_per_direction = np.sqrt(sq_dir_scaled / (m * 3))
-    return Reconstruction(
-        rmse=rmse_scaled if use_scale else rmse_unscaled,
-        rmse_per_direction=rmse_per_direction,
-        rmse_unscaled=rmse_unscaled,
-        rmse_scaled=rmse_scaled,
-        texel_scale=scales if use_scale else None,
-    )
+    if texel_scale == "none":
+        return Reconstruction(rmse_unscaled, rmse_per_direction, rmse_unscaled, rmse_scaled)
+    # Every figure of a run describes what that run stores: here, the scaled model.
+    per_direction = np.sqrt(sq_dir_scaled / (m * 3))
+    return Reconstruction(rmse_scaled, per_direction, rmse_unscaled, rmse_scaled, scales)
 
 
 def mean_abrdf_rmse(abrdf: np.ndarray, alpha: float, chunk: int = 256) -> float:
@@ -199,8 +190,7 @@ def storage_sizes(
         "bytes_extra": n_texels * DTYPE_BYTES[extra_dtype] if extra_dtype else 0,
         "bytes_original": n_texels * n_directions * 3 * 4,
     }
-    sizes["bytes_total"] = (
-        sizes["bytes_decoder"] + sizes["bytes_latents"] + sizes["bytes_list"] + sizes["bytes_extra"]
-    )
+    parts = ("bytes_decoder", "bytes_latents", "bytes_list", "bytes_extra")
+    sizes["bytes_total"] = sum(sizes[part] for part in parts)
     sizes["compression_ratio"] = sizes["bytes_original"] / sizes["bytes_total"]
     return sizes

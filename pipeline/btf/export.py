@@ -55,25 +55,19 @@ def export_stage(
     def compute(folder: Path) -> dict:
         from pipeline.btf.model import load_decoder
 
-        sizes = plain_settings(cfg.btf.sizes)
-        crop_settings = plain_settings(cfg.btf.crop)
         has_scale = evaluated.file("texel_scale.npy").is_file()
         path = write_compressed(
             folder / FILE_NAME,
             load_decoder(trained.file("decoder.pt")),
             trained.array("latents", mmap=False),
             prep.json("alpha"),
-            crop_size=(crop_settings["size"], crop_settings["size"]),
-            crop_offset=tuple(crop_settings["offset"]),
+            **_placement(cfg),
             method=cfg.model.name,
             k=k,
-            dataset=cfg.dataset.name,
             latent_of_texel=trained.array("latent_of_texel", mmap=False) if clustered else None,
             texel_scale=evaluated.array("texel_scale", mmap=False) if has_scale else None,
             texel_scale_mode=evaluated.manifest["settings"]["texel_scale"],
-            weight_dtype=sizes["weight_dtype"],
-            list_dtype=sizes["list_dtype"],
-            extra_dtype=sizes["extra_dtype"],
+            **plain_settings(cfg.btf.sizes),  # weight_dtype, list_dtype, extra_dtype
         )
         return _checked_against_table1(path, evaluated.json("metrics"))
 
@@ -85,9 +79,7 @@ def export_linear_stage(ctx: Context, cropped: Entry, prep: Entry, fitted: Entry
     a cache entry: the linear stage's arrays as stored (its tensors are the linear stage's
     ``bytes_total``, checked) and the crop's direction pairs, which the file needs to be
     evaluated between them as the renderer does."""
-    cfg = ctx.cfg
-    crop_settings = plain_settings(cfg.btf.crop)
-    settings = {"crop": crop_settings, "dataset": cfg.dataset.name}
+    settings = {"crop": plain_settings(ctx.cfg.btf.crop), "dataset": ctx.cfg.dataset.name}
     inputs = {"crop": cropped, "preprocess": prep, "linear": fitted}
 
     def compute(folder: Path) -> dict:
@@ -99,9 +91,7 @@ def export_linear_stage(ctx: Context, cropped: Entry, prep: Entry, fitted: Entry
             coefficients,
             prep.json("alpha"),
             measured_directions=cropped.array("directions", mmap=False),
-            crop_size=(crop_settings["size"], crop_settings["size"]),
-            crop_offset=tuple(crop_settings["offset"]),
-            dataset=cfg.dataset.name,
+            **_placement(ctx.cfg),
             weight_dtype=str(coefficients.dtype),  # the linear stage stores model.dtype
         )
         return _checked_against_table1(path, fitted.json("metrics"))
@@ -109,14 +99,17 @@ def export_linear_stage(ctx: Context, cropped: Entry, prep: Entry, fitted: Entry
     return ctx.run("export", settings, inputs, compute, version="1")
 
 
+def _placement(cfg) -> dict:
+    """``crop_size``, ``crop_offset`` and ``dataset``, as a compressed file records them."""
+    crop = plain_settings(cfg.btf.crop)
+    size, offset = crop["size"], tuple(crop["offset"])
+    return {"crop_size": (size, size), "crop_offset": offset, "dataset": cfg.dataset.name}
+
+
 def _checked_against_table1(path: Path, table1: dict) -> dict:
     """The export stage's summary of the file at ``path``, after checking that its
-    tensors are Table 1's bytes (``table1``: the run's ``bytes_*`` metrics), part by part.
-
-    Raises
-    ------
-    RuntimeError
-        When they differ: the stage's size accounting and the format disagree.
+    tensors are Table 1's bytes (``table1``: the run's ``bytes_*`` metrics), part by part;
+    RuntimeError when they differ (the stage's size accounting and the format disagree).
     """
     payload, parts = payload_bytes(path), stored_parts(path)
     counted = {part: table1[f"bytes_{part}"] for part in TABLE1_PARTS}
@@ -136,9 +129,9 @@ def _checked_against_table1(path: Path, table1: dict) -> dict:
     }
 
 
-def log_compressed(log: RunLog, entry: Entry, log_model: bool = True) -> None:
+def log_compressed(log: RunLog, entry: Entry) -> None:
     """Log the export stage's file to the job's MLflow run as ``compressed/btf.safetensors``
-    (the cached file as it is: equal models log equal bytes) and, with ``log_model``, an
+    (the cached file as it is: equal models log equal bytes) and an
     MLflow pyfunc model ``compressed_btf`` around it::
 
         mlflow.set_tracking_uri(pipeline.tracking_uri(runs))  # the jobs' paths.runs
@@ -150,7 +143,7 @@ def log_compressed(log: RunLog, entry: Entry, log_model: bool = True) -> None:
     """
     path = entry.file(FILE_NAME)
     log.file(path, "compressed")
-    if not (log.on and log_model):
+    if not log.on:
         return
     with tempfile.TemporaryDirectory() as tmp:
         # "Models from code": the model is this short script, not a pickled object.
@@ -189,12 +182,9 @@ def query_signature():
     from mlflow.models import ModelSignature
     from mlflow.types import ColSpec, Schema
 
-    inputs = Schema(
-        [ColSpec("long", "texel")] + [ColSpec("double", name) for name in QUERY_COLUMNS[1:]]
-    )
-    return ModelSignature(
-        inputs=inputs, outputs=Schema([ColSpec("float", name) for name in RGB_COLUMNS])
-    )
+    queries = [ColSpec("long", "texel")] + [ColSpec("double", name) for name in QUERY_COLUMNS[1:]]
+    outputs = Schema([ColSpec("float", name) for name in RGB_COLUMNS])
+    return ModelSignature(inputs=Schema(queries), outputs=outputs)
 
 
 class CompressedBTFModel(mlflow.pyfunc.PythonModel):

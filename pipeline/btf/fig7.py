@@ -5,8 +5,8 @@ may hold any direction set: the UBO2003 81-grid has the paper's pairs, a UBO2014
 a Fibonacci set has others), and at that pair the reference image of the crop next to the
 reconstruction of every model (Neural BTF and each k). The reference's title gives the
 pair used and, where it is not the one asked for, the pair asked for. Each job logs its
-panels (:func:`job_data`, ``figures/fig7_data.npz``) and the tables draw from what the
-runs logged: the cache may be cleared without losing the figure.
+panels (:func:`job_data`) and the tables draw from what the runs logged: the cache may be
+cleared without losing the figure.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def job_data(
 
     Returns ``asked``, ``used`` (P, 4 degrees), ``column`` (P,: the pair's index in the
     data), ``reference`` and ``model`` (P, size, size, 3) and ``alpha``: what the job logs as
-    :data:`DATA_NAME`, so the tables draw Fig. 7 from the runs, not from the cache."""
+    :data:`DATA_NAME`."""
     abrdf, directions = stages.abrdf(cropped), cropped.array("directions", mmap=False)
     alpha = float(prep.json("alpha"))
     size = int(round(np.sqrt(abrdf.shape[0])))
@@ -114,8 +114,8 @@ def draw_fig7(runs: pd.DataFrame, out_dir: Path, data_of=logged_data) -> list[Pa
 
     runs : labelled runs (see :func:`pipeline.btf.tables.label_runs`), one model per column
         is drawn (the run with the lowest seed); PCA's runs (no decoder) are left out, and
-        so, with a warning, are runs that logged no Fig. 7 data (older code) or other pairs
-        than the first one's.
+        so, with a warning, are runs that logged no Fig. 7 data or other pairs than the
+        first one's.
     data_of : run id -> its data (:func:`logged_data`); a job passes its own.
 
     Beside each figure, ``fig7_<dataset>_pairs.json`` lists per row the pair asked for and
@@ -141,17 +141,13 @@ def draw_fig7(runs: pd.DataFrame, out_dir: Path, data_of=logged_data) -> list[Pa
             continue
         first = shown[0][1]
         rows = [
-            {"asked": asked.tolist(), "used": used.tolist(), "column": int(column)}
-            for asked, used, column in zip(
-                first["asked"], first["used"], first["column"], strict=True
-            )
+            {"asked": a.tolist(), "used": u.tolist(), "column": int(c)}
+            for a, u, c in zip(first["asked"], first["used"], first["column"], strict=True)
         ]
         panels: list[list[tuple[str, np.ndarray]]] = []
         for i, row in enumerate(rows):
-            used = np.radians(row["used"])
-            label = f"reference\n{pair_label(used)}"
-            if pair_label(used) != pair_label(np.radians(row["asked"])):
-                label += f"\n(asked {pair_label(np.radians(row['asked']))})"
+            used, asked = (pair_label(np.radians(row[key])) for key in ("used", "asked"))
+            label = f"reference\n{used}" + (f"\n(asked {asked})" if asked != used else "")
             # At the pair the reference shows, so that the panels compare one image.
             panels.append([(label, first["reference"][i])] + [(m, d["model"][i]) for m, d in shown])
         safe = safe_stem(dataset)

@@ -1,27 +1,23 @@
 """Interpolation at directions training never saw, which the paper claims but could not test.
 
-Two kinds of unseen directions:
-
 * held-out measured directions: ``btf.interpolation.holdout_lights`` of the data's light
   directions are removed from training for every view; the reference is the measured data;
 * off-grid directions: ``btf.interpolation.offgrid`` random (light, view) pairs away from the
   measured directions; the reference is the synthetic generator's analytic ground truth.
 
 The Neural BTF is compared with two interpolants of the measured training data: the
-nearest measured (light, view) pair, and "linear": barycentric weights in a Delaunay
-triangulation of the light directions times those of the view directions (both in
-stereographic coordinates), i.e. piecewise-linear interpolation on the product mesh.
-:class:`Barycentric` computes those weights; the renderer's measured material
-(:mod:`pipeline.btf.render.surfaces`) uses the same ones.
+nearest measured (light, view) pair, and "linear": barycentric weights (:class:`Barycentric`,
+which the renderer's measured material uses too) in a Delaunay triangulation of the light
+directions times those of the view directions, both in stereographic coordinates.
 
-Nothing here assumes the UBO2003 81-grid: the light and the view set are whatever the
-data's direction pairs hold (:func:`pipeline.data.directions.direction_sets`), as long as
-every light was measured under every view (a product L × V). :class:`DirectionHull` is the
-region a set's triangulation covers, beyond which nothing surrounds a direction.
+The light and the view set are whatever the data's direction pairs hold
+(:func:`pipeline.data.directions.direction_sets`), as long as every light was measured
+under every view (a product L × V), not only the UBO2003 81-grid.
 """
 
 from __future__ import annotations
 
+from contextlib import suppress
 from functools import cached_property
 
 import numpy as np
@@ -37,24 +33,11 @@ OFFGRID_MAX_THETA = np.radians(70.0)
 
 
 def heldout_light_indices(cfg, lights: np.ndarray) -> np.ndarray:
-    """Indices into ``lights`` of the light directions held out of training.
-
-    Parameters
-    ----------
-    cfg : the run's config (``btf.interpolation.holdout_lights`` and ``seed``).
-    lights : ndarray of shape (L, 2)
-        The data's light set (:attr:`pipeline.data.directions.DirectionSets.lights`).
-
-    Returns
-    -------
-    ndarray of shape (holdout_lights,), int, sorted. Never the light nearest the normal,
-    which keeps the centre of the triangulation (for the 81-grid: index 0, the zenith).
-
-    Raises
-    ------
-    ConfigError
-        If fewer than 2 lights would be left to train on.
-    """
+    """Indices into the data's light set ``lights`` (L, 2) of the
+    ``btf.interpolation.holdout_lights`` light directions held out of training: (count,)
+    int, sorted. Never the light nearest the normal, which keeps the centre of the
+    triangulation (for the 81-grid: index 0, the zenith). ConfigError if fewer than 2
+    lights would be left to train on."""
     count = int(cfg.btf.interpolation.holdout_lights)
     if count <= 0:
         return np.zeros(0, dtype=int)
@@ -68,11 +51,15 @@ def heldout_light_indices(cfg, lights: np.ndarray) -> np.ndarray:
     return np.sort(rng.choice(np.delete(np.arange(len(lights)), centre), size=count, replace=False))
 
 
-def training_directions(directions: np.ndarray, heldout: np.ndarray) -> np.ndarray:
-    """Column indices (into the ABRDF's N directions) whose light is not held out.
+def heldout_lights_of(cfg, entry) -> np.ndarray:
+    """:func:`heldout_light_indices` of the light set of a load or crop stage's ``entry``."""
+    lights = direction_sets(entry.array("directions", mmap=False)).lights
+    return heldout_light_indices(cfg, lights)
 
-    ``heldout`` indexes the light set of ``directions`` (:func:`heldout_light_indices`).
-    """
+
+def training_directions(directions: np.ndarray, heldout: np.ndarray) -> np.ndarray:
+    """Column indices (into the ABRDF's N directions) whose light is not in ``heldout``
+    (indices into the light set of ``directions``, :func:`heldout_light_indices`)."""
     light_of = direction_sets(directions).light_of
     return np.flatnonzero(~np.isin(light_of, heldout))
 
@@ -94,14 +81,8 @@ class DirectionHull:
     ----------
     angles : ndarray of shape (P, 2)
         (θ, φ) radians of the set, P >= 3 not all on one line. The polygon must hold the
-        normal (θ = 0) strictly inside, so that lowering θ at fixed φ reaches it.
-
-    Raises
-    ------
-    NoPolygon
-        If the set spans no polygon.
-    DataError
-        If its polygon does not hold the normal.
+        normal (θ = 0) strictly inside, so that lowering θ at fixed φ reaches it: else
+        DataError (NoPolygon where the set spans no polygon).
     """
 
     # A direction this far (radians) outside the polygon counts as beyond it: the set's own
@@ -166,9 +147,8 @@ class DirectionHull:
 
 
 class Barycentric:
-    """Barycentric weights in the Delaunay triangulation of a direction set (stereographic).
-
-    The triangulation is built once, when the object is made.
+    """Barycentric weights in the Delaunay triangulation of a direction set (stereographic),
+    built once.
 
     Parameters
     ----------
@@ -187,10 +167,8 @@ class Barycentric:
         if len(grid_angles) >= 3:
             from scipy.spatial import Delaunay, QhullError
 
-            try:
+            with suppress(QhullError):  # all on one line: no triangle, nearest only
                 self.triangulation = Delaunay(stereographic(*grid_angles.T))
-            except QhullError:  # all on one line: no triangle, nearest only
-                pass
 
     def nearest(self, angles: np.ndarray) -> np.ndarray:
         """Index (n,) of the grid direction closest (largest cosine) to each of ``angles``
@@ -209,8 +187,7 @@ class Barycentric:
 
         Parameters
         ----------
-        angles : ndarray of shape (n, 2)
-            (theta, phi) in radians.
+        angles : ndarray of shape (n, 2), (theta, phi) in radians
         nearest : ndarray of shape (n,), optional
             :meth:`nearest` of ``angles`` when the caller has it already; otherwise it is
             computed for the queries outside the triangulation only.
@@ -250,9 +227,7 @@ class Barycentric:
             weights[~inside, 0] = 1.0
         if snap > 0:
             corner = weights > 1.0 - snap
-            weights = np.where(
-                corner.any(axis=1, keepdims=True), corner.astype(np.float64), weights
-            )
+            weights = np.where(corner.any(axis=1, keepdims=True), corner.astype(float), weights)
         return ids, weights
 
 
@@ -277,10 +252,7 @@ class ProductInterpolator:
     table : ndarray of shape (L, V), int
         The column of each (light, view) pair of the data's sets; -1 where not sampled.
 
-    Raises
-    ------
-    DataError
-        If a sampled light was not measured under some sampled view.
+    DataError if a sampled light was not measured under some sampled view.
     """
 
     def __init__(self, directions: np.ndarray, columns: np.ndarray):
@@ -304,12 +276,12 @@ class ProductInterpolator:
     # Built when first needed: a grid that cannot be triangulated fails at predict only.
     @cached_property
     def light_weights(self) -> Barycentric:
-        """:class:`Barycentric` weights over the sampled light directions ``light_dirs``."""
+        """:class:`Barycentric` weights over ``light_dirs``."""
         return Barycentric(self.light_dirs)
 
     @cached_property
     def view_weights(self) -> Barycentric:
-        """:class:`Barycentric` weights over the sampled view directions ``view_dirs``."""
+        """:class:`Barycentric` weights over ``view_dirs``."""
         return Barycentric(self.view_dirs)
 
     def predict(self, abrdf: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -358,12 +330,6 @@ def _rmse(pred: np.ndarray, target: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(pred - target, dtype=np.float64))))
 
 
-def _model_predict(decoder, latents, latent_of_texel, queries) -> np.ndarray:
-    from pipeline.btf.evaluate import decode_all
-
-    return decode_all(decoder, latents, direction_features(queries))[latent_of_texel]
-
-
 def offgrid_directions(count: int, seed: int, max_theta: float = OFFGRID_MAX_THETA) -> np.ndarray:
     """(count, 4) random light/view directions, uniform in solid angle up to ``max_theta``
     radians (70 degrees by default; :func:`offgrid_max_theta` for a run's data)."""
@@ -405,6 +371,7 @@ def measure(
     ``texel_scale`` (M,), when the clustered model stores one, multiplies its predictions.
     """
     from pipeline.btf.stages import abrdf as crop_abrdf
+    from pipeline.btf.stages import truth_at_crop
 
     abrdf = crop_abrdf(cropped)
     directions = cropped.array("directions", mmap=False)
@@ -419,21 +386,15 @@ def measure(
         metrics["rmse_heldout_model"] = float(np.sqrt(sq[test_cols].mean()))
         nearest, linear = heldout_rmse(interp, abrdf, directions[test_cols], test_cols, alpha)
         metrics["rmse_heldout_nearest"], metrics["rmse_heldout_linear"] = nearest, linear
-    if cfg.dataset.name == "synthetic" and int(cfg.btf.interpolation.offgrid) > 0:
-        from pipeline.btf.synthetic import SyntheticBTF
+    settings = cfg.btf.interpolation
+    if cfg.dataset.name == "synthetic" and int(settings.offgrid) > 0:
+        from pipeline.btf.evaluate import decode_all
 
         queries = offgrid_directions(
-            int(cfg.btf.interpolation.offgrid),
-            cfg.btf.interpolation.seed,
-            offgrid_max_theta(directions),
+            int(settings.offgrid), settings.seed, offgrid_max_theta(directions)
         )
-        gen = cfg.dataset.synthetic
-        truth = SyntheticBTF(size=gen.size, seed=gen.seed, material=gen.material).evaluate(queries)
-        size = int(cfg.btf.crop.size)
-        y0, x0 = (int(v) for v in cfg.btf.crop.offset)
-        truth = truth[:, y0 : y0 + size, x0 : x0 + size].reshape(len(queries), -1, 3)
-        truth = truth.transpose(1, 0, 2) / alpha
-        model = _model_predict(decoder, latents, latent_of_texel, queries)
+        truth = truth_at_crop(cfg)(queries) / alpha
+        model = decode_all(decoder, latents, direction_features(queries))[latent_of_texel]
         if texel_scale is not None:
             model = model * texel_scale[:, None, None]
         nearest, linear = interp.predict(abrdf, queries)

@@ -6,15 +6,12 @@ run at every k (complete blocks):
 
 - two-way ANOVA without interaction, RMSE ~ k + seed (the test of k);
 - Friedman's rank test over the same blocks (a sign test with two values of k), the check
-  that does not assume normal errors. Its p is exact (the permutation distribution of the
-  ranks, :func:`friedman_exact_p`) whenever that is cheap, which covers the few-seed designs
-  where the chi-square approximation is conservative (3 seeds ranking 3 k alike: exact
-  1/36 = 0.028, chi-square 0.0498); otherwise the chi-square p. ``Verdict.rank_method``
-  says which;
+  that does not assume normal errors; its p is exact (:func:`friedman_p`) where that is
+  cheap, which covers the few-seed designs where the chi-square is conservative (3 seeds
+  ranking 3 k alike: exact 1/36 = 0.028, chi-square 0.0498);
 - the trend of RMSE against log2 k within seeds (slope per doubling of k, 95 % CI);
-- the effect of each step of the k grid (difference of means, t test on the ANOVA's
-  residual variance), corrected for the m steps tested together: Holm-adjusted p-values
-  and Bonferroni intervals at level 1 - alpha / m (see :class:`Step`);
+- the effect of each step of the k grid, corrected for the steps tested together
+  (:class:`Step`);
 - the smallest step effect these runs detect with 80 % power, and the seeds needed to
   detect a difference of ``target`` (:data:`PAPER_LARGEST_K_STEP`) of the mean RMSE.
 
@@ -45,7 +42,8 @@ EXACT_MAX_WORK = 2_000_000  # rank-sum states x block orderings over all blocks:
 
 @dataclass(frozen=True)
 class Step:
-    """The step from ``k_from`` to the next k of the grid, ``k_to``.
+    """The step from ``k_from`` to the next k of the grid, ``k_to``: the difference of means,
+    t-tested on the ANOVA's residual variance.
 
     The family is the m = (number of k) - 1 adjacent steps. ``p_holm`` is the Holm-Bonferroni
     adjusted p (family-wise error <= alpha). The intervals of Holm's step-down procedure
@@ -199,12 +197,9 @@ def _steps(
 
 
 def holm(p: np.ndarray) -> np.ndarray:
-    """Holm-Bonferroni adjusted p-values, in the order given.
-
-    The i-th smallest of m p-values becomes max over j <= i of min(1, (m - j + 1) p_(j)).
-    (statsmodels' ``multipletests(method="holm")``; scipy's ``false_discovery_control`` has
-    only the false-discovery-rate adjustments, and statsmodels is not a dependency.)
-    """
+    """Holm-Bonferroni adjusted p-values, in the order given (statsmodels'
+    ``multipletests(method="holm")``): the i-th smallest of m p-values becomes max over
+    j <= i of min(1, (m - j + 1) p_(j))."""
     p = np.asarray(p, dtype=float)
     order = np.argsort(p, kind="stable")
     scaled = (p.size - np.arange(p.size)) * p[order]
@@ -242,11 +237,10 @@ def friedman_exact_p(y: np.ndarray, max_work: int = EXACT_MAX_WORK) -> float | N
     rank sums R_j, which is what is compared, in doubled ranks (integers: exact).
 
     The distribution of the rank-sum vector is built block by block (a convolution), each
-    vector sorted: the distribution is exchangeable across treatments, so the sorted vector
-    carries all that the statistic needs and k! times fewer states. The same p as
-    ``scipy.stats.permutation_test(..., permutation_type="samples", n_resamples=np.inf)``,
-    which enumerates all (k!)^b configurations (6^10 = 6e7 for 3 k and 10 seeds) where this
-    costs (states x k!) per block.
+    vector sorted (the distribution is exchangeable across treatments: k! times fewer
+    states). The same p as scipy's ``permutation_test(..., permutation_type="samples",
+    n_resamples=np.inf)``, which enumerates all (k!)^b configurations (6^10 = 6e7 for 3 k
+    and 10 seeds) where this costs (states x k!) per block.
 
     >>> round(36 * friedman_exact_p(np.array([[3.0, 2.0, 1.0]] * 3)), 9)  # 6 of 6^3 tie it
     1.0

@@ -22,22 +22,14 @@ of this project), there is no filtering loss and no offset network. At texel cen
 pyramid can be folded into level 0 without changing any output, so its extra bytes (about
 a third more latents) buy only what training gains from it and later filtering.
 
-The decoder is :class:`pipeline.btf.model.Decoder`: (latent + 4) -> hidden x layers -> 3
-with ReLU, fed the 4 stereographic direction features; its linear layers are stored as
-``decoder.{i}.weight`` / ``bias`` as in :mod:`pipeline.btf.compressed`.
-
-Training: the latents start at N(0, 0.01^2) drawn from a ``torch.Generator`` seeded with
-the run's seed, the decoder with nn.Linear's initialisation under the same seed; Adam on
-both with a learning rate that rises linearly over the first 2 % of the steps and then
-decays as a cosine to 0 at the last one (:func:`learning_rate`): a function of the
-fraction of the run done, so that a longer run stretches the whole schedule.
+The decoder is :class:`pipeline.btf.model.Decoder`, stored as in
+:mod:`pipeline.btf.compressed`; training is :func:`train_latent_texture`.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
@@ -64,10 +56,8 @@ def bilinear_taps(rows: int, cols: int, level: int) -> tuple[np.ndarray, np.ndar
     row-major order and ``weights`` (rows * cols, 4) float64 summing to 1, texels in
     row-major order (texel t is row t // cols, column t % cols).
     """
-    (row_cells, row_weights), (col_cells, col_weights) = (
-        _taps_1d(rows, level),
-        _taps_1d(cols, level),
-    )
+    row_cells, row_weights = _taps_1d(rows, level)
+    col_cells, col_weights = _taps_1d(cols, level)
     cols_l = level_shape(rows, cols, level)[1]
     indices = row_cells[:, None, :, None] * cols_l + col_cells[None, :, None, :]
     weights = row_weights[:, None, :, None] * col_weights[None, :, None, :]
@@ -118,8 +108,7 @@ class LatentTexture(nn.Module):
             )
             for level in range(levels)
         )
-        # nn.Linear's own initialisation, seeded, leaving torch's global random state as
-        # it was.
+        # nn.Linear's own initialisation, seeded, leaving torch's global random state as it was.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.decoder = Decoder(latent=latent, hidden=hidden, layers=layers)
@@ -166,17 +155,14 @@ def payload_bytes(parts: dict[str, np.ndarray]) -> int:
 
 
 def query(parts: dict[str, np.ndarray], texels, features) -> np.ndarray:
-    """What :class:`LatentTexture` computes, from :func:`stored_parts` in numpy (float64).
+    """What :class:`LatentTexture` computes, from :func:`stored_parts` in numpy (float64):
+    ndarray of shape (n, 3), normalised, unclamped.
 
     Parameters
     ----------
     parts : the stored arrays (either dtype).
     texels : array_like of ints of shape (n,), row-major indices in [0, rows * cols).
     features : array_like of shape (n, 4), the direction features of each query.
-
-    Returns
-    -------
-    ndarray of shape (n, 3), float64 (normalised, unclamped).
     """
     if "latent_texture.0" not in parts or "decoder.0.weight" not in parts:
         raise ValueError("parts need latent_texture.0 and decoder.0.weight (stored_parts)")
@@ -243,17 +229,16 @@ def train_latent_texture(
     queries_per_texel: int,
     lr: float,
     seed: int,
-    on_curve: Callable[[dict], None] | None = None,
-    curve_every: int = 0,
     device: str = "cpu",
 ) -> LatentTextureResult:
     """Optimise a :class:`LatentTexture` and its decoder jointly with Adam, MSE loss.
 
     A step draws ``batch_texels`` texels without replacement and, for each, draws
-    ``queries_per_texel`` of ``train_directions`` with replacement. The learning rate
-    follows :func:`learning_rate` over exactly ``steps``. Deterministic for a seed: the
-    model is drawn from a ``torch.Generator``, the batches from ``np.random.default_rng``,
-    on one thread.
+    ``queries_per_texel`` of ``train_directions`` with replacement. The latents start at
+    N(0, 0.01^2) from a ``torch.Generator`` seeded with ``seed``, the decoder with
+    nn.Linear's initialisation under the same seed, the batches from
+    ``np.random.default_rng(seed)``; one thread: deterministic for a seed. The learning rate
+    follows :func:`learning_rate` over exactly ``steps``.
 
     Parameters
     ----------
@@ -265,8 +250,6 @@ def train_latent_texture(
     crop_size : (rows, cols) with rows * cols = M.
     device : where the model trains (``cuda`` when lent one); batches are drawn on the
         host either way, so a seed gives the same batches.
-    curve_every : steps per point of the loss curve (0: steps / 100); ``on_curve`` is
-        called with each point.
     """
     features = np.asarray(features, dtype=np.float32)
     train_directions = np.asarray(train_directions)
@@ -285,11 +268,8 @@ def train_latent_texture(
         ints and train_directions.size and np.all((train_directions >= 0) & (train_directions < n))
     ):
         raise ValueError(f"train_directions must be a non-empty 1-D array of ints in [0, {n})")
-    for name, value in zip(
-        ("steps", "batch_texels", "queries_per_texel"),
-        (steps, batch_texels, queries_per_texel),
-        strict=True,
-    ):
+    counts = {"steps": steps, "batch_texels": batch_texels, "queries_per_texel": queries_per_texel}
+    for name, value in counts.items():
         if value < 1:
             raise ValueError(f"{name}={value} must be >= 1")
     if batch_texels > m:
@@ -298,7 +278,7 @@ def train_latent_texture(
         raise ValueError(f"lr={lr} must be > 0")
     _check_shape(rows, cols, latent, levels)
 
-    block = curve_every or max(1, steps // 100)
+    block = max(1, steps // 100)  # steps per point of the loss curve
     device = torch.device(device)
     module = LatentTexture(rows, cols, latent, levels, hidden, layers, seed=seed).to(device)
     optimizer = torch.optim.Adam(module.parameters(), lr=lr)
@@ -307,16 +287,12 @@ def train_latent_texture(
     features = torch.from_numpy(features).to(device)
     curve: list[dict] = []
     running, count, seconds = 0.0, 0, 0.0
-    with (
-        _one_thread(),
-        progress(None, "latent texture", total=steps, unit="step") as bar,
-    ):
+    with _one_thread(), progress(None, "latent texture", total=steps, unit="step") as bar:
         clock = time.perf_counter()
         for step in range(1, steps + 1):
             texels = rng.choice(m, batch_texels, replace=False)
-            directions = train_directions[
-                rng.integers(0, len(train_directions), (batch_texels, queries_per_texel))
-            ]
+            picks = rng.integers(0, len(train_directions), (batch_texels, queries_per_texel))
+            directions = train_directions[picks]
             # The batch's directions for its texels, read as one block of the directions
             # drawn (a crop's ABRDFs served from a file decode only those).
             drawn, column = np.unique(directions, return_inverse=True)
@@ -339,8 +315,6 @@ def train_latent_texture(
                 point = {"step": step, "seconds": seconds, "loss": running / count}
                 curve.append(point)
                 bar.set_postfix(loss=f"{point['loss']:.3g}")
-                if on_curve is not None:
-                    on_curve(point)
                 running, count = 0.0, 0
                 clock = time.perf_counter()
             bar.update(1)

@@ -6,28 +6,9 @@ height field, the in-plane fibre direction, the thread each texel belongs to) an
 :meth:`Material.albedo` (the diffuse colour per texel). The renderer turns these into
 normals, twisted tangents, a depth for self-shadowing and an Ashikhmin–Shirley lobe,
 the same way for every preset. The look of each visible yarn (its label) is a
-:class:`Yarn`; a preset's ``yarns`` are indexed by label.
-
-Presets (:data:`MATERIALS`):
-
-``plain_weave``
-    Madder-red warp along +y and beige weft along +x alternating over and under at each
-    crossing; glossy twisted yarn, dark gaps. Labels: 0 warp, 1 weft, 2 gap.
-``knit``
-    Jersey knit, face side: columns (wales) of V-shaped loops, each V two rounded legs
-    at ±60° from the rows that meet at the bottom, nested into the V below; fuzzy
-    heathered wool with a broad, weak sheen, deep gaps between the loops. Labels:
-    0 left leg (fibre at 60°), 1 right leg (120°), 2 gap.
-``corduroy``
-    Cut-pile ridges (wales) along +y with deep valleys between them; dark olive pile with
-    a dull, broad sheen and a slightly different shade per wale. Labels: 0 crest,
-    1 flank, 2 valley.
-``satin``
-    Printed 5-harness satin: warp floats along +y passing over 4 wefts and under 1, the
-    binding points stepping by 2 warps from one weft row to the next; smooth filament
-    yarn with a narrow, bright highlight along the floats, and a floral print on the
-    albedo that ignores the threads. Labels: 0 warp, 1 weft (at the binding points and
-    in the slits between floats), 2 gap (rare: the warp is dense).
+:class:`Yarn`; a preset's ``yarns`` are indexed by label. The presets (:data:`MATERIALS`):
+``plain_weave`` (:class:`PlainWeave`), ``knit`` (:class:`Knit`), ``corduroy``
+(:class:`Corduroy`) and ``satin`` (:class:`Satin`).
 
 Coordinates: x along image columns (to the right), y along image rows (downward); a
 fibre direction ``(cos α, sin α)`` has azimuth α from +x toward +y, as φ does.
@@ -72,12 +53,9 @@ class Surface:
 
     Attributes
     ----------
-    labels : ndarray of shape (S, S), int
-        Index into the preset's ``yarns``.
-    height : ndarray of shape (S, S), float64
-        Height in texels (so finite differences are slopes), already smooth.
-    fibre : ndarray of shape (S, S, 2), float64
-        Unit in-plane direction (x, y) along the visible fibre.
+    labels : ndarray of shape (S, S), int, index into the preset's ``yarns``
+    height : ndarray of shape (S, S), float64, in texels (finite differences are slopes), smooth
+    fibre : ndarray of shape (S, S, 2), float64, unit in-plane direction (x, y) of the fibre
     thread : ndarray of shape (S, S), int
         The thread (wale, course) a texel belongs to, for per-thread colour variation.
     """
@@ -164,23 +142,34 @@ def round_thread(centre_line, across, half_width, radius):
     return np.where(inside, centre_line + radius * bulge, -np.inf)
 
 
-def woven_surfaces(x, y, warp_centre, weft_centre, half_width, radius, floor):
-    """Heights of the warp (along +y), the weft (along +x) and the floor, stacked
-    (3, S, S): the top one is what a texel shows. Threads sit at whole periods of x (warp)
-    and y (weft), their centre lines at ``warp_centre`` and ``weft_centre``."""
-    return np.stack([
-        round_thread(warp_centre, x - np.floor(x) - 0.5, half_width, radius),
-        round_thread(weft_centre, y - np.floor(y) - 0.5, half_width, radius),
-        np.full_like(x, floor),
-    ])  # fmt: skip
-
-
 # --- the presets ------------------------------------------------------------------------
 
 
 @dataclass(frozen=True, kw_only=True)
-class PlainWeave(Material):
-    """Plain weave: warp k on top where k + row of crossing is even, weft elsewhere."""
+class Woven(Material):
+    """A weave of round threads, warp along +y and weft along +x (plain_weave, satin)."""
+
+    thread_half_width: float  # in thread periods; the rest of the period is gap
+    thread_radius: float  # crest height above the thread's centre line, in periods
+    undulation: float  # how far a thread dips under its crossing threads
+
+    def woven_surfaces(self, x, y, warp_centre, weft_centre) -> np.ndarray:
+        """Heights of the warp, the weft and the floor, stacked (3, S, S): the top one is
+        what a texel shows. Threads sit at whole periods of x (warp) and y (weft), their
+        centre lines at ``warp_centre`` and ``weft_centre``."""
+        half_width, radius = self.thread_half_width, self.thread_radius
+        return np.stack([
+            round_thread(warp_centre, x - np.floor(x) - 0.5, half_width, radius),
+            round_thread(weft_centre, y - np.floor(y) - 0.5, half_width, radius),
+            np.full_like(x, -self.undulation - radius),
+        ])  # fmt: skip
+
+
+@dataclass(frozen=True, kw_only=True)
+class PlainWeave(Woven):
+    """Plain weave: madder-red warp along +y and beige weft along +x, warp k on top where
+    k + row of crossing is even; glossy twisted yarn, dark gaps. Labels: 0 warp, 1 weft,
+    2 gap."""
 
     yarns: tuple[Yarn, ...] = (
         Yarn("warp", albedo=(0.55, 0.10, 0.08), specular=0.45, exponent_along=90.0,
@@ -193,9 +182,9 @@ class PlainWeave(Material):
     n_threads: int = 4
     exposure: float = 3.0
     shadow_strength: float = 0.55
-    thread_half_width: float = 0.4  # in thread periods; the rest of the period is gap
-    thread_radius: float = 0.3  # crest height above the thread's centre line, in periods
-    undulation: float = 0.15  # how far a thread dips under its crossing threads
+    thread_half_width: float = 0.4
+    thread_radius: float = 0.3
+    undulation: float = 0.15
 
     def check_threads(self, n_threads):
         if not isinstance(n_threads, int | np.integer) or n_threads < 2 or n_threads % 2:
@@ -208,15 +197,7 @@ class PlainWeave(Material):
         warp_index, weft_index = np.floor(x), np.floor(y)
         warp_centre = self.undulation * np.cos(np.pi * (y - 0.5) + np.pi * warp_index)
         weft_centre = -self.undulation * np.cos(np.pi * (x - 0.5) + np.pi * weft_index)
-        surfaces = woven_surfaces(
-            x,
-            y,
-            warp_centre,
-            weft_centre,
-            self.thread_half_width,
-            self.thread_radius,
-            floor=-self.undulation - self.thread_radius,
-        )
+        surfaces = self.woven_surfaces(x, y, warp_centre, weft_centre)
         labels = np.argmax(surfaces, axis=0)
         return Surface(
             labels=labels,
@@ -237,9 +218,11 @@ class PlainWeave(Material):
 
 @dataclass(frozen=True, kw_only=True)
 class Knit(Material):
-    """Jersey knit: each loop shows as two elliptic legs forming a V, wales side by side."""
+    """Jersey knit, face side: columns (wales) of V-shaped loops, each V two rounded legs
+    at ±60° from the rows that meet at the bottom, nested into the V below; fuzzy heathered
+    blue-grey wool with a broad, weak sheen, deep gaps between the loops. Labels: 0 left
+    leg (fibre at 60°), 1 right leg (120°), 2 gap."""
 
-    # Heathered blue-grey wool: a broad, weak sheen.
     yarns: tuple[Yarn, ...] = (
         Yarn("left leg", albedo=(0.36, 0.44, 0.56), specular=0.06, exponent_along=8.0,
              exponent_across=3.0, twist_degrees=10.0, shadow=0.5, shadow_across=0.9),
@@ -328,9 +311,10 @@ class Knit(Material):
 
 @dataclass(frozen=True, kw_only=True)
 class Corduroy(Material):
-    """Corduroy: rounded cut-pile ridges along +y, one per wale, with deep valleys."""
+    """Corduroy: rounded cut-pile ridges (wales) along +y with deep valleys between them;
+    dark olive pile with a dull, broad sheen, a slightly different shade per wale, and
+    little light reaching the ground weave. Labels: 0 crest, 1 flank, 2 valley."""
 
-    # Olive pile, a dull sheen; little light reaches the ground weave.
     yarns: tuple[Yarn, ...] = (
         Yarn("crest", albedo=(0.25, 0.26, 0.11), specular=0.10, exponent_along=10.0,
              exponent_across=4.0, shadow=0.2, shadow_across=1.6),
@@ -370,9 +354,12 @@ class Corduroy(Material):
 
 
 @dataclass(frozen=True, kw_only=True)
-class Satin(Material):
-    """Printed 5-harness satin: warp k goes under weft j only where j ≡ 3k (mod 5), so
-    along a weft the binding warps step by 2 (k ≡ 2j)."""
+class Satin(Woven):
+    """Printed 5-harness satin: warp floats along +y over 4 wefts and under 1 (warp k goes
+    under weft j only where j ≡ 3k (mod 5), so along a weft the binding warps step by 2);
+    a narrow, bright highlight along the floats, and a floral print that ignores the
+    threads. Labels: 0 warp, 1 weft (at the binding points and in the slits between
+    floats), 2 gap (rare: the warp is dense)."""
 
     # Low-twist filament; the albedo multiplies the print.
     yarns: tuple[Yarn, ...] = (
@@ -414,15 +401,7 @@ class Satin(Material):
         warp_centre = self.undulation * (1 - 2 * dip(from_binding))
         warp_centre += self.arch * (1 - np.cos(2 * np.pi * from_binding / 5)) / 2
         weft_centre = self.undulation * (2 * dip(x - np.mod(2 * weft_index, 5) - 0.5) - 1)
-        surfaces = woven_surfaces(
-            x,
-            y,
-            warp_centre,
-            weft_centre,
-            self.thread_half_width,
-            self.thread_radius,
-            floor=-self.undulation - self.thread_radius,
-        )
+        surfaces = self.woven_surfaces(x, y, warp_centre, weft_centre)
         labels = np.argmax(surfaces, axis=0)
         return Surface(
             labels=labels,

@@ -6,10 +6,8 @@ N directions, then a fully connected layer to an 8-dimensional latent. The paper
 block order but not the activation; a ReLU after each convolution is the usual choice.
 ReLU and max-pool commute (the maximum of three values is monotone in each), so each block
 pools first and applies the ReLU to a third as many values: the same values and gradients.
-In training (with gradients, on the CPU) ``Encoder.forward`` runs the blocks by hand, a few
-ABRDFs at a time (:mod:`pipeline.btf.fast.encoder_step`); otherwise, and in
-``Encoder.forward_layers``, as autograd layers on a channels-last 2-D layout (see there).
-``Encoder.reference`` is the plain 1-D form of the same layers.
+``Encoder.forward`` picks how the blocks run (see there); ``Encoder.reference`` is the plain
+1-D form of the same layers.
 
 Decoder: 12 -> 106 -> 106 -> 106 -> 3 with ReLU, fed the latent plus the light and view
 directions in stereographic coordinates (eq. 7-9, :mod:`pipeline.btf.stereographic`). Its
@@ -50,9 +48,7 @@ class Encoder(nn.Module):
     ):
         super().__init__()
         channels = list(channels)
-        length = n_directions
-        for _ in channels:
-            length //= 3
+        length = n_directions // 3 ** len(channels)
         if length < 1:
             raise ConfigError(
                 f"btf.network.encoder_channels has {len(channels)} blocks, each pooling by 3, but "
@@ -85,15 +81,11 @@ class Encoder(nn.Module):
 
     def forward_layers(self, abrdf: torch.Tensor) -> torch.Tensor:
         """The blocks on (batch, C, 1, L) tensors, convolved and pooled in channels-last
-        memory (the (batch, N, 3) memory of an input handed over as ``x.permute(0, 2, 1)``
-        already is, so it is not copied), with the layers' own parameters: the 3 x 1
-        convolution is oneDNN's 2-D one, and the pool is torch's channels-last
-        ``max_pool2d``, vectorized over the channels, where a maximum over the last axis of
-        3 strides through memory. Batch-norm runs on the plain layout: torch's
-        channels-last batch-norm gave parameter gradients far from float64 in
-        ``tests/test_btf_model.py``, the plain one as close as :meth:`reference`. The same
-        values as :meth:`reference` up to rounding, and faster than its 1-D layers
-        (docs/performance.md)."""
+        memory (which an input handed over as ``x.permute(0, 2, 1)`` already is): oneDNN's
+        2-D convolution and torch's ``max_pool2d``, vectorized over the channels. Batch-norm
+        runs on the plain layout: the channels-last one gave parameter gradients far from
+        float64 in ``tests/test_btf_model.py``. :meth:`reference`'s values up to rounding,
+        and faster (docs/performance.md)."""
         h = abrdf.unsqueeze(2)
         blocks = list(self.features)
         for conv, batch_norm in zip(blocks[0::4], blocks[3::4], strict=True):
@@ -119,16 +111,8 @@ def _batch_norm(module: nn.BatchNorm1d, x: torch.Tensor) -> torch.Tensor:
             factor = 1.0 / float(module.num_batches_tracked)
     use_batch = module.training or module.running_mean is None
     track = not module.training or module.track_running_stats
-    return F.batch_norm(
-        x,
-        module.running_mean if track else None,
-        module.running_var if track else None,
-        module.weight,
-        module.bias,
-        use_batch,
-        factor,
-        module.eps,
-    )
+    mean, var = (module.running_mean, module.running_var) if track else (None, None)
+    return F.batch_norm(x, mean, var, module.weight, module.bias, use_batch, factor, module.eps)
 
 
 class Decoder(nn.Module):
@@ -170,10 +154,7 @@ def load_decoder(path) -> Decoder:
     size (``btf.network.latent``) read from the first layer's inputs (latent + 4)."""
     state = torch.load(path, weights_only=True)
     weights = [key for key in state if key.endswith(".weight")]
-    decoder = Decoder(
-        latent=state["net.0.weight"].shape[1] - 4,
-        hidden=state["net.0.weight"].shape[0],
-        layers=len(weights) - 1,
-    )
+    hidden, inputs = state["net.0.weight"].shape
+    decoder = Decoder(latent=inputs - 4, hidden=hidden, layers=len(weights) - 1)
     decoder.load_state_dict(state)
     return decoder.eval()

@@ -1,11 +1,9 @@
-"""Method A's model group: ``model=neural_btf|clustered|pca``.
+"""Method A's model group: ``model=neural_btf|clustered|pca|latent_texture``.
 
 Each model is a typed, closed config (a dataclass that Hydra stores as the structured
 config its ``conf/model/<name>.yaml`` extends: an unknown key such as
 ``model.n_components`` under ``model=clustered`` is refused) and a :class:`Model` beside
-it that says what the chain needs of it: whether it trains (``train.*`` then makes its
-numbers), whether it clusters (the reduction, k-means and representatives stages run), its
-label in tables and the setting that is its size axis. The model is chosen once, here:
+it that says what the chain and the tables need of it. The model is chosen once, here:
 code asks the :class:`Model` (``model_of(cfg).clusters``), never compares names.
 
 Light on purpose (no torch): composing a config registers these dataclasses.
@@ -109,12 +107,12 @@ class Model:
     title : how a sentence names it.
     stage : ``"module:function"`` of its train stage, whose entry holds ``decoder.pt`` and
         the stored latents for the evaluate and export stages; None: the linear chain.
-    trains : it trains the autoencoder, so ``train.*`` makes its numbers.
-    clusters : it runs the reduction, k-means and representatives stages.
     size : ``(column, prefix)``: the column of a run (``mlflow.search_runs``) that is its
         size axis in the rate-distortion figures, and that axis' label (``k = 500``).
     column : ``(run) -> str``, its Table 2 column from a run (a row of
         ``mlflow.search_runs``: ``params.*`` strings and ``metrics.*``).
+    trains : it trains the autoencoder, so ``train.*`` makes its numbers.
+    clusters : it runs the reduction, k-means and representatives stages.
     rank : where its columns go in a table (then by size).
     stored_types : ``(run) -> str``, the types its parts are stored in (``float16, list
         uint16``), from a run's ``params.*``.
@@ -124,10 +122,10 @@ class Model:
     config: type
     title: str
     stage: str | None
-    trains: bool
-    clusters: bool
     size: tuple[str, str]
     column: Callable[[Mapping], str] = field(repr=False)
+    trains: bool = False
+    clusters: bool = False
     rank: int = 0
     stored_types: Callable[[Mapping], str] = field(repr=False, default=lambda run: "")
 
@@ -151,11 +149,12 @@ def _param(run: Mapping, key: str, default: str) -> str:
     return default if value is None or value != value else str(value)  # NaN: not logged
 
 
+def _weight_type(run: Mapping) -> str:
+    return _param(run, "btf.sizes.weight_dtype", "float32")
+
+
 def _clustered_types(run: Mapping) -> str:
-    types = (
-        f"{_param(run, 'btf.sizes.weight_dtype', 'float32')}, "
-        f"list {_param(run, 'btf.sizes.list_dtype', 'int32')}"
-    )
+    types = f"{_weight_type(run)}, list {_param(run, 'btf.sizes.list_dtype', 'int32')}"
     if _param(run, "model.texel_scale", "none") != "none":
         types += f", +scale {_param(run, 'btf.sizes.extra_dtype', 'float32')}"
     return types
@@ -184,11 +183,9 @@ MODELS: dict[str, Model] = {
             "Neural BTF",
             TRAIN,
             trains=True,
-            clusters=False,
             size=("params.btf.network.latent", "latent "),
             column=lambda run: "Neural BTF",
-            rank=0,
-            stored_types=lambda run: _param(run, "btf.sizes.weight_dtype", "float32"),
+            stored_types=_weight_type,
         ),
         Model(
             "clustered",
@@ -207,8 +204,6 @@ MODELS: dict[str, Model] = {
             PCAConfig,
             "PCA",
             None,
-            trains=False,
-            clusters=False,
             size=("metrics.n_components", "c = "),
             column=_pca_column,
             rank=3,
@@ -219,12 +214,10 @@ MODELS: dict[str, Model] = {
             LatentTextureConfig,
             "latent texture",
             "pipeline.btf.latent_stage:train_stage",
-            trains=False,
-            clusters=False,
             size=("params.btf.network.latent", "latent "),
             column=lambda run: "latent texture",
             rank=1,
-            stored_types=lambda run: _param(run, "btf.sizes.weight_dtype", "float32"),
+            stored_types=_weight_type,
         ),
     )
 }

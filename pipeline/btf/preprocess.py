@@ -28,8 +28,7 @@ class Normalization:
     ----------
     mean, std : ndarray of shape (N, 3), float32
         Per-dimension statistics of log(x + 1) over the texels.
-    alpha : float
-        Maximum over all values of the matrix; targets are ``abrdf / alpha``.
+    alpha : float, maximum over all values of the matrix; targets are ``abrdf / alpha``
     """
 
     mean: np.ndarray
@@ -70,14 +69,8 @@ class Targets:
 
 
 def fit_normalization(abrdf: np.ndarray, chunk: int = 1024) -> Normalization:
-    """Fit the eq. 1-6 statistics on an ABRDF matrix, in chunks of texels.
-
-    Parameters
-    ----------
-    abrdf : ndarray of shape (M, N, 3)
-        Linear RGB ABRDFs (may be a read-only memory map; it is read chunk by chunk so a
-        paper-size matrix is never duplicated in memory).
-    """
+    """Fit the eq. 1-6 statistics on linear RGB ABRDFs ``abrdf`` (M, N, 3), read chunk by
+    chunk so that a memory-mapped paper-size matrix is never duplicated in memory."""
     if abrdf.ndim != 3 or abrdf.shape[2] != 3:
         raise ValueError(f"abrdf must have shape (M, N, 3), got {abrdf.shape}")
     m = abrdf.shape[0]
@@ -106,13 +99,10 @@ def fit_normalization(abrdf: np.ndarray, chunk: int = 1024) -> Normalization:
     return Normalization(mean.astype(np.float32), std.astype(np.float32), alpha)
 
 
-def encoder_inputs(
-    abrdf: np.ndarray, norm: Normalization, chunk: int = 1024, out: np.ndarray | None = None
-) -> np.ndarray:
+def encoder_inputs(abrdf: np.ndarray, norm: Normalization, chunk: int = 1024) -> np.ndarray:
     """All standardized inputs, flattened to shape (M, 3N), computed chunk by chunk."""
     m, n, _ = abrdf.shape
-    if out is None:
-        out = np.empty((m, n * 3), dtype=np.float32)
+    out = np.empty((m, n * 3), dtype=np.float32)
     for start in progress(range(0, m, chunk), "encoder inputs", total=m, unit="texel", scale=chunk):
         block = norm.encoder_input(abrdf[start : start + chunk])
         out[start : start + len(block)] = block.reshape(len(block), -1)

@@ -58,15 +58,12 @@ def arms(runs: pd.DataFrame) -> pd.DataFrame:
     settings, other than the size setting, in which its runs differ)."""
     runs = runs.copy()
     models = models_of(runs)
-    storage = [
-        m.stored_types(run) if m else "?"
-        for m, (_, run) in zip(models, runs.iterrows(), strict=True)
-    ]
-    runs["arm"] = [f"{m.title if m else '?'} ({s})" for m, s in zip(models, storage, strict=True)]
-    size = [
-        _num(pd.Series([run.get(m.size[0], DEFAULT_SIZE.get(m.name)) if m else None])).iloc[0]
-        for m, (_, run) in zip(models, runs.iterrows(), strict=True)
-    ]
+    arm, size = [], []
+    for m, (_, run) in zip(models, runs.iterrows(), strict=True):
+        arm.append(f"{m.title} ({m.stored_types(run)})" if m else "? (?)")
+        value = run.get(m.size[0], DEFAULT_SIZE.get(m.name)) if m else None
+        size.append(_num(pd.Series([value])).iloc[0])
+    runs["arm"] = arm
     runs["size"] = size
     runs["setting"] = [
         (m.size[1] if m else "") + ("?" if pd.isna(v) else str(int(v)))
@@ -194,34 +191,30 @@ def best_at_budgets(
                 rows.append(row)
                 continue
             best = lowest(fits)
-            row.update(
-                {
-                    "best": best["label"],
-                    "method": best["method"],
-                    "bytes": int(best["bytes"]),
-                    "RMSE mean": best["rmse_mean"],
-                    "RMSE std": best["rmse_std"],
-                    "seeds": int(best["n"]),
-                    "arms compared": len(fits),
-                }
-            )
-            row.update(selected_on_one_seed(fits))
+            row |= {
+                "best": best["label"],
+                "method": best["method"],
+                "bytes": int(best["bytes"]),
+                "RMSE mean": best["rmse_mean"],
+                "RMSE std": best["rmse_std"],
+                "seeds": int(best["n"]),
+                "arms compared": len(fits),
+            }
+            row |= selected_on_one_seed(fits)
             others = fits[fits["method"] != best["method"]]
             if others.empty:
                 row["verdict"] = "no other method fits this budget"
                 rows.append(row)
                 continue
             other = lowest(others)
-            row.update(
-                {
-                    "best other method": other["label"],
-                    "its bytes": int(other["bytes"]),
-                    "its RMSE mean": other["rmse_mean"],
-                    "its RMSE std": other["rmse_std"],
-                    "its seeds": int(other["n"]),
-                    "difference": other["rmse_mean"] - best["rmse_mean"],
-                }
-            )
+            row |= {
+                "best other method": other["label"],
+                "its bytes": int(other["bytes"]),
+                "its RMSE mean": other["rmse_mean"],
+                "its RMSE std": other["rmse_std"],
+                "its seeds": int(other["n"]),
+                "difference": other["rmse_mean"] - best["rmse_mean"],
+            }
             found = welch_interval(best, other, alpha)
             if found is None:
                 row["verdict"] = "untested: a point has 1 seed (run seed=0,1,2)"
@@ -433,10 +426,9 @@ def section(runs: pd.DataFrame, out: Path, alpha: float = 0.05, budgets_kb=BUDGE
             "Best model at a byte budget",
             f"best: the lowest mean RMSE among the points with at most the budget's bytes (KB = "
             f"1024 B; within {RMSE_TIE:g} of it, the fewest bytes). best other method: the best "
-            f"point of another method within the budget; "
-            f"difference = its mean RMSE - the best's, with a {100 * (1 - alpha):g} % Welch "
-            f"interval over the seeds of both; 'wins beyond seed noise' when that interval "
-            f"excludes 0. Seeds: n of each point.",
+            "point of another method within the budget; difference = its mean RMSE - the best's, "
+            f"with a {100 * (1 - alpha):g} % Welch interval over the seeds of both; 'wins beyond "
+            "seed noise' when that interval excludes 0. Seeds: n of each point.",
         )
     )
     if table["dataset"].nunique() > 1:

@@ -33,138 +33,100 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
     if runs.empty:
         return ["No Neural BTF run with a recipe tag found (method A): `python -m pipeline`.\n"]
     found = []
-    sizes = tables.table_sizes(runs)
-    if not sizes.empty:
-        found.append(
-            write_table(
-                sizes,
-                out,
-                "table1_sizes",
-                "Table 1: stored sizes in bytes",
-                "Bytes as stored, in the types of the 'stored as' column (read "
-                "from the written tensors). Ratio (exact) = original bytes / "
-                "total bytes. Ratio (paper) = original in MB / total in whole "
-                "KB, the paper's convention. Original = M x N x 3 float32.",
-            )
-        )
-    rmse = tables.with_truth_floor(tables.table_rmse(runs), runs)
-    found.append(
-        write_table(
-            rmse,
-            out,
-            "table2_rmse",
-            "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
-            "Over all N directions, held-out lights included "
-            "(btf.interpolation.holdout_lights; the interpolation table has them apart). "
-            "n = number of seeds. Clustered runs use each texel's own values "
-            "as the training target unless marked (rep. target). data vs "
-            "truth (built-in data only): the data's own RMSE against the "
-            "generator's analytic truth (its 8-bit and JPEG rounding): what a "
-            "model that recovered the truth exactly would score. Learning "
-            f"rates: {tables.learning_rates(runs) or 'not logged'}. A "
-            "column is one recipe; a label names what tells it apart from "
-            "the other columns of its model (all the settings in which "
-            "they differ: table2_columns.csv).",
-        )
+
+    def add(table: pd.DataFrame, stem: str, title: str, note: str, floatfmt: str = "g") -> None:
+        if not table.empty:
+            found.append(write_table(table, out, stem, title, note, floatfmt))
+
+    add(
+        tables.table_sizes(runs),
+        "table1_sizes",
+        "Table 1: stored sizes in bytes",
+        "Bytes as stored, in the types of the 'stored as' column (read from the written "
+        "tensors). Ratio (exact) = original bytes / total bytes. Ratio (paper) = original in MB "
+        "/ total in whole KB, the paper's convention. Original = M x N x 3 float32.",
+    )
+    add(
+        tables.with_truth_floor(tables.table_rmse(runs), runs),
+        "table2_rmse",
+        "Table 2: RMSE (eq. 10, normalized to [0, 1]), mean ± std over seeds",
+        "Over all N directions, held-out lights included (btf.interpolation.holdout_lights; the "
+        "interpolation table has them apart). n = number of seeds. Clustered runs use each "
+        "texel's own values as the training target unless marked (rep. target). data vs truth "
+        "(built-in data only): the data's own RMSE against the generator's analytic truth (its "
+        "8-bit and JPEG rounding): what a model that recovered the truth exactly would score. "
+        f"Learning rates: {tables.learning_rates(runs) or 'not logged'}. A column is one "
+        "recipe; a label names what tells it apart from the other columns of its model (all the "
+        "settings in which they differ: table2_columns.csv).",
     )
     write_file(out / "table2_columns.csv", tables.column_recipes(runs).to_csv(index=False))
-    found.append(
-        write_table(
-            paper.TABLE2,
-            out,
-            "table2_paper",
-            "The paper's Table 2, beside ours (not a reproduction)",
-            "RMSE of eq. 10 as published, one model per cell. Its data are measured UBO2003 "
-            "BTFs with their camera noise (the built-in data are generated materials rounded "
-            "to 8-bit JPEGs); it trains by plain SGD (lr 0.05 / 0.08, batches of 5) for 2-3 hours a "
-            "model on a GTX 970 with no stopping criterion stated (Table 2's learning rates and "
-            "table2_columns.csv say ours). Its largest step between two k is "
-            f"{100 * paper.largest_k_step():.1f} % (fabric02, 500 -> 1000); its largest "
-            f"clustering penalty {100 * paper.largest_clustering_penalty():+.1f} % "
-            "(fabric02, k = 500 over the Neural BTF).",
-            floatfmt=".4f",  # as published: 0.0200, not 0.02
-        )
+    add(
+        paper.TABLE2,
+        "table2_paper",
+        "The paper's Table 2, beside ours (not a reproduction)",
+        "RMSE of eq. 10 as published, one model per cell. Its data are measured UBO2003 "
+        "BTFs with their camera noise (the built-in data are generated materials rounded "
+        "to 8-bit JPEGs); it trains by plain SGD (lr 0.05 / 0.08, batches of 5) for 2-3 hours a "
+        "model on a GTX 970 with no stopping criterion stated (Table 2's learning rates and "
+        "table2_columns.csv say ours). Its largest step between two k is "
+        f"{100 * paper.largest_k_step():.1f} % (fabric02, 500 -> 1000); its largest "
+        f"clustering penalty {100 * paper.largest_clustering_penalty():+.1f} % "
+        "(fabric02, k = 500 over the Neural BTF).",
+        floatfmt=".4f",  # as published: 0.0200, not 0.02
     )
-    grain = tables.table_graininess(runs)
-    if not grain.empty:
-        found.append(
-            write_table(
-                grain,
-                out,
-                "graininess",
-                "Graininess fix at equal bytes: clustered RMSE without / with a per-texel scale",
-                "The scale costs one btf.sizes.extra_dtype value per texel (Table 1's "
-                "'+ per-texel scale' rows); 'bytes' are without it, also for a model that "
-                "stores it. 'nearest in bytes': the model of the same recipe but k, without a "
-                "scale, whose total bytes are closest to the scaled model's, so that the scale "
-                "is compared with spending its bytes on the model itself (more clusters). "
-                "Every RMSE is over all the crop's directions, as Table 2's.",
-            )
-        )
-    failed = tables.failed_runs(runs)
-    if not failed.empty:
-        found.append(
-            write_table(
-                failed,
-                out,
-                "failed_runs",
-                "WARNING: runs that did not beat the trivial baseline",
-                "These models end within 10 % of the mean-ABRDF baseline (every texel "
-                "reconstructed as the mean ABRDF) or above it: their training failed, and their "
-                "RMSE in Table 2 measures no compression. Check train.* (lr, steps, schedule) "
-                "against the crop size.",
-            )
-        )
-    interpolation = tables.table_interpolation(runs)
-    if not interpolation.empty:
-        found.append(
-            write_table(
-                interpolation,
-                out,
-                "interpolation",
-                "Interpolation at directions never trained on (RMSE)",
-                "held-out: light directions removed from training, reference "
-                "= measured data. off-grid: random directions off the 81-grid, "
-                "reference = the synthetic generator's ground truth. Not a "
-                "blind test of the model: its encoder and the normalisation "
-                "saw each texel's values at the held-out directions, while "
-                "nearest and linear see only the training directions.",
-            )
-        )
-    verdict = tables.k_verdict(runs, alpha=float(settings.alpha))
-    if not verdict.empty:
-        found.append(
-            write_table(
-                verdict,
-                out,
-                "k_verdict",
-                "Does k change the error?",
-                "Seeds are blocks (a seed shares its initialisation, batch order and k-means "
-                "seed across k): two-way ANOVA without interaction over the seeds run at every k, "
-                "Friedman's rank test (a sign test for two k; its exact permutation p where the "
-                "blocks are few, else the chi-square) as the check without normality, the trend of "
-                "RMSE per doubling of k within seeds, and each step's effect with its Bonferroni "
-                "interval, Holm-adjusted p and size relative to the smaller k's mean. Without "
-                "evidence: the step these runs detect with 80 % power and the seeds needed for a "
-                "5.7 % difference (the paper's largest step between two k: fabric02, k = 500 "
-                "-> 1000; its 4.4 % is k = 500 over the Neural BTF, no step). Runs pooled only "
-                "within one recipe (see the column labels).",
-            )
-        )
+    add(
+        tables.table_graininess(runs),
+        "graininess",
+        "Graininess fix at equal bytes: clustered RMSE without / with a per-texel scale",
+        "The scale costs one btf.sizes.extra_dtype value per texel (Table 1's '+ per-texel "
+        "scale' rows); 'bytes' are without it, also for a model that stores it. 'nearest in "
+        "bytes': the model of the same recipe but k, without a scale, whose total bytes are "
+        "closest to the scaled model's, so that the scale is compared with spending its bytes "
+        "on the model itself (more clusters). Every RMSE is over all the crop's directions, as "
+        "Table 2's.",
+    )
+    add(
+        tables.failed_runs(runs),
+        "failed_runs",
+        "WARNING: runs that did not beat the trivial baseline",
+        "These models end within 10 % of the mean-ABRDF baseline (every texel "
+        "reconstructed as the mean ABRDF) or above it: their training failed, and their "
+        "RMSE in Table 2 measures no compression. Check train.* (lr, steps, schedule) "
+        "against the crop size.",
+    )
+    add(
+        tables.table_interpolation(runs),
+        "interpolation",
+        "Interpolation at directions never trained on (RMSE)",
+        "held-out: light directions removed from training, reference = measured data. off-grid: "
+        "random directions off the 81-grid, reference = the synthetic generator's ground truth. "
+        "Not a blind test of the model: its encoder and the normalisation saw each texel's "
+        "values at the held-out directions, while nearest and linear see only the training "
+        "directions.",
+    )
+    add(
+        tables.k_verdict(runs, alpha=float(settings.alpha)),
+        "k_verdict",
+        "Does k change the error?",
+        "Seeds are blocks (a seed shares its initialisation, batch order and k-means seed "
+        "across k): two-way ANOVA without interaction over the seeds run at every k, Friedman's "
+        "rank test (a sign test for two k; its exact permutation p where the blocks are few, "
+        "else the chi-square) as the check without normality, the trend of RMSE per doubling of "
+        "k within seeds, and each step's effect with its Bonferroni interval, Holm-adjusted p "
+        "and size relative to the smaller k's mean. Without evidence: the step these runs "
+        "detect with 80 % power and the seeds needed for a 5.7 % difference (the paper's "
+        "largest step between two k: fabric02, k = 500 -> 1000; its 4.4 % is k = 500 over the "
+        "Neural BTF, no step). Runs pooled only within one recipe (see the column labels).",
+    )
     tolerance = float(settings.convergence_tolerance)
-    convergence = tables.table_convergence(runs, tolerance)
-    if not convergence.empty:
-        found.append(
-            write_table(
-                convergence,
-                out,
-                "convergence",
-                "Converged? RMSE against the same model trained longer",
-                f"excess = RMSE / reference RMSE - 1, the reference being the longest run of the "
-                f"same model and seed; the goal is within {100 * tolerance:g} % of a run 4x as "
-                f"long (`tables.convergence_tolerance`).",
-            )
-        )
+    add(
+        tables.table_convergence(runs, tolerance),
+        "convergence",
+        "Converged? RMSE against the same model trained longer",
+        f"excess = RMSE / reference RMSE - 1, the reference being the longest run of the "
+        f"same model and seed; the goal is within {100 * tolerance:g} % of a run 4x as "
+        f"long (`tables.convergence_tolerance`).",
+    )
     missing = tables.missing_runs(runs, list(settings.paper_ks))
     found.append(
         "## Missing from the paper grid\n\n"
@@ -209,13 +171,8 @@ def verdict(runs: pd.DataFrame, limit: int = 12) -> list[str]:
         rows = [_verdict_row(model, of_model, baseline) for model, of_model in models[:limit]]
         widths = [max(len(row[i]) for row in rows) for i in range(4)]
         for row in rows:
-            cells = [
-                row[0].ljust(widths[0]),
-                row[1].ljust(widths[1]),
-                row[2].ljust(widths[2]),
-                row[3].rjust(widths[3]),
-                row[4],
-            ]
+            cells = [row[i].ljust(widths[i]) for i in range(3)]
+            cells += [row[3].rjust(widths[3]), row[4]]
             lines.append("  " + "  ".join(cells).rstrip())
         if len(models) > limit:
             lines.append(f"  … and {len(models) - limit} more models (see the tables)")
@@ -246,8 +203,6 @@ def job_figures(
     ``out`` (PNG and EXR) with its data (``fig7_data.npz``, which the tables draw from);
     nothing for PCA, which has no decoder to query. ``left_out``: the settings the job's
     run did not log (``Method.left_out``), left out of its recipe as the run's are."""
-    import numpy as np
-
     from pipeline.btf.fig7 import DATA_NAME, draw_fig7, job_data
     from pipeline.core.cache import StageCache
     from pipeline.core.recipe import recipe_id

@@ -13,6 +13,7 @@ stages are all cached starts in a fraction of the time.
 from __future__ import annotations
 
 import logging
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,6 @@ from pipeline.core.methods import resolve
 from pipeline.core.run_log import RunLog
 from pipeline.core.settings import SPEED, at_added_default, check_settings, constraints, roles
 from pipeline.core.stage import Context, plain_settings
-from pipeline.data.directions import direction_sets
 
 logger = logging.getLogger(__name__)
 
@@ -49,8 +49,7 @@ def check_settings_against_the_data(cfg, loaded: Entry) -> None:
     """Refuse settings that the data's shape rules out, as soon as the load stage knows it
     (for a UBO2014 file: from its header, before anything is decoded): the held-out lights
     must leave lights to train on. (The crop stage, next, checks that the crop fits.)"""
-    lights = direction_sets(loaded.array("directions", mmap=False)).lights
-    interpolation.heldout_light_indices(cfg, lights)
+    interpolation.heldout_lights_of(cfg, loaded)
 
 
 def _train_settings(cfg):
@@ -85,8 +84,7 @@ def train_stage(
     settings = _train_settings(cfg)
     left_out = keyless(settings)
     # Indices into the data's own light set (the 81-grid's canonical order for UBO2003).
-    lights = direction_sets(cropped.array("directions", mmap=False)).lights
-    heldout = interpolation.heldout_light_indices(cfg, lights)
+    heldout = interpolation.heldout_lights_of(cfg, cropped)
     stage_settings = {
         "method": cfg.model.name,
         "target": cfg.model.get("target", "texel"),
@@ -112,32 +110,29 @@ def train_stage(
         else:
             sources = np.asarray(reps.array("representatives"))
             source_of_texel = clusters.array("labels", mmap=False).astype(np.int64)
-        train_dirs = interpolation.training_directions(directions, heldout)
 
         def on_epoch(epoch: int, loss: float, step: int) -> None:
             # Keyed by training step, like the curve_* metrics, so that the UI's "Step"
             # axis means one thing; the epoch is the point's index.
             ctx.log.metric("loss", loss, step=step)
 
-        def on_curve(point: dict) -> None:
-            log_curve_point(ctx.log, point)
-
+        network = cfg.btf.network
         result = train(
             abrdf,
             sources,
             source_of_texel,
             norm,
             direction_features(directions),
-            train_dirs,
+            interpolation.training_directions(directions, heldout),
             settings,
             seed=cfg.seed,
-            encoder_channels=tuple(cfg.btf.network.encoder_channels),
-            latent=int(cfg.btf.network.latent),
-            hidden=int(cfg.btf.network.hidden),
-            layers=int(cfg.btf.network.layers),
+            encoder_channels=tuple(network.encoder_channels),
+            latent=int(network.latent),
+            hidden=int(network.hidden),
+            layers=int(network.layers),
             target_from_source=stage_settings["target"] == "representative",
             on_epoch=on_epoch,
-            on_curve=on_curve,
+            on_curve=partial(log_curve_point, ctx.log),
         )
         latents = encode(result.encoder, sources, norm)
         torch.save(result.decoder.state_dict(), folder / "decoder.pt")
@@ -145,26 +140,16 @@ def train_stage(
         save_arrays(folder, latents=latents, latent_of_texel=source_of_texel.astype(np.int32))
         save_json(folder, "losses", result.epoch_losses)
         save_json(folder, "curve", result.curve)
-        return {
-            "steps": result.steps,
-            "seconds": result.seconds,
-            "queries": result.queries,
-            "final_loss": result.epoch_losses[-1],
-        }
+        summary = {"steps": result.steps, "seconds": result.seconds, "queries": result.queries}
+        return {**summary, "final_loss": result.epoch_losses[-1]}
 
     return ctx.run("train", stage_settings, inputs, compute, version="3")
 
 
 def log_curve_point(log: RunLog, point: dict) -> None:
     """One point of the RMSE-versus-time curve, as MLflow metrics keyed by step."""
-    log.metrics(
-        {
-            "curve_rmse": point["rmse"],
-            "curve_seconds": point["seconds"],
-            "curve_queries": point["queries"],
-        },
-        step=point["step"],
-    )
+    curve = {f"curve_{name}": point[name] for name in ("rmse", "seconds", "queries")}
+    log.metrics(curve, step=point["step"])
 
 
 def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) -> Entry:
@@ -182,25 +167,20 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
     }
 
     def compute(folder: Path) -> dict:
-        from pipeline.btf.evaluate import (
-            as_stored,
-            mean_abrdf_rmse,
-            reconstruction_error,
-            storage_sizes,
-        )
+        from pipeline.btf import evaluate
         from pipeline.btf.model import load_decoder
 
         abrdf = stages.abrdf(cropped)
         directions = cropped.array("directions", mmap=False)
         norm = stages.normalization(prep)
         sizes_settings = cfg.btf.sizes
-        decoder, latents = as_stored(
+        decoder, latents = evaluate.as_stored(
             load_decoder(trained.file("decoder.pt")),
             trained.array("latents", mmap=False),
             sizes_settings.weight_dtype,
         )
         latent_of_texel = trained.array("latent_of_texel", mmap=False)
-        recon = reconstruction_error(
+        recon = evaluate.reconstruction_error(
             decoder,
             latents,
             latent_of_texel,
@@ -211,21 +191,15 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
             scale_dtype=sizes_settings.extra_dtype,
         )
         m, n, _ = abrdf.shape
-        sizes = storage_sizes(
-            decoder,
-            n_latents=latents.shape[0],
-            n_texels=m,
-            n_directions=n,
-            clustered=clustered,
-            weight_dtype=cfg.btf.sizes.weight_dtype,
-            list_dtype=cfg.btf.sizes.list_dtype,
-            extra_dtype=cfg.btf.sizes.extra_dtype if texel_scale != "none" else None,
-            latent_dim=latents.shape[1],
+        dtypes = plain_settings(sizes_settings)  # no extra part without a texel scale
+        dtypes["extra_dtype"] = dtypes["extra_dtype"] if texel_scale != "none" else None
+        sizes = evaluate.storage_sizes(
+            decoder, latents.shape[0], m, n, clustered, **dtypes, latent_dim=latents.shape[1]
         )
         metrics = {
             "rmse": recon.rmse,
             **sizes,
-            "rmse_mean_abrdf": mean_abrdf_rmse(abrdf, norm.alpha),
+            "rmse_mean_abrdf": evaluate.mean_abrdf_rmse(abrdf, norm.alpha),
         }
         if recon.rmse_unscaled is not None:
             metrics["rmse_without_texel_scale"] = recon.rmse_unscaled
@@ -266,17 +240,21 @@ def evaluated_dataset(dataset) -> dict:
     return {**settings, "synthetic": generator_settings(settings["synthetic"])}
 
 
+def _prepared(ctx: Context) -> tuple[Entry, Entry]:
+    """The load, crop and preprocess stages every model starts with: (cropped, prep)."""
+    loaded = stages.load(ctx)
+    check_settings_against_the_data(ctx.cfg, loaded)
+    cropped = stages.crop(ctx, loaded)
+    return cropped, stages.preprocess(ctx, cropped)
+
+
 def run(ctx: Context) -> dict[str, float]:
     """The whole chain of the job's model (``model=...``)."""
     model = model_of(ctx.cfg)
     check_settings_at_the_door(ctx.cfg, model)
     if model.stage is None:
         return run_linear(ctx)
-    cfg = ctx.cfg
-    loaded = stages.load(ctx)
-    check_settings_against_the_data(cfg, loaded)
-    cropped = stages.crop(ctx, loaded)
-    prep = stages.preprocess(ctx, cropped)
+    cropped, prep = _prepared(ctx)
     clusters = reps = None
     extra: dict[str, float] = {}
     if model.clusters:
@@ -289,7 +267,7 @@ def run(ctx: Context) -> dict[str, float]:
     if trained.hit and model.trains:
         # A cached model: replay its loss curve so every run shows one, at the steps where
         # train() logged it (the end of each pass over the texels; the last may be cut).
-        per_pass = cropped.manifest["summary"]["M"] // cfg.train.batch_size
+        per_pass = cropped.manifest["summary"]["M"] // ctx.cfg.train.batch_size
         for epoch, loss in enumerate(trained.json("losses")):
             step = min((epoch + 1) * per_pass, trained.manifest["summary"]["steps"])
             ctx.log.metric("loss", loss, step=step)
@@ -297,42 +275,43 @@ def run(ctx: Context) -> dict[str, float]:
             log_curve_point(ctx.log, point)
     evaluated = evaluate_stage(ctx, cropped, prep, trained)
     exported = export_stage(ctx, cropped, prep, trained, evaluated)
-    metrics = dict(evaluated.json("metrics"))
-    metrics.update(extra)
     summary = trained.manifest["summary"]
-    metrics.update(truth_metrics(ctx, cropped, prep))
-    metrics.update(
-        train_steps=summary["steps"],
-        train_seconds=summary["seconds"],
-        train_queries=summary["queries"],
-        final_loss=summary["final_loss"],
-        n_texels=cropped.manifest["summary"]["M"],
-        n_directions=cropped.manifest["summary"]["N"],
-    )
+    metrics = {
+        **evaluated.json("metrics"),
+        **extra,
+        **truth_metrics(ctx, cropped, prep),
+        **{f"train_{key}": summary[key] for key in ("steps", "seconds", "queries")},
+        "final_loss": summary["final_loss"],
+        **_crop_counts(cropped),
+    }
+    return _log_results(ctx.log, metrics, evaluated, exported)
+
+
+def _crop_counts(cropped: Entry) -> dict[str, int]:
+    """``n_texels`` (M) and ``n_directions`` (N) of the crop."""
+    summary = cropped.manifest["summary"]
+    return {"n_texels": summary["M"], "n_directions": summary["N"]}
+
+
+def _log_results(log: RunLog, metrics: dict, evaluated: Entry, exported: Entry) -> dict:
+    """Add ``psnr_db`` and the baseline check to ``metrics``; log them (``metrics.json``),
+    the per-direction RMSE (``evaluate/``), the ``stored_as.<part>`` tags (the type each of
+    Table 1's parts is stored in, read from what was written: Table 1's captions come from
+    them) and the compressed file. Returns ``metrics``."""
     add_psnr(metrics)
-    check_against_baseline(ctx.log, metrics)
-    log_evaluation(ctx.log, evaluated, metrics)
-    log_stored_as(ctx.log, exported.manifest["summary"]["stored_as"])
-    log_compressed(ctx.log, exported)
-    return metrics
-
-
-def log_stored_as(log: RunLog, stored_as: dict[str, str]) -> None:
-    """Tags ``stored_as.<part>`` (decoder, latents, list, extra): the type each of Table 1's
-    parts is stored in, read from what was written (Table 1's captions come from them)."""
+    check_against_baseline(log, metrics)
+    log.file(evaluated.file("rmse_per_direction.npy"), "evaluate")
+    log.json(metrics, "metrics.json")
+    stored_as = exported.manifest["summary"]["stored_as"]
     log.tags({f"stored_as.{part}": dtype for part, dtype in stored_as.items()})
+    log_compressed(log, exported)
+    return metrics
 
 
 def truth_metrics(ctx: Context, cropped: Entry, prep: Entry) -> dict[str, float]:
     """``rmse_data_vs_truth`` (what a perfect model scores) for the built-in BTF, else {}."""
     floor = stages.truth_floor(ctx, cropped, prep)
     return {} if floor is None else dict(floor.manifest["summary"])
-
-
-def log_evaluation(log: RunLog, entry: Entry, metrics: dict) -> None:
-    """The per-direction RMSE (``evaluate/``) and ``metrics.json`` on the job's run."""
-    log.file(entry.file("rmse_per_direction.npy"), "evaluate")
-    log.json(metrics, "metrics.json")
 
 
 def add_psnr(metrics: dict) -> None:
@@ -377,16 +356,10 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     if pca.get("match_clustered_k"):
         # What clustered k stores with this run's network and storage settings.
         latent, sizes = int(ctx.cfg.btf.network.latent), ctx.cfg.btf.sizes
-        budget = storage_sizes(
-            Decoder(latent=latent),
-            int(pca.match_clustered_k),
-            m,
-            n,
-            True,
-            weight_dtype=sizes.weight_dtype,
-            list_dtype=sizes.list_dtype,
-            latent_dim=latent,
-        )["bytes_total"]
+        dtypes = {"weight_dtype": sizes.weight_dtype, "list_dtype": sizes.list_dtype}
+        k = int(pca.match_clustered_k)
+        stored = storage_sizes(Decoder(latent=latent), k, m, n, True, **dtypes, latent_dim=latent)
+        budget = stored["bytes_total"]
         n_components = components_for_budget(budget, m, n, pca.dtype)
         if n_components == 0:
             # The smallest PCA model, one component, is over the budget: run it, and say so
@@ -407,28 +380,21 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
         targets = norm.targets(stages.abrdf(cropped))
         model = fit_linear(targets, n_components, pca.dtype, seed=ctx.cfg.seed)
         rmse, per_direction = linear_error(model, targets)
-        save_arrays(
-            folder,
-            mean=model.mean,
-            basis=model.basis,
-            coefficients=model.coefficients,
-            rmse_per_direction=per_direction,
-        )
+        arrays = {"mean": model.mean, "basis": model.basis, "coefficients": model.coefficients}
+        save_arrays(folder, **arrays, rmse_per_direction=per_direction)
         basis_bytes = model.basis.nbytes + model.mean.nbytes
-        sizes = {
+        total = basis_bytes + model.coefficients.nbytes
+        assert total == pca_bytes(n_components, m, n, pca.dtype)
+        metrics = {
+            "rmse": rmse,
+            "n_components": n_components,
             "bytes_decoder": basis_bytes,
             "bytes_latents": model.coefficients.nbytes,
             "bytes_list": 0,
             "bytes_extra": 0,
             "bytes_original": m * n * 3 * 4,
-        }
-        sizes["bytes_total"] = basis_bytes + model.coefficients.nbytes
-        assert sizes["bytes_total"] == pca_bytes(n_components, m, n, pca.dtype)
-        sizes["compression_ratio"] = sizes["bytes_original"] / sizes["bytes_total"]
-        metrics = {
-            "rmse": rmse,
-            "n_components": n_components,
-            **sizes,
+            "bytes_total": total,
+            "compression_ratio": m * n * 3 * 4 / total,
             "rmse_mean_abrdf": mean_abrdf_rmse(stages.abrdf(cropped), norm.alpha),
         }
         save_json(folder, "metrics", metrics)
@@ -442,21 +408,12 @@ def run_linear(ctx: Context) -> dict[str, float]:
     file, logged as the other models' are)."""
     from pipeline.btf.export import export_linear_stage
 
-    loaded = stages.load(ctx)
-    check_settings_against_the_data(ctx.cfg, loaded)
-    cropped = stages.crop(ctx, loaded)
-    prep = stages.preprocess(ctx, cropped)
+    cropped, prep = _prepared(ctx)
     fitted = linear_stage(ctx, cropped, prep)
     exported = export_linear_stage(ctx, cropped, prep, fitted)
     metrics = {
         **fitted.json("metrics"),
-        "n_texels": cropped.manifest["summary"]["M"],
-        "n_directions": cropped.manifest["summary"]["N"],
+        **_crop_counts(cropped),
         **truth_metrics(ctx, cropped, prep),
     }
-    add_psnr(metrics)
-    check_against_baseline(ctx.log, metrics)
-    log_stored_as(ctx.log, exported.manifest["summary"]["stored_as"])
-    log_evaluation(ctx.log, fitted, metrics)
-    log_compressed(ctx.log, exported)
-    return metrics
+    return _log_results(ctx.log, metrics, fitted, exported)

@@ -22,8 +22,6 @@ from pipeline.core.stage import Context, folder_fingerprint, plain_settings
 
 log = logging.getLogger(__name__)
 
-# --------------------------------------------------------------------------- load
-
 
 def synthetic_folder(cfg: DictConfig) -> Path:
     """Where the built-in BTF of these settings is (or will be) written: named by a hash of
@@ -43,26 +41,15 @@ def dataset_root(cfg: DictConfig) -> Path:
     """The dataset: a folder or its ``.zip`` archive (UBO2003, UTIA), or a ``.btf`` file
     (UBO2014); the built-in synthetic BTF is generated into a folder on first use."""
     ds = cfg.dataset
-    if ds.name == "synthetic" and ds.root is None:
+    if built_in(cfg):
         from pipeline.btf.synthetic_dataset import write_synthetic_btf
 
-        gen = plain_settings(ds.synthetic)
-        views = plain_settings(ds.views)
         root = synthetic_folder(cfg)
         if not root.is_dir():
             log.info("generating the built-in synthetic BTF into %s", root)
+        views = None if ds.format == "ubo2014" else plain_settings(ds.views)
         return write_synthetic_btf(
-            root,
-            size=gen["size"],
-            seed=gen["seed"],
-            format=ds.format,
-            ext=gen["ext"],
-            views=None if ds.format == "ubo2014" else views,
-            quality=gen["quality"],
-            material=gen["material"],
-            directions=gen["directions"],
-            n_lights=gen["n_lights"],
-            n_views=gen["n_views"],
+            root, format=ds.format, views=views, **plain_settings(ds.synthetic)
         )
     if ds.root is None:
         raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/the/dataset")
@@ -112,15 +99,14 @@ def load(ctx: Context) -> Entry:
         "linearize": linearize,
     }
     own_encoding = DEFAULT_LINEARIZE[ds.format]
-    if linearize != own_encoding:
-        if ds.name == "synthetic" and ds.root is None and linearize != "none":
-            log.warning(
-                "dataset.linearize=%s, but the built-in BTF is written in the %s layout's "
-                "own encoding (%s): its values will not match the analytic ground truth",
-                linearize,
-                ds.format,
-                own_encoding,
-            )
+    if linearize not in (own_encoding, "none") and built_in(ctx.cfg):
+        log.warning(
+            "dataset.linearize=%s, but the built-in BTF is written in the %s layout's "
+            "own encoding (%s): its values will not match the analytic ground truth",
+            linearize,
+            ds.format,
+            own_encoding,
+        )
 
     def compute(folder: Path) -> dict:
         n, height, width = count_btf_images(root, format=ds.format, views=views)
@@ -144,30 +130,18 @@ def _load_ubo2014(ctx: Context) -> Entry:
     ds = ctx.cfg.dataset
     path = dataset_root(ctx.cfg).resolve()
     views, lights = plain_settings(ds.views), plain_settings(ds.get("lights"))
-    settings = {
-        "format": "ubo2014",
-        "fingerprint": file_fingerprint(path),
-        "views": views,
-        "lights": lights,
-    }
+    fingerprint = file_fingerprint(path)
+    settings = {"format": "ubo2014", "fingerprint": fingerprint, "views": views, "lights": lights}
 
     def compute(folder: Path) -> dict:
         # Inside compute: a bad file raises here, and nothing is published.
         dfmf = read_dfmf(path)
         rows = select_rows(dfmf, views, lights)
         save_arrays(folder, directions=dfmf.directions()[rows], rows=rows)
-        return {
-            "n_images": len(rows),
-            "height": dfmf.height,
-            "width": dfmf.width,
-            "root": str(path),
-            **describe(dfmf),
-        }
+        shape = {"n_images": len(rows), "height": dfmf.height, "width": dfmf.width}
+        return {**shape, "root": str(path), **describe(dfmf)}
 
     return ctx.run("load", settings, {}, compute, version="4")
-
-
-# --------------------------------------------------------------------------- crop
 
 
 def check_crop_fits(cfg: DictConfig, height: int, width: int, root) -> None:
@@ -209,12 +183,8 @@ def crop(ctx: Context, loaded: Entry) -> Entry:
         if not from_file:
             return {**crop, "source": "images"}
         save_arrays(folder, rows=loaded.array("rows", mmap=False))
-        return {
-            **crop,
-            "source": "factors",
-            "root": summary["root"],
-            "fingerprint": loaded.manifest["settings"]["fingerprint"],
-        }
+        fingerprint = loaded.manifest["settings"]["fingerprint"]
+        return {**crop, "source": "factors", "root": summary["root"], "fingerprint": fingerprint}
 
     return ctx.run("crop", settings, {"load": loaded}, compute, version="2")
 
@@ -224,13 +194,8 @@ def abrdf(cropped: Entry):
     stage's ``images.npy`` (:func:`pipeline.data.image_abrdfs.crop_abrdfs`: in memory, or
     gathered where read for a crop too large to hold); for a UBO2014 file a
     :class:`~pipeline.data.ubo2014_decode.FactorABRDFs` that decodes what is indexed.
-
-    Raises
-    ------
-    DataError
-        Naming what is missing: the load stage's images (removed from the cache since), or
-        the UBO2014 file, when it is gone or no longer the file the entry was made from
-        (its size or modification time changed).
+    DataError, naming what is missing, when the load stage's images are gone from the cache
+    or the UBO2014 file is gone or changed (its size or modification time).
     """
     summary = cropped.manifest["summary"]
     if summary["source"] == "images":
@@ -256,9 +221,6 @@ def abrdf(cropped: Entry):
     return FactorABRDFs(read_dfmf(path), cropped.array("rows", mmap=False), summary["texels"])
 
 
-# --------------------------------------------------------------------------- preprocess
-
-
 def preprocess(ctx: Context, cropped: Entry) -> Entry:
     """Fit the eq. 1-6 normalization (per-dimension mean/std of log values, alpha)."""
 
@@ -278,9 +240,6 @@ def normalization(entry: Entry) -> Normalization:
     return Normalization(
         entry.array("mean", mmap=False), entry.array("std", mmap=False), entry.json("alpha")
     )
-
-
-# --------------------------------------------------------------------------- clusters
 
 
 def pca(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
@@ -314,18 +273,11 @@ def kmeans(ctx: Context, reduced: Entry) -> Entry:
     from pipeline.btf.clustering import check_k, kmeans_pp
 
     k = ctx.cfg.model.k
-    n_texels = reduced.array("scores").shape[0]
-    check_k(k, n_texels)
+    check_k(k, reduced.array("scores").shape[0])
     settings = {"k": k, "seed": ctx.cfg.seed, **plain_settings(ctx.cfg.btf.kmeans)}
 
     def compute(folder: Path) -> dict:
-        labels, centers, inertia = kmeans_pp(
-            np.asarray(reduced.array("scores")),
-            k,
-            seed=ctx.cfg.seed,
-            n_init=settings["n_init"],
-            max_iter=settings["max_iter"],
-        )
+        labels, centers, inertia = kmeans_pp(np.asarray(reduced.array("scores")), **settings)
         save_arrays(folder, labels=labels, centers=centers)
         return {"inertia": inertia}
 
@@ -346,9 +298,6 @@ def representatives(ctx: Context, cropped: Entry, clusters: Entry) -> Entry:
     return ctx.run(
         "representatives", {}, {"crop": cropped, "kmeans": clusters}, compute, version="1"
     )
-
-
-# --------------------------------------------------------------------------- truth floor
 
 
 def built_in(cfg: DictConfig) -> bool:
@@ -376,6 +325,23 @@ def data_truth_rmse(
     return float(np.sqrt(squares / abrdf.size)) / alpha
 
 
+def truth_at_crop(cfg: DictConfig):
+    """The synthetic generator's analytic truth over the run's crop: a function of
+    directions (n, 4) to values (M, n, 3)."""
+    from pipeline.btf.synthetic import SyntheticBTF
+
+    gen = cfg.dataset.synthetic
+    size = int(cfg.btf.crop.size)
+    y0, x0 = (int(v) for v in cfg.btf.crop.offset)
+    generator = SyntheticBTF(size=gen.size, seed=gen.seed, material=gen.material)
+
+    def truth_of(directions: np.ndarray) -> np.ndarray:
+        values = generator.evaluate(directions)[:, y0 : y0 + size, x0 : x0 + size]
+        return values.reshape(len(directions), -1, 3).transpose(1, 0, 2)
+
+    return truth_of
+
+
 def truth_floor(ctx: Context, cropped: Entry, prep: Entry) -> Entry | None:
     """For the built-in BTF: the data's RMSE against the generator's analytic truth (the
     JPEG and 8-bit rounding of the written images), over the crop and all its directions;
@@ -383,27 +349,16 @@ def truth_floor(ctx: Context, cropped: Entry, prep: Entry) -> Entry | None:
     cfg = ctx.cfg
     if not built_in(cfg):
         return None
-    from pipeline.btf.synthetic import SyntheticBTF
     from pipeline.btf.synthetic_dataset import generator_settings
 
-    gen = plain_settings(cfg.dataset.synthetic)
-    size = int(cfg.btf.crop.size)
-    y0, x0 = (int(v) for v in cfg.btf.crop.offset)
-    generator = SyntheticBTF(size=gen["size"], seed=gen["seed"], material=gen["material"])
-
-    def truth_of(directions: np.ndarray) -> np.ndarray:
-        values = generator.evaluate(directions)[:, y0 : y0 + size, x0 : x0 + size]
-        return values.reshape(len(directions), -1, 3).transpose(1, 0, 2)
+    truth_of = truth_at_crop(cfg)
 
     def compute(folder: Path) -> dict:
-        rmse = data_truth_rmse(
-            abrdf(cropped),
-            cropped.array("directions", mmap=False),
-            truth_of,
-            prep.json("alpha"),
-        )
+        directions = cropped.array("directions", mmap=False)
+        rmse = data_truth_rmse(abrdf(cropped), directions, truth_of, prep.json("alpha"))
         return {"rmse_data_vs_truth": rmse}
 
+    gen = plain_settings(cfg.dataset.synthetic)
     settings = {"synthetic": generator_settings(gen), "crop": plain_settings(cfg.btf.crop)}
     return ctx.run(
         "truth_floor", settings, {"crop": cropped, "preprocess": prep}, compute, version="1"

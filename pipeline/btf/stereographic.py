@@ -10,18 +10,11 @@ import numpy as np
 
 
 def stereographic(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """Stereographic coordinates of directions on the upper hemisphere (eq. 7-9).
+    """Stereographic coordinates, ndarray of shape theta.shape + (2,), of directions on the
+    upper hemisphere (eq. 7-9) at ``theta``, ``phi`` (array_like of one shape, radians).
 
     R = sin(pi - theta) / (1 - cos(pi - theta)) = tan(theta / 2), so theta = 0 maps to the
     origin and theta = 90 degrees to the unit circle.
-
-    Parameters
-    ----------
-    theta, phi : array_like of the same shape, radians
-
-    Returns
-    -------
-    ndarray of shape theta.shape + (2,)
     """
     theta = np.asarray(theta, dtype=np.float64)
     phi = np.asarray(phi, dtype=np.float64)

@@ -1,14 +1,12 @@
 """A truncated SVD of a matrix too large for memory, read a block of rows at a time.
 
 The PCA before k-means and the linear baseline take the SVD of an (M, 3N) matrix: for a
-whole UBO2014 material 160,000 x 68,403 float32 values, 43.8 GB, which neither fits in
-memory nor needs to: the randomized range finder with power iterations (Halko, Martinsson
-& Tropp 2011, algorithms 4.3-4.4, the method of scikit-learn's ``randomized_svd``) only
-multiplies the matrix by thin ones, so each product is one pass over its rows. scikit-learn's
-``PCA``, ``randomized_svd`` and ``TruncatedSVD`` need the whole matrix in memory, and
-``IncrementalPCA`` takes a full SVD of (batch + k) x 3N per batch, hence
-this module. Below :data:`IN_MEMORY_BYTES` the stages keep scikit-learn's in-memory
-solvers, so that results of crops that fit stay as they were.
+whole UBO2014 material 160,000 x 68,403 float32 values, 43.8 GB. The randomized range
+finder with power iterations (Halko, Martinsson & Tropp 2011, algorithms 4.3-4.4, as
+scikit-learn's ``randomized_svd``) only multiplies it by thin matrices, one pass over its
+rows each; scikit-learn's solvers need the whole matrix in memory (``IncrementalPCA`` a
+full SVD of (batch + k) x 3N per batch). Below :data:`IN_MEMORY_BYTES` the stages keep
+scikit-learn's in-memory solvers, so that results of crops that fit stay the same.
 
 Cost: ``2 · n_iter + 3`` passes over the rows (the mean and the total variance, the range,
 ``n_iter`` power iterations of two products each, the projection).
@@ -22,7 +20,7 @@ import numpy as np
 
 from pipeline.core.progress import progress
 
-# Matrices up to this size are decomposed in memory by scikit-learn (as before this module).
+# Matrices up to this size are decomposed in memory by scikit-learn.
 IN_MEMORY_BYTES = 4 << 30
 
 
@@ -32,41 +30,32 @@ def streamed_svd(
     d: int,
     k: int,
     *,
-    center: bool = True,
     n_iter: int = 4,
     oversamples: int = 10,
     seed: int = 0,
     chunk: int = 512,
     what: str = "SVD",
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
-    """The ``k`` leading singular triplets of ``A − mean`` (or of ``A``).
+    """The ``k`` leading singular triplets of ``A − mean``, the column mean subtracted (PCA).
 
     Parameters
     ----------
-    rows : callable
-        ``rows(start, stop)`` -> ndarray (stop − start, d), float32: rows of ``A``.
-    m, d : int
-        ``A``'s shape.
-    k : int
-        Triplets kept; ``k + oversamples`` random directions are iterated.
-    center : bool
-        Subtract the column mean first (PCA).
+    rows : callable, ``rows(start, stop)`` -> ndarray (stop − start, d), float32: rows of ``A``
+    m, d : int, ``A``'s shape
+    k : int, triplets kept; ``k + oversamples`` random directions are iterated
     n_iter : int
         Power iterations (each two passes); 4 is scikit-learn's choice for k ≥ 10 % of
         the smaller side, where the spectrum decays slowly.
-    seed : int
-        Of the random test matrix.
-    chunk : int
-        Rows read at a time.
-    what : str
-        Name shown by the progress lines.
+    seed : int, of the random test matrix.
+    chunk : int, rows read at a time.
+    what : str, the name the progress lines show.
 
     Returns
     -------
     u : ndarray (m, k), float32
     s : ndarray (k,), float64
     vt : ndarray (k, d), float32
-    mean : ndarray (d,), float64 (zeros when ``center`` is False)
+    mean : ndarray (d,), float64
     total : float
         The sum of squares of ``A − mean``: ``s² / total`` is the share each component
         explains.
@@ -79,8 +68,6 @@ def streamed_svd(
         mean += block.sum(axis=0, dtype=np.float64)
         squares += float(np.square(block, dtype=np.float64).sum())
     mean /= m
-    if not center:
-        mean[:] = 0.0
     total = squares - m * float(np.square(mean).sum())
     mean32 = mean.astype(np.float32)
 

@@ -1,28 +1,15 @@
 """Procedural fabric BTFs with an analytic ground truth.
 
-A :class:`SyntheticBTF` renders one of the fabric presets of
-:mod:`pipeline.btf.materials` seen from above (``material=``): ``plain_weave`` (the
-default: a red-and-beige plain weave), ``knit`` (jersey: columns of V-shaped loops of
-fuzzy wool), ``corduroy`` (dark cut-pile ridges with deep valleys) and ``satin`` (a
-printed 5-harness satin with long glossy floats). The preset gives per texel:
-
-- which yarn is visible (its label: :attr:`SyntheticBTF.material_labels`, named by
-  :attr:`SyntheticBTF.label_names`), its albedo and a height field;
-- the in-plane direction of the visible fibre.
-
-From these the renderer derives, the same way for every preset, normals (from the
-height), a *depth* (0 on the highest crest, 1 at the lowest floor), and a tangent along
-the fibre twisted by the yarn's twist angle about the normal. The shading of those
-(a Lambertian term and an Ashikhmin–Shirley anisotropic lobe aligned with the tangent,
-under smooth self-shadowing and masking) is :mod:`pipeline.btf.synthetic_shading`; each
-preset's exposure keeps all but the brightest highlights below 1.
+A :class:`SyntheticBTF` renders one of the fabric presets of :mod:`pipeline.btf.materials`
+seen from above. From the preset's labels, albedo, height field and fibre directions it
+derives, the same way for every preset, normals (from the height), a *depth* (0 on the
+highest crest, 1 at the lowest floor), and a tangent along the fibre twisted by the yarn's
+twist angle about the normal; :mod:`pipeline.btf.synthetic_shading` shades them.
 
 Directions: θ from the macro normal, φ from +x (image columns, to the right) toward +y
 (image rows, downward). The model accepts any direction, not only grid ones; directions
-below the horizon give 0.
-
-:func:`material_sheet` draws the presets side by side. Datasets on disk, in the UBO2003,
-UTIA and UBO2014 layouts, are written by :mod:`pipeline.btf.synthetic_dataset`.
+below the horizon give 0. Datasets on disk are written by
+:mod:`pipeline.btf.synthetic_dataset`.
 """
 
 from __future__ import annotations
@@ -51,13 +38,9 @@ class SyntheticBTF:
 
     Parameters
     ----------
-    size : int
-        Texture is ``size × size`` texels.
-    seed : int
-        Seeds the per-thread colours, the fine noise and any random part of the geometry.
-    material : str
-        A preset of :data:`pipeline.btf.materials.MATERIALS`: ``"plain_weave"``,
-        ``"knit"``, ``"corduroy"`` or ``"satin"``.
+    size : int, the texture is ``size × size`` texels.
+    seed : int, seeds the per-thread colours, the fine noise and any random geometry.
+    material : str, a preset of :data:`pipeline.btf.materials.MATERIALS`.
     n_threads : int or None
         Repeats across the texture (threads, or wales for knit and corduroy); None takes
         the preset's own. plain_weave needs an even number, satin a multiple of 5.
@@ -89,8 +72,6 @@ class SyntheticBTF:
         """The material's constants and geometry (:mod:`pipeline.btf.materials`)."""
         return get_material(self.material)
 
-    # --- per-texel geometry and material (computed once, cached) -------------------------
-
     @cached_property
     def _geometry(self) -> dict:
         rng = np.random.default_rng([self.seed, _GEOMETRY_STREAM])
@@ -109,16 +90,10 @@ class SyntheticBTF:
         twist_degrees = np.array([yarn.twist_degrees for yarn in self.preset.yarns])
         twist = np.deg2rad(twist_degrees[labels])[..., None]
         tangent = tangent * np.cos(twist) + np.cross(normal, tangent) * np.sin(twist)
-        bitangent = np.cross(normal, tangent)
-
         depth = (height.max() - height) / max(np.ptp(height), 1e-12)
-        return {
-            "surface": surface,
-            "normal": normal,
-            "tangent": tangent,
-            "bitangent": bitangent,
-            "depth": depth,
-        }
+        bitangent = np.cross(normal, tangent)
+        frame = {"normal": normal, "tangent": tangent, "bitangent": bitangent}
+        return {"surface": surface, **frame, "depth": depth}
 
     @cached_property
     def albedo(self) -> np.ndarray:
@@ -129,8 +104,7 @@ class SyntheticBTF:
 
     @property
     def material_labels(self) -> np.ndarray:
-        """Visible yarn per texel, ndarray (size, size), int; for plain_weave 0 warp,
-        1 weft, 2 gap; for every preset, label i is named ``label_names[i]``."""
+        """Visible yarn per texel, ndarray (size, size), int, named by ``label_names``."""
         return self._geometry["surface"].labels
 
     @property
@@ -153,21 +127,10 @@ class SyntheticBTF:
         """Unit fibre tangents per texel (twisted), ndarray (size, size, 3), float64."""
         return self._geometry["tangent"]
 
-    # --- evaluation ---------------------------------------------------------------------
-
     def evaluate(self, directions: np.ndarray) -> np.ndarray:
-        """Image values at arbitrary light/view directions.
-
-        Parameters
-        ----------
-        directions : array_like of shape (n, 4)
-            (θ_light, φ_light, θ_view, φ_view) in radians; any values, not only grid ones.
-
-        Returns
-        -------
-        ndarray of shape (n, size, size, 3), float32
-            Linear RGB in [0, 1].
-        """
+        """Image values, ndarray of shape (n, size, size, 3), float32, linear RGB in [0, 1],
+        at ``directions`` (n, 4): (θ_light, φ_light, θ_view, φ_view) in radians, any values,
+        not only grid ones."""
         directions = np.asarray(directions, dtype=np.float64)
         if directions.ndim != 2 or directions.shape[1] != 4:
             raise ConfigError(f"directions must have shape (n, 4), got {directions.shape}")
@@ -175,13 +138,12 @@ class SyntheticBTF:
             raise ConfigError("directions hold NaN or Inf values")
         size = self.size
         out = np.empty((len(directions), size, size, 3), dtype=np.float32)
-        flat_out = out.reshape(len(directions), size * size, 3)
+        flat = out.reshape(len(directions), size * size, 3)
         # Bound the temporaries to a few tens of MB whatever n and size are.
         chunk = max(1, 2**20 // (size * size))
         for start in range(0, len(directions), chunk):
-            flat_out[start : start + chunk] = self._evaluate_chunk(
-                directions[start : start + chunk]
-            )
+            block = directions[start : start + chunk]
+            flat[start : start + chunk] = shade(block, self._flat_maps, self.preset, pairs=False)
         return out
 
     @cached_property
@@ -191,18 +153,10 @@ class SyntheticBTF:
         return texel_maps(self.preset, **self._geometry, albedo=self.albedo)
 
     def evaluate_pairs(self, texels: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Values of single texels, each at its own directions (what a renderer asks for).
-
-        Parameters
-        ----------
-        texels : array_like of shape (n,), flat texel indices (row * size + col).
-        directions : array_like of shape (n, 4), (θ_light, φ_light, θ_view, φ_view) in
-            radians.
-
-        Returns
-        -------
-        ndarray of shape (n, 3), float32: ``evaluate(directions)[i, row_i, col_i]``.
-        """
+        """Values of single texels, each at its own directions (what a renderer asks for):
+        ``texels`` (n,), flat indices (row * size + col), at ``directions`` (n, 4),
+        (θ_light, φ_light, θ_view, φ_view) in radians -> ndarray of shape (n, 3), float32:
+        ``evaluate(directions)[i, row_i, col_i]``."""
         texels = np.asarray(texels, dtype=np.int64)
         directions = np.asarray(directions, dtype=np.float64)
         if directions.shape != (len(texels), 4):
@@ -217,28 +171,12 @@ class SyntheticBTF:
         }
         return shade(directions, maps, self.preset, pairs=True)
 
-    def _evaluate_chunk(self, directions: np.ndarray) -> np.ndarray:
-        """(c, 4) directions to (c, P, 3) float32 values, P = size²."""
-        return shade(directions, self._flat_maps, self.preset, pairs=False)
-
 
 def material_sheet(materials: Sequence[str], size: int = 64, seed: int = 0) -> Figure:
-    """A figure of each material (rows) under three lights, viewed from overhead.
-
-    Columns: light overhead, grazing (75°, the grid's lowest) from +x, grazing from +y;
-    linear values are sRGB-encoded for display.
-
-    Parameters
-    ----------
-    materials : sequence of str
-        Preset names (:data:`pipeline.btf.materials.MATERIALS`).
-    size, seed : int
-        Passed to :class:`SyntheticBTF`.
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-    """
+    """A matplotlib figure of each of the presets ``materials`` (rows; ``size`` and ``seed``
+    passed to :class:`SyntheticBTF`) under three lights, viewed from overhead. Columns:
+    light overhead, grazing (75°, the grid's lowest) from +x, grazing from +y; linear values
+    are sRGB-encoded for display."""
     from matplotlib.figure import Figure  # only this function draws
 
     if not materials:

@@ -1,12 +1,9 @@
 """Built-in fabric datasets on disk: their direction sets, and the writer in real layouts.
 
 A written dataset (:func:`write_synthetic_btf`) holds :class:`pipeline.btf.synthetic.SyntheticBTF`
-images with light and view sampled on a direction set (:func:`synthetic_directions`): the
-UBO2003 81-grid (the default; the UBO2003 and UTIA layouts hold no other), or a Fibonacci
-spiral of ``n_lights`` lights times one of ``n_views`` views, written as a UBO2014 ``.btf``
-file that stores the values losslessly (float32 factors of full rank, read back exactly by
-:mod:`pipeline.data.ubo2014`). :func:`generator_settings` gives the ``dataset.synthetic``
-settings as the dataset's folder name, its marker and the cache keys record them.
+images with light and view sampled on a direction set (:func:`synthetic_directions`).
+:func:`generator_settings` gives the ``dataset.synthetic`` settings as the dataset's folder
+name, its marker and the cache keys record them.
 """
 
 from __future__ import annotations
@@ -67,27 +64,11 @@ def generator_settings(gen: dict) -> dict:
 def synthetic_directions(
     directions: str = "ubo2003", n_lights: int | None = None, n_views: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The light and the view set of a written built-in BTF.
-
-    Parameters
-    ----------
-    directions : {"ubo2003", "fibonacci"}
-        ``ubo2003``: the 81-grid for both (``n_lights`` and ``n_views`` must be None);
-        ``fibonacci``: :func:`pipeline.data.directions.fibonacci_hemisphere` spirals of
-        ``n_lights`` and ``n_views`` directions up to
-        :data:`FIBONACCI_MAX_THETA_DEGREES`.
-    n_lights, n_views : int or None
-
-    Returns
-    -------
-    lights : ndarray of shape (L, 2); views : ndarray of shape (V, 2)
-        (θ, φ) radians.
-
-    Raises
-    ------
-    ConfigError
-        For an unknown set, or counts that do not go with it.
-    """
+    """The light and the view set, (L, 2) and (V, 2) (θ, φ) radians, of a written built-in
+    BTF: for ``directions="ubo2003"`` the 81-grid for both (``n_lights`` and ``n_views``
+    None), for ``"fibonacci"`` :func:`pipeline.data.directions.fibonacci_hemisphere` spirals
+    of ``n_lights`` and ``n_views`` directions up to :data:`FIBONACCI_MAX_THETA_DEGREES`.
+    ConfigError for an unknown set, or counts that do not go with it."""
     if directions not in DIRECTION_SETS:
         raise ConfigError(
             f"dataset.synthetic.directions={directions!r} is not one of {list(DIRECTION_SETS)}"
@@ -150,24 +131,15 @@ def write_synthetic_btf(
     ``root`` records the parameters; when ``root`` already holds a dataset written with
     the same parameters, nothing is rewritten.
 
-    UBO2003 running numbers are each image's index in the full view-major 6561-image
-    order (``view_index * 81 + light_index``), so a written subset of views carries the
-    same names as the full dataset's folders.
-
     The UBO2014 layout holds any direction set (:func:`synthetic_directions`): one file,
-    ``root / UBO2014_FILE_NAME``, with every light under every view, the angles stored as
-    float32 (the images are rendered at exactly those), colour model 0 (linear RGB), the
-    incident cosine in the data, and float32 factors of full rank: one of U and SV is the
-    identity, so that :mod:`pipeline.data.ubo2014` decodes every value exactly.
+    ``root / UBO2014_FILE_NAME``, with every light under every view, stored losslessly
+    (:func:`_write_ubo2014`).
 
     Parameters
     ----------
-    root : path-like
-        Dataset folder to create.
-    size, seed : int
-        Passed to :class:`SyntheticBTF`.
-    material : str
-        The fabric preset, passed to :class:`SyntheticBTF` and recorded in the marker.
+    root : path-like, the dataset folder to create.
+    size, seed, material
+        Passed to :class:`SyntheticBTF` (and recorded in the marker).
     format : {"ubo2003", "utia", "ubo2014"}
     ext : str
         ``ubo2003``: ``"jpg"`` (gamma 2.2, JPEG ``quality``), ``"png"`` (gamma 2.2, 8-bit)
@@ -176,8 +148,7 @@ def write_synthetic_btf(
     views : sequence of (θ_view, φ_view) in degrees, or None
         Write only these view folders; None writes all 81. The UBO2014 layout writes every
         view of its set (None only): its reader picks views.
-    quality : int
-        JPEG quality, 1..100.
+    quality : int, JPEG quality, 1..100.
     directions, n_lights, n_views
         The direction set (:func:`synthetic_directions`); other than the default
         ``ubo2003`` only in the ``ubo2014`` layout.
@@ -281,6 +252,8 @@ def _write_view_folders(
         images = fabric.evaluate(np.concatenate([light_radians, view_radians], axis=1))
         for light_index, (theta_light, phi_light) in enumerate(lights):
             if format == "ubo2003":
+                # The index in the full view-major order: a subset of views is named as
+                # the full dataset's folders are.
                 number = view_index * N_DIRECTIONS + light_index
                 file_name = ubo2003_file_name(number, theta_light, phi_light, *view, ext)
             else:
@@ -290,7 +263,9 @@ def _write_view_folders(
 
 
 def _write_ubo2014(path: Path, fabric: SyntheticBTF, lights: np.ndarray, views: np.ndarray):
-    """The fabric at every light (L, 2) under every view (V, 2), as a lossless DFMF file."""
+    """The fabric at every light (L, 2) under every view (V, 2), as a lossless DFMF file:
+    colour model 0 (linear RGB), the incident cosine in the data, and float32 factors of
+    full rank that :mod:`pipeline.data.ubo2014` decodes exactly."""
     from pipeline.data.ubo2014_write import write_dfmf
 
     # The file stores float32 angles: render at exactly those, so data and truth agree.
@@ -310,15 +285,5 @@ def _write_ubo2014(path: Path, fabric: SyntheticBTF, lights: np.ndarray, views: 
         else:
             u, sv = matrix, np.eye(texels, dtype=np.float32)
         factors.append((np.ones(len(u.T), dtype=np.float32), u, sv))
-    write_dfmf(
-        path,
-        views,
-        lights,
-        fabric.size,
-        fabric.size,
-        factors=factors,
-        color_model=0,
-        dtype="float32",
-        cosine_in_data=True,
-        sync=False,
-    )
+    stored = {"color_model": 0, "dtype": "float32", "cosine_in_data": True}
+    write_dfmf(path, views, lights, fabric.size, fabric.size, factors=factors, **stored, sync=False)

@@ -33,21 +33,11 @@ _CHANNEL_STEP = 30.0
 
 
 def channel_weights(fibre: np.ndarray, across: np.ndarray) -> np.ndarray:
-    """Weights of the channel features for fibres at any azimuth.
-
-    Parameters
-    ----------
-    fibre : ndarray of shape (P, 2)
-        In-plane fibre directions (x, y), any length but zero.
-    across : ndarray of shape (P,)
-        How strongly each texel shadows light crossing its fibre.
-
-    Returns
-    -------
-    ndarray of shape (len(_CHANNEL_DEGREES), P)
-        ``across`` shared between the two channels nearest the fibre's azimuth, linearly
-        in angle; all of it on one channel when the fibre runs along one.
-    """
+    """Weights of the channel features, (len(_CHANNEL_DEGREES), P), for in-plane fibre
+    directions ``fibre`` (P, 2) at any azimuth (any length but zero): ``across`` (P,), how
+    strongly each texel shadows light crossing its fibre, shared between the two channels
+    nearest the fibre's azimuth, linearly in angle (all of it on one channel when the fibre
+    runs along one)."""
     azimuth = np.mod(np.degrees(np.arctan2(fibre[:, 1], fibre[:, 0])), 180.0)
     position = azimuth / _CHANNEL_STEP
     lower = np.floor(position)
@@ -76,16 +66,12 @@ def texel_maps(
 
     Parameters
     ----------
-    preset : Material
-        Gives each label's yarn constants and the shadow strength.
-    surface : Surface
-        The preset's geometry (labels and fibre directions are used).
+    preset : Material, whose yarn constants and shadow strength are used.
+    surface : Surface, the preset's geometry (its labels and fibre directions are used).
     normal, tangent, bitangent : ndarray of shape (S, S, 3)
         Unit frame per texel; the tangent runs along the (twisted) fibre.
-    depth : ndarray of shape (S, S)
-        0 on the highest crest, 1 at the lowest floor.
-    albedo : ndarray of shape (S, S, 3)
-        Diffuse albedo in [0, 1].
+    depth : ndarray of shape (S, S), 0 on the highest crest, 1 at the lowest floor.
+    albedo : ndarray of shape (S, S, 3), diffuse albedo in [0, 1].
 
     Returns
     -------
@@ -109,18 +95,16 @@ def texel_maps(
     weights = np.zeros((1 + len(_CHANNEL_DEGREES), labels.size))
     weights[0] = per_texel("shadow")
     weights[1:] = channel_weights(surface.fibre.reshape(-1, 2), per_texel("shadow_across"))
-    flat["occlusion_weights"] = (preset.shadow_strength * depth.ravel() * weights).astype(
-        np.float32
-    )
+    occlusion_weights = preset.shadow_strength * depth.ravel() * weights
+    flat["occlusion_weights"] = occlusion_weights.astype(np.float32)
     flat["albedo_over_pi"] = (albedo.reshape(-1, 3) / np.pi).astype(np.float32)
     along = per_texel("exponent_along")
     across = per_texel("exponent_across")
     flat["exponent_along"] = along.astype(np.float32)
     flat["exponent_across"] = across.astype(np.float32)
     # Ashikhmin–Shirley normalization times the yarn's specular weight.
-    flat["specular_scale"] = (
-        per_texel("specular") * ashikhmin_shirley_normalization(along, across)
-    ).astype(np.float32)
+    specular_scale = per_texel("specular") * ashikhmin_shirley_normalization(along, across)
+    flat["specular_scale"] = specular_scale.astype(np.float32)
     return flat
 
 
@@ -129,15 +113,12 @@ def shade(directions: np.ndarray, maps: dict, preset: Material, pairs: bool) -> 
 
     Parameters
     ----------
-    directions : ndarray of shape (c, 4), float64
-        (θ_light, φ_light, θ_view, φ_view) in radians.
+    directions : ndarray of shape (c, 4), float64, (θ_light, φ_light, θ_view, φ_view) radians.
     maps : dict
         :func:`texel_maps`' arrays, or a selection of their texels (texel axis last;
         ``albedo_over_pi`` first).
-    preset : Material
-        Gives the exposure and the Fresnel reflectance at normal incidence.
-    pairs : bool
-        False: every direction at every texel; True: the i-th direction at the i-th texel.
+    preset : Material, whose exposure and Fresnel reflectance at normal incidence are used.
+    pairs : bool, False: every direction at every texel; True: the i-th at the i-th texel
 
     Returns
     -------
@@ -171,12 +152,8 @@ def shade(directions: np.ndarray, maps: dict, preset: Material, pairs: bool) -> 
     fresnel_at_normal = preset.fresnel_at_normal
     fresnel = fresnel_at_normal + (1 - fresnel_at_normal) * (1 - light_dot_half) ** 5
     # The 0.1 floor keeps the lobe finite where a texel turns edge-on to both.
-    specular = (
-        maps["specular_scale"]
-        * lobe
-        * fresnel
-        / (light_dot_half * np.maximum(np.maximum(n_dot_l, n_dot_v), 0.1))
-    )
+    denominator = light_dot_half * np.maximum(np.maximum(n_dot_l, n_dot_v), 0.1)
+    specular = maps["specular_scale"] * lobe * fresnel / denominator
 
     def occlusion_features(theta, phi):  # (c,) -> (c, 1 + channels)
         tan_theta = np.tan(np.minimum(theta, np.deg2rad(89.0)))

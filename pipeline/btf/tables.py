@@ -149,14 +149,12 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     The dataset label is the preset's name (``synthetic:<material>`` for the built-in
     BTF, ``ubo2003:<folder>`` for a generic layout) with the crop and the direction count.
 
-    The model label is ``Neural BTF`` or ``k = <k>`` like the paper's columns, with
-    ``+scale`` when the graininess fix is on and ``(rep. target)`` when the clustered
-    model was trained against the representatives, ``(bfloat16)`` when the decoder's products
-    ran in bfloat16 (``train.precision``), and ``(<E> epochs)`` when it was trained for
-    another number of epochs than most runs of its dataset. Runs with one label are seeds
-    of one model only when their recipes are equal (:mod:`pipeline.core.recipe`); where they
-    are not, each label gets the settings in which its runs differ (``render``: the render
-    settings count too, for the render tables). Runs without a recipe tag are left out.
+    The model label is the paper's column (``Neural BTF``, ``k = <k>``), marked ``+scale``,
+    ``(rep. target)``, ``(bfloat16)`` or ``(<E> epochs)`` where the run's settings differ
+    from the defaults (the epochs: from most runs of its dataset). Runs with one label are
+    seeds of one model only when their recipes are equal (:mod:`pipeline.core.recipe`);
+    where they are not, each label gets the settings in which its runs differ (``render``:
+    the render settings count too). Runs without a recipe tag are left out.
     """
     runs = with_recipe(runs, RENDER_RECIPE_TAG if render else RECIPE_TAG).copy()
     if runs.empty:
@@ -183,11 +181,11 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     runs["k"] = _num(param(runs, "model.k"))
     runs["seed"] = _num(runs["params.seed"])
     models = models_of(runs)
-    clusters = pd.Series([m is not None and m.clusters for m in models], index=runs.index)
-    label = pd.Series(
-        [m.column(run) if m else "?" for m, (_, run) in zip(models, runs.iterrows(), strict=True)],
-        index=runs.index,
-    )
+    columns, sizes = [], []
+    for m, (_, run) in zip(models, runs.iterrows(), strict=True):
+        columns.append(m.column(run) if m else "?")
+        sizes.append(_num(pd.Series([run.get(m.size[0]) if m else None])).iloc[0])
+    label = pd.Series(columns, index=runs.index)
     # Only the clustered model has these settings: absent elsewhere, so at their defaults.
     scale = param(runs, "model.texel_scale", "none")
     label = np.where(scale != "none", label + " +scale", label)
@@ -210,17 +208,12 @@ def label_runs(runs: pd.DataFrame, render: bool = False) -> pd.DataFrame:
     label = np.where((epochs != "") & (epochs != usual), label + " (" + epochs + " epochs)", label)
     runs["model"] = label
     # A clustered family (Table 2's k columns of one recipe but k), for the k verdict.
-    runs["family"] = np.where(
-        clusters, runs["model"].str.replace(r"^k = \d+", "clustered", regex=True), ""
-    )
+    clustered = runs["model"].str.replace(r"^k = \d+", "clustered", regex=True)
+    runs["family"] = np.where(_clusters(runs), clustered, "")
     runs["family"] = runs["family"] + recipe_labels(
         runs, ["dataset", "family"], ignore=["model.k"], render=render
     )
     runs["model"] = runs["model"] + recipe_labels(runs, ["dataset", "model"], render=render)
-    sizes = [
-        _num(pd.Series([run.get(m.size[0]) if m else None])).iloc[0]
-        for m, (_, run) in zip(models, runs.iterrows(), strict=True)
-    ]
     runs["order"] = [
         1e9 * (m.rank if m else 9) + (0 if pd.isna(s) else s)
         for m, s in zip(models, sizes, strict=True)
@@ -316,11 +309,8 @@ def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
             continue
         first = group.iloc[0]
         parts = {name: int(first[f"metrics.{metric}"]) for metric, name in SIZE_ROWS}
-        rows.append(
-            _size_row(
-                dataset, model, parts, float(first["metrics.bytes_original"]), stored_as(first)
-            )
-        )
+        original = float(first["metrics.bytes_original"])
+        rows.append(_size_row(dataset, model, parts, original, stored_as(first)))
         if (
             first["params.model.name"] == "clustered"
             and parts["per-texel scale"] == 0
@@ -330,15 +320,8 @@ def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
             extra = scale_bytes(first)
             scaled = {**parts, "per-texel scale": extra, "total": parts["total"] + extra}
             dtype = first.get("params.btf.sizes.extra_dtype", "float32")
-            rows.append(
-                _size_row(
-                    dataset,
-                    f"{model} + per-texel scale",
-                    scaled,
-                    float(first["metrics.bytes_original"]),
-                    f"{stored_as(first)}, per-texel scale {dtype}",
-                )
-            )
+            stored = f"{stored_as(first)}, per-texel scale {dtype}"
+            rows.append(_size_row(dataset, f"{model} + per-texel scale", scaled, original, stored))
     table = pd.DataFrame(rows)
     if table.empty:
         return table
@@ -374,8 +357,8 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
     whose total bytes are nearest to the scaled one's, with its RMSE: does the scale beat
     spending its bytes on more clusters? Mean ± std over seeds.
 
-    Every RMSE here is over all the crop's directions, as Table 2's. A model that stores its scale has it in ``bytes_total``;
-    its "bytes" are those without it.
+    Every RMSE here is over all the crop's directions, as Table 2's. A model that stores its
+    scale has it in ``bytes_total``; its "bytes" are those without it.
     """
     clustered = runs[
         _clusters(runs)
@@ -385,9 +368,7 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
         return pd.DataFrame()
     extra = _num(runs.get("metrics.bytes_extra", pd.Series(0, index=runs.index))).fillna(0)
     rest = run_settings(runs).drop(columns=SCALE_SETTINGS, errors="ignore")
-    recipe_but_scale = pd.Series(
-        ["\x1f".join(row) for row in rest.itertuples(index=False)], index=runs.index
-    )
+    recipe_but_scale = rest.apply("\x1f".join, axis=1)
     unscaled = runs[_clusters(runs) & (extra == 0)].assign(
         _rest=recipe_but_scale, _rmse=_num(runs["metrics.rmse"])
     )
@@ -461,8 +442,7 @@ def with_truth_floor(table: pd.DataFrame, runs: pd.DataFrame) -> pd.DataFrame:
 
 def failed_runs(runs: pd.DataFrame, near: float = 0.9) -> pd.DataFrame:
     """Runs whose RMSE is within ``1 - near`` of the mean-ABRDF baseline or above it: the
-    model learnt next to nothing (computed from the metrics, so older runs are checked too).
-    """
+    model learnt next to nothing."""
     if "metrics.rmse_mean_abrdf" not in runs:
         return pd.DataFrame()
     ratio = _num(runs["metrics.rmse"]) / _num(runs["metrics.rmse_mean_abrdf"])

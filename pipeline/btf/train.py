@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from torch.optim.lr_scheduler import LambdaLR
 
 from pipeline.btf.backends import make_step, resolve_backend
 from pipeline.btf.batches import (
@@ -80,12 +81,8 @@ class _Curve:
         x = torch.from_numpy(self.inputs).permute(0, 2, 1).to(device)
         latents = encoder(x)
         # 16 texels at a time: the whole subsample's hidden layer would not fit in cache.
-        pred = torch.cat(
-            [
-                decoder.decode_grid(latents[i : i + 16], self.features).cpu()
-                for i in range(0, len(latents), 16)
-            ]
-        )
+        chunks = [latents[i : i + 16] for i in range(0, len(latents), 16)]
+        pred = torch.cat([decoder.decode_grid(chunk, self.features).cpu() for chunk in chunks])
         encoder.train()
         decoder.train()
         rmse = float(torch.sqrt(torch.mean(torch.square(pred - self.targets))))
@@ -168,21 +165,16 @@ def train(
     if settings.schedule == "cosine":
         # Decays over the whole run: a run twice as long decays twice as slowly, so that
         # doubling it is a convergence check (the half-life schedule cannot be one).
-        schedule = torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: 0.5 * (1 + math.cos(math.pi * min(step / total, 1.0)))
+        schedule = LambdaLR(
+            optimizer, lambda s: 0.5 * (1 + math.cos(math.pi * min(s / total, 1.0)))
         )
     elif settings.lr_half_life > 0:
         half_life_steps = settings.lr_half_life * steps_per_epoch
-        schedule = torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: 0.5 ** (step / half_life_steps)
-        )
+        schedule = LambdaLR(optimizer, lambda s: 0.5 ** (s / half_life_steps))
     else:
         schedule = None
-    if (
-        settings.precision == "bfloat16"
-        and device.type == "cpu"
-        and not torch.ops.mkldnn._is_mkldnn_bf16_supported()
-    ):
+    bfloat16_on_cpu = settings.precision == "bfloat16" and device.type == "cpu"
+    if bfloat16_on_cpu and not torch.ops.mkldnn._is_mkldnn_bf16_supported():
         # Without AVX512-BF16 or AMX, bfloat16 products run on emulated paths, many times
         # slower than float32 (docs/performance.md).
         log.warning(
@@ -192,13 +184,9 @@ def train(
     backend = resolve_backend(settings.backend, device)
     sampling = Sampling(b, q, all_queries, train_dirs, n, target_from_source)
     batches = _batches(abrdf, sources, source_of_texel, norm, sampling, rng, device, seed)
-    log.info(
-        "training on %s with the %s backend, %s, batches from the %s",
-        device,
-        backend,
-        settings.precision,
-        "device" if isinstance(batches, DeviceBatches) else "host",
-    )
+    source = "device" if isinstance(batches, DeviceBatches) else "host"
+    message = "training on %s with the %s backend, %s, batches from the %s"
+    log.info(message, device, backend, settings.precision, source)
     step_fn = make_step(
         backend, encoder, decoder, features, settings.precision, workers, settings.chunk
     )
@@ -209,8 +197,7 @@ def train(
         )
 
     losses: list[float] = []
-    step = 0
-    seconds = 0.0
+    step, seconds = 0, 0.0
     encoder.train()
     decoder.train()
 
@@ -272,15 +259,8 @@ def train(
         step * b * q / max(seconds, 1e-9) / 1e6,
         losses[-1] if losses else float("nan"),
     )
-    return TrainResult(
-        encoder.cpu(),
-        decoder.cpu(),
-        losses,
-        step,
-        seconds,
-        step * b * q,
-        curve.points if curve is not None else [],
-    )
+    points = [] if curve is None else curve.points
+    return TrainResult(encoder.cpu(), decoder.cpu(), losses, step, seconds, step * b * q, points)
 
 
 def _batches(abrdf, sources, source_of_texel, norm, sampling, rng, device, seed):

@@ -35,13 +35,9 @@ class TrainSettings:
     queries_per_abrdf : direction queries per ABRDF per step; -1 for all training directions.
     max_steps : cap on the total number of steps, -1 for none.
     device : ``auto`` (CUDA when present), ``cpu`` or ``cuda``.
-    backend : how a step computes its gradients (speed only; :mod:`pipeline.btf.backends`):
-        ``autograd``, plain PyTorch (encoder, decoder, mean squared error,
-        ``loss.backward()``), always available and the reference; ``fused``, the encoder
-        under autograd and the decoder's forward and backward by the hand-written chunked
-        step tuned for CPU caches (``pipeline/btf/fast/fused.py``); ``auto``, fused on the
-        CPU where its C++ kernels build (autograd, with a warning, where they do not) and
-        autograd on CUDA.
+    backend : how a step computes its gradients (speed only): ``autograd`` (plain PyTorch,
+        the reference), ``fused`` (the decoder by a hand-written chunked step tuned for CPU
+        caches) or ``auto``; see :mod:`pipeline.btf.backends`.
     momentum : SGD momentum (the paper: plain SGD, 0).
     optimizer : ``sgd`` (the paper) or ``adam`` (converges in far fewer steps on a CPU).
     lr_half_life : epochs over which the learning rate halves (per step, exponentially);
@@ -60,18 +56,17 @@ class TrainSettings:
         precision's default (``pipeline.btf.fast.fused.DEFAULT_CHUNK``: 1024 for float32, whose
         chunk's activations should fit in a core's L2 cache; 8192 for bfloat16).
     clip_grad_norm : None, or the largest norm of all parameters' gradients together,
-        scaled down to it before each optimizer step (``torch.nn.utils.clip_grad_norm_``).
-        A remedy to try for the jumps of the loss that long cosine runs show on the
-        corduroy (docs/results.md); None (the default) clips nothing, as before it existed.
+        scaled down to it before each optimizer step (``torch.nn.utils.clip_grad_norm_``), a
+        remedy for the jumps of the loss of long cosine runs on the corduroy
+        (docs/results.md).
     keep_awake, omp_spin_count, reuse_freed_memory : opt-in machine tuning, speed only
         (:mod:`pipeline.btf.fast.tuning`): spinning idle-class processes keep the cores
         awake when the job's threads are all its cores; ``GOMP_SPINCOUNT`` for OpenMP's
         idle threads (set when the job starts); glibc keeps freed buffers while training.
     precision : ``float32``, or ``bfloat16`` for the decoder's products (float32 master
         weights and optimizer; see ``pipeline/btf/fast/fused.py``); it pays on CPUs with
-        AMX or AVX512-BF16 (``python -m pipeline.bench`` prints which the CPU has). With
-        the autograd backend it is ``torch.autocast`` around the decoder (on CUDA, and
-        on the CPU alike), which rounds the same products to bfloat16.
+        AMX or AVX512-BF16 (``python -m benchmarks.train`` prints which the CPU has); with
+        the autograd backend, ``torch.autocast`` around the decoder.
     """
 
     epochs: int = setting(1, Integer(1), role=RESULT)

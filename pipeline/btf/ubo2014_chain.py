@@ -27,8 +27,8 @@ from pipeline.core import cli
 from pipeline.core.cache import folder_bytes
 from pipeline.core.files import human
 from pipeline.core.settings import Integer, ListOf, OneOf
-from pipeline.data.ubo2014_bench import hemisphere_angles
 from pipeline.data.ubo2014_header import read_dfmf
+from pipeline.data.ubo2014_info import hemisphere_angles
 from pipeline.data.ubo2014_write import factorize, write_dfmf
 
 PROG = "python -m pipeline.btf.ubo2014_chain"
@@ -92,9 +92,8 @@ def write_structured(
     from pipeline.btf.synthetic import SyntheticBTF
 
     views, lights = hemisphere_angles(n_views), hemisphere_angles(n_lights)
-    patch = SyntheticBTF(size=tile, seed=0, material=material).evaluate(
-        direction_pairs(views, lights)
-    )
+    fabric = SyntheticBTF(size=tile, seed=0, material=material)
+    patch = fabric.evaluate(direction_pairs(views, lights))
     reps = -(-size // tile)
     rows, cols = np.mgrid[0:size, 0:size] / size
     gain = 1.0 + 0.15 * np.sin(2 * np.pi * (1.3 * rows + 0.7 * cols)) + 0.05 * np.cos(9.1 * rows)
@@ -119,14 +118,9 @@ def run_chain(
 ):
     """Run ``models`` of the main job on ``size`` x ``size`` texels of ``path`` at
     ``offset`` (None: the default ``btf.crop.offset``), one job after the other, into the
-    store ``runs``.
-
-    Returns
-    -------
-    list of dict
-        Per job and stage: ``model``, ``stage``, ``seconds``, ``rss_mb`` (the stage's peak
-        resident set), ``cache_bytes`` (what that stage wrote in that job: 0 for a hit) and
-        the job's ``rmse``.
+    store ``runs``. Returns a dict per job and stage: ``model``, ``stage``, ``seconds``,
+    ``rss_mb`` (the stage's peak resident set), ``cache_bytes`` (what that stage wrote in
+    that job: 0 for a hit) and the job's ``rmse``.
     """
     import mlflow
 
@@ -137,24 +131,15 @@ def run_chain(
     # data are exactly of that rank, so PCA should reconstruct them up to rounding (the
     # main job's PCA at the bytes of k = 128 holds no component at 22,801 directions).
     rank = sum(channel.components for channel in read_dfmf(path).channels)
-    extra = {
-        "pca": ["model.match_clustered_k=null", f"model.n_components={rank}", "model.dtype=float32"]
-    }
+    pca = ["model.match_clustered_k=null", f"model.n_components={rank}", "model.dtype=float32"]
+    crop = [f"btf.crop.size={size}"]
+    if offset is not None:
+        crop.append(f"btf.crop.offset=[{offset[0]},{offset[1]}]")
     for model in models:
         before = {d.name: folder_bytes(d) for d in (runs / "cache").glob("*")}
-        command = [
-            sys.executable,
-            "-m",
-            "pipeline",
-            "dataset=ubo2014",
-            f"dataset.root={path}",
-            f"btf.crop.size={size}",
-            *([] if offset is None else [f"btf.crop.offset=[{offset[0]},{offset[1]}]"]),
-            f"model={model}",
-            *extra.get(model, []),
-            f"paths.runs={runs}",
-            f"tracking.experiment={EXPERIMENT}",
-        ]
+        command = [sys.executable, "-m", "pipeline", "dataset=ubo2014", f"dataset.root={path}"]
+        command += [*crop, f"model={model}", *(pca if model == "pca" else [])]
+        command += [f"paths.runs={runs}", f"tracking.experiment={EXPERIMENT}"]
         if subprocess.run(command).returncode != 0:  # the job has said why, in one line
             print(f"{PROG}: the {model} job failed; the other models go on", file=sys.stderr)
             continue
@@ -170,17 +155,11 @@ def run_chain(
             if not (name.startswith("time/") and name.endswith("_seconds")):
                 continue
             stage = name.removeprefix("time/").removesuffix("_seconds")
-            rows.append(
-                {
-                    "model": model,
-                    "stage": stage,
-                    "seconds": seconds,
-                    "rss_mb": metrics.get(f"memory/{stage}_peak_rss_mb", float("nan")),
-                    "cache_bytes": folder_bytes(runs / "cache" / stage) - before.get(stage, 0),
-                    "rmse": metrics.get("rmse"),
-                    "rmse_mean_abrdf": metrics.get("rmse_mean_abrdf"),
-                }
-            )
+            row = {"model": model, "stage": stage, "seconds": seconds}
+            row["rss_mb"] = metrics.get(f"memory/{stage}_peak_rss_mb", float("nan"))
+            row["cache_bytes"] = folder_bytes(runs / "cache" / stage) - before.get(stage, 0)
+            rmse = {key: metrics.get(key) for key in ("rmse", "rmse_mean_abrdf")}
+            rows.append({**row, **rmse})
     return rows
 
 

@@ -1,29 +1,19 @@
-"""A small config-hash-keyed artifact cache for pipeline stages.
+"""A config-hash-keyed artifact cache for pipeline stages: ``<root>/<stage>/<key>/``, where
+``key`` hashes the stage's name, code version, own resolved settings and its inputs' keys.
 
-Every stage's artifacts live in ``<cache root>/<stage>/<key>/`` where ``key`` is the
-sha256 of (stage name, the stage's code version, its own resolved settings in canonical
-JSON, the keys of the stages it reads). There is no maintained library that does this for
-Hydra configs, and the contract is small, so it is written here.
+Atomicity: an entry is computed into a temporary sibling ``.tmp-<key>-<random>-<pid>@<host>``,
+its ``manifest.json`` written last, then renamed onto its name; a folder without a manifest
+is never read. Of two jobs computing one key, the first rename wins. A killed run leaves only
+a ``.tmp-*`` folder, removed once its owner is gone
+(:meth:`StageCache.remove_stale_temporaries`).
 
-Atomicity: an entry is computed into a temporary sibling folder
-``.tmp-<key>-<random>-<pid>@<host>``; a ``manifest.json`` is written last, then the folder
-is renamed onto its final name. A folder without a manifest is never read. When two sweep
-jobs compute the same key at once, the first rename wins and the loser discards its copy,
-so one good entry remains. A killed run leaves only a ``.tmp-*`` folder, which no reader
-looks at and :meth:`StageCache.remove_stale_temporaries` removes once its owner is gone.
+Integrity: the manifest records every file's size and sha256 (per 64 MiB chunk for large
+files: :mod:`pipeline.core.digests`), and every hit checks every byte. A damaged entry, or
+one whose manifest lacks those records, an ``id`` or ``parents``, is logged, removed and
+computed again.
 
-Integrity: the manifest lists every file with its size and sha256 (files above 64 MiB one
-sha256 per chunk, which threads check at once: :mod:`pipeline.core.digests`). Every hit checks
-every byte, whatever the entry's size, and ``python -m pipeline.cache verify`` checks every
-entry. A damaged entry is never read: :meth:`StageCache.run` logs it, removes it and
-computes it again. A manifest without a size and sha256 for every file, an ``id`` and
-``parents`` (below) is not read either: its entry is computed again.
-
-Lineage: the manifest also records the entries the stage read (``parents``: each one's
-stage and the ``id`` its manifest got when it was computed). An entry whose parent has
-been computed again since (after damage, say), or is gone, is not a hit: it is computed
-again from the new parent, and so are its own descendants in turn. An ancestor's files
-are hashed when its own stage is hit, which a runner does before reading it;
+Lineage: ``parents`` records each entry the stage read with the ``id`` it had. An entry
+whose parent is gone or was computed again since is not a hit, nor are its descendants;
 ``verify fix=true`` removes a damaged entry with its descendants.
 """
 
@@ -65,21 +55,16 @@ TRASH = ".trash-"  # folders moved aside to be deleted
 
 
 def canonical(value: Any) -> Any:
-    """Return ``value`` in a canonical, JSON-ready form.
-
-    Mappings get sorted string keys, tuples become lists, integral floats become ints (so
-    ``1`` and ``1.0`` hash the same), numpy scalars become Python scalars. NaN and infinity
-    are rejected: they have no stable meaning as a setting.
-    """
+    """``value`` in a canonical, JSON-ready form: mappings with sorted string keys, tuples
+    as lists, integral floats as ints (``1`` and ``1.0`` hash the same), numpy scalars as
+    Python's. NaN and infinity, with no stable meaning as a setting, are refused."""
     if isinstance(value, Mapping):
         return {str(k): canonical(value[k]) for k in sorted(value, key=str)}
     if isinstance(value, list | tuple):
         return [canonical(v) for v in value]
     if isinstance(value, np.generic):
         value = value.item()
-    if isinstance(value, bool) or value is None or isinstance(value, str):
-        return value
-    if isinstance(value, int):
+    if value is None or isinstance(value, bool | int | str):
         return value
     if isinstance(value, float):
         if not math.isfinite(value):
@@ -100,8 +85,8 @@ def stage_key(stage: str, version: str, settings: Mapping, inputs: Mapping[str, 
     Parameters
     ----------
     stage : name of the stage (``"pca"``).
-    version : version string of the stage's code; bump it when its output changes.
-    settings : the stage's own resolved settings (only those; not the whole config).
+    version : the stage's code version; bump it when its output changes.
+    settings : the stage's own resolved settings (not the whole config).
     inputs : ``{input stage name: its key}`` for every stage it reads.
     """
     payload = canonical_json(
@@ -142,12 +127,9 @@ class Entry:
     def damage(
         self, hashes: bool = True, progress: Callable[[int], Any] | None = None
     ) -> str | None:
-        """What is wrong with the entry's own files (naming the first bad one), or None.
-
-        Every listed file must exist with its recorded size and, with ``hashes``, its
-        recorded sha256 (per chunk for large files). ``progress(n)`` is called with the
-        bytes of each file or chunk hashed.
-        """
+        """What is wrong with the entry's own files (naming the first bad one), or None:
+        each must have its recorded size and, with ``hashes``, sha256 (``progress``: as
+        in :func:`~pipeline.core.digests.first_changed`)."""
         listed = listed_files(self.manifest)
         for name, record in listed.items():
             path = self.path / name
@@ -161,8 +143,7 @@ class Entry:
 
 
 def _manifest_problem(manifest: Any) -> str | None:
-    """What a manifest lacks of what :meth:`StageCache.run` writes (``id``, ``parents``: each
-    one's stage and id, ``files``: each one's size and sha256), or None."""
+    """What a manifest lacks of what :meth:`StageCache.run` writes, or None."""
     if not isinstance(manifest, dict):
         return "is not a JSON object"
     if not isinstance(manifest.get("id"), str):
@@ -194,25 +175,21 @@ def folder_bytes(folder: Path) -> int:
     total = 0
     for parent, _dirs, files in os.walk(folder):
         for name in files:
-            try:
+            with contextlib.suppress(OSError):  # removed meanwhile
                 total += os.stat(os.path.join(parent, name)).st_size
-            except OSError:  # removed meanwhile
-                pass
     return total
 
 
 class StageCache:
     """The on-disk cache: ``root/<stage>/<key>/``.
 
-    Every entry it hands out is held in use, for as long as this object lives or until
-    :meth:`release`: a shared lock on ``<stage>/.inuse-<key>``, which :meth:`remove` (``gc``)
-    respects, so that a job's inputs stay while it runs (on this host, and on file
-    systems whose locks reach other hosts)."""
+    Every entry it hands out is held in use until :meth:`release` (or this object goes): a
+    shared lock on ``<stage>/.inuse-<key>``, which :meth:`remove` (``gc``) respects, so a
+    job's inputs stay while it runs."""
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
-        # The entries run() returned, by key: a stage computed from them records the ids
-        # they had when they were handed out (their files are what it read).
+        # The entries run() returned, by key: a stage computed from them records their ids.
         self._handed_out: dict[str, Entry] = {}
         self._in_use: dict[str, Any] = {}  # key -> the open file holding its shared lock
 
@@ -221,16 +198,11 @@ class StageCache:
 
     def stages(self) -> list[str]:
         """The stages that have a folder in the cache."""
-        if not self.root.is_dir():
-            return []
-        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and p.name[0] != ".")
+        return _subfolders(self.root)
 
     def keys(self, stage: str) -> list[str]:
         """The keys of the folders under ``stage`` (complete entries or not)."""
-        folder = self.root / stage
-        if not folder.is_dir():
-            return []
-        return sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name[0] != ".")
+        return _subfolders(self.root / stage)
 
     def read(self, stage: str, key: str) -> tuple[Entry | None, str | None]:
         """The entry with its manifest, files unchecked: ``(None, None)`` when there is
@@ -261,7 +233,7 @@ class StageCache:
         ``(entry, None)`` when it can be used, ``(entry or None, problem)`` when not.
 
         Checked: its files' sizes, its lineage (:meth:`lineage_problem`), then, with
-        ``hashes``, its files' hashes (``progress``: as in :meth:`Entry.damage`)."""
+        ``hashes``, its files' hashes (:meth:`Entry.damage`)."""
         entry, problem = self.read(stage, key)
         if entry is None:
             return None, problem
@@ -273,11 +245,9 @@ class StageCache:
         return entry, problem
 
     def lineage_problem(self, entry: Entry) -> str | None:
-        """Why ``entry`` must not be used for what it was computed from, or None.
-
-        Each ancestor (the parents its manifest records, theirs in turn) must still be
-        there, complete, with the id it had when its child was computed and its files at
-        their recorded sizes."""
+        """Why ``entry`` must not be used for what it was computed from, or None: each
+        ancestor must still be there, complete, with the id it had when its child was
+        computed and its files at their recorded sizes."""
         seen: set[str] = set()
         todo = [entry]
         while todo:
@@ -302,8 +272,7 @@ class StageCache:
         return None
 
     def _stage_of(self, key: str, hint: str | None = None) -> str | None:
-        """The stage whose folder holds the entry ``key`` (keys differ between stages:
-        the stage's name is hashed into them), or None."""
+        """The stage whose folder holds the entry ``key`` (each key is of one stage), or None."""
         for stage in ([hint] if hint else []) + self.stages():
             if (self.entry_path(stage, key) / MANIFEST).is_file():
                 return stage
@@ -325,18 +294,14 @@ class StageCache:
         inputs: Mapping[str, str],
         compute: Callable[[Path], Mapping | None],
     ) -> Entry:
-        """Return the entry for this stage computation, computing it if absent, damaged
-        or computed from inputs that have been computed again since.
+        """The entry for this stage computation, computed if absent, damaged or computed
+        from inputs that have been computed again since.
 
         ``inputs`` maps a name to the key of each entry the stage reads. ``compute(folder)``
-        writes the artifacts into ``folder`` (a fresh temporary folder) and may return a
-        small JSON-able summary stored in the manifest. If it raises, nothing is left
-        behind under the entry's name.
+        writes the artifacts into a fresh temporary ``folder`` and may return a small
+        JSON-able summary for the manifest; if it raises, nothing is left behind.
 
-        Raises
-        ------
-        DataError
-            Naming the file (or the entry) and the space left, when the disk is full.
+        A full disk is a DataError naming the file (or the entry) and the space left.
         """
         key = stage_key(stage, version, settings, inputs)
         start = time.perf_counter()
@@ -346,9 +311,8 @@ class StageCache:
 
         final = self.entry_path(stage, key)
         final.parent.mkdir(parents=True, exist_ok=True)
-        # Jobs of a sweep that need the same entry wait for the one computing it instead of
-        # computing it again. The lock is an optimization only: publishing stays atomic
-        # without it (file systems where flock does nothing are still safe).
+        # Jobs needing the same entry wait for the one computing it. An optimization only:
+        # publishing stays atomic where flock does nothing.
         with open(final.parent / f".lock-{key}", "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)
             found, problem = self.check(stage, key)
@@ -380,7 +344,7 @@ class StageCache:
 
     def _lineage(self, inputs: Mapping[str, str]) -> dict[str, dict]:
         """``{key: {"stage", "id"}}`` of the entries behind ``inputs``: those this cache
-        handed out, else those on disk now (keys that are no entry are left out)."""
+        handed out, else those on disk now."""
         parents = {}
         for name, key in sorted(inputs.items()):
             parent = self._handed_out.get(key)
@@ -396,8 +360,7 @@ class StageCache:
         tmp.mkdir()
         try:
             parents = self._lineage(inputs)
-            # Libraries that lose the errno of a full disk (numpy, torch) raise other
-            # errors; a failed write on a full disk names the entry and the space left.
+            # numpy and torch lose a full disk's errno: name the entry and the space left.
             with disk_full_is_named(final, CACHE_HINT):
                 summary = compute(tmp) or {}
                 manifest = {
@@ -412,24 +375,20 @@ class StageCache:
                     "files": describe_files(tmp, skip=MANIFEST),
                     "created": time.time(),
                 }
-                # No fsync: the folder is published by its rename, and an entry a crash
-                # left short is found by the sizes and hashes of its manifest.
-                write_atomic(
-                    tmp / MANIFEST, json.dumps(manifest, indent=1), sync=False, hint=CACHE_HINT
-                )
+                # No fsync: a crash that left the entry short fails its manifest's checks.
+                text = json.dumps(manifest, indent=1)
+                write_atomic(tmp / MANIFEST, text, sync=False, hint=CACHE_HINT)
             if not publish(tmp, final):
                 # Another job published the same key first: hand out its entry (its id).
                 entry, _ = self.read(stage, key)
                 manifest = entry.manifest if entry is not None else manifest
-        except DiskFullError as error:
+        except BaseException as error:
             shutil.rmtree(tmp, ignore_errors=True)
-            # Named as the entry's file (not its temporary folder's), with the space that
-            # is free now that the partial entry is gone.
+            if not isinstance(error, DiskFullError):
+                raise
+            # Named as the entry's file, with the space free once the partial entry is gone.
             named = Path(str(error.path).replace(str(tmp), str(final)))
             raise no_space(named, needed=error.needed, hint=error.hint) from error
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
         seconds = time.perf_counter() - start
         log.info("stage %-16s computed key=%s (%.2f s)", stage, key, seconds)
         return Entry(stage, key, final, hit=False, seconds=seconds, manifest=manifest)
@@ -441,10 +400,9 @@ class StageCache:
         unless_used_since: float | None = None,
         even_in_use: bool = False,
     ) -> bool:
-        """Delete an entry unless a job holds its key's lock (computing it) or holds it in
-        use (:class:`StageCache`; ``even_in_use``: a damaged entry, of no use to anyone, goes
-        all the same) or, with ``unless_used_since`` (a time.time()), it was used or
-        rewritten since then. Returns whether it was removed."""
+        """Delete an entry unless a job computes it (its key's lock), holds it in use
+        (unless ``even_in_use``: a damaged entry goes all the same) or, with
+        ``unless_used_since`` (a time.time()), used it since. Returns whether it went."""
         path = self.entry_path(stage, key)
         if not path.parent.is_dir():
             return False
@@ -466,16 +424,13 @@ class StageCache:
             return discard(path)
 
     def temporaries(self) -> list[Path]:
-        """The temporary and moved-aside folders of every stage (a glob, nothing more)."""
+        """The temporary and moved-aside folders of every stage."""
         return sorted(p for prefix in (TEMPORARY, TRASH) for p in self.root.glob(f"*/{prefix}*"))
 
     def remove_stale_temporaries(self, dry_run: bool = False) -> list[tuple[Path, str]]:
-        """Remove the temporary folders of computations that died, and folders left moved
-        aside; returns ``(folder, why)`` for each (with ``dry_run``, removes nothing).
-
-        A temporary folder of a process on this host is stale once that process is gone;
-        one of another host once nothing in it changed for :data:`STALE_AFTER_S` and no job
-        holds its key's lock."""
+        """Remove the temporary folders of computations that died (:func:`_why_stale`) and
+        folders left moved aside; returns ``(folder, why)`` for each (``dry_run``: of those
+        it would remove)."""
         removed = []
         for folder in self.temporaries():
             why = _why_stale(folder)
@@ -492,8 +447,7 @@ class StageCache:
 
 def _hit(entry: Entry, start: float, note: str) -> Entry:
     entry.seconds = time.perf_counter() - start
-    # The manifest's mtime says when the entry was last used (gc keeps what running jobs
-    # used); a read-only cache simply does not record it.
+    # The manifest's mtime records the last use, for gc (not in a read-only cache).
     with contextlib.suppress(OSError):
         os.utime(entry.path / MANIFEST)
     log.info("stage %-16s hit      key=%s (%.2f s%s)", entry.stage, entry.key, entry.seconds, note)
@@ -501,8 +455,8 @@ def _hit(entry: Entry, start: float, note: str) -> Entry:
 
 
 def last_used(path: Path) -> float:
-    """When the entry at ``path`` was published or last hit by :meth:`StageCache.run`
-    (its manifest's mtime, a time.time(); 0 when there is none)."""
+    """When the entry at ``path`` was published or last hit (its manifest's mtime; 0 when
+    there is none)."""
     try:
         return (path / MANIFEST).stat().st_mtime
     except OSError:
@@ -515,7 +469,9 @@ def temporary_name(key: str) -> str:
 
 
 def _why_stale(folder: Path) -> str | None:
-    """Why ``folder`` (a temporary or moved-aside folder) may go, or None to keep it."""
+    """Why ``folder`` (a temporary or moved-aside folder) may go, or None to keep it: a
+    temporary folder of this host once its process is gone, of another host once untouched
+    for :data:`STALE_AFTER_S` with its key's lock free."""
     if folder.name.startswith(TRASH):
         return "moved aside to be deleted"
     match = re.fullmatch(rf"{re.escape(TEMPORARY)}([^-]+)-[^-]+-(\d+)@(.+)", folder.name)
@@ -544,6 +500,13 @@ def _newest_mtime(folder: Path) -> float:
     return newest
 
 
+def _subfolders(folder: Path) -> list[str]:
+    """The names of ``folder``'s subfolders, hidden ones left out (none when it is gone)."""
+    if not folder.is_dir():
+        return []
+    return sorted(p.name for p in folder.iterdir() if p.is_dir() and p.name[0] != ".")
+
+
 def discard(path: Path) -> bool:
     """Move ``path`` aside (atomically: no reader sees half of it) and delete it."""
     trash = path.with_name(f"{TRASH}{path.name}-{uuid.uuid4().hex[:8]}")
@@ -558,31 +521,26 @@ def discard(path: Path) -> bool:
 def publish(tmp: Path, final: Path) -> bool:
     """Rename ``tmp`` onto ``final`` unless a complete entry is already there; returns
     whether ``tmp`` became the entry (False: another job's entry was kept)."""
-    try:
+    with contextlib.suppress(OSError):
         os.rename(tmp, final)
         return True
-    except OSError:
-        if (final / MANIFEST).is_file():
-            # Another job finished the same key first: its entry is as good as ours.
-            shutil.rmtree(tmp, ignore_errors=True)
-            return False
-    # A folder without a manifest under the final name is not an entry (it can only come
-    # from outside the cache): move it aside and publish ours.
-    discard(final)
-    try:
-        os.rename(tmp, final)
-    except OSError:
-        if not (final / MANIFEST).is_file():
-            raise
-        shutil.rmtree(tmp, ignore_errors=True)
-        return False
-    return True
+    if not (final / MANIFEST).is_file():
+        # A folder without a manifest is no entry (it came from outside): move it aside.
+        discard(final)
+        try:
+            os.rename(tmp, final)
+            return True
+        except OSError:
+            if not (final / MANIFEST).is_file():
+                raise
+    # Another job finished the same key first: its entry is as good as ours.
+    shutil.rmtree(tmp, ignore_errors=True)
+    return False
 
 
 def save_arrays(folder: Path, **arrays: np.ndarray) -> None:
-    """Write each array as ``<name>.npy`` (memory-mappable).
-
-    Raises :class:`DataError` naming the file and the space left when the disk is full."""
+    """Write each array as ``<name>.npy`` (memory-mappable); a full disk is a
+    :class:`DataError` naming the file."""
     for name, array in arrays.items():
         path = folder / f"{name}.npy"
         with disk_full_is_named(path, CACHE_HINT):
@@ -590,9 +548,8 @@ def save_arrays(folder: Path, **arrays: np.ndarray) -> None:
 
 
 def save_json(folder: Path, name: str, value: Any) -> None:
-    """Write ``value`` as ``<name>.json`` (canonical: sorted keys, 1.0 as 1).
-
-    Raises :class:`DataError` naming the file and the space left when the disk is full."""
+    """Write ``value`` as ``<name>.json`` (canonical: sorted keys, 1.0 as 1); a full disk
+    is a :class:`DataError` naming the file."""
     path = folder / f"{name}.json"
     with disk_full_is_named(path, CACHE_HINT):
         path.write_text(json.dumps(canonical(value), indent=1))

@@ -1,13 +1,11 @@
-"""Command lines of ``key=value`` settings, read as ``python -m pipeline`` reads its overrides
-and before anything heavy (torch, MLflow) is imported, so that a bad argument is answered at
-once, naming the argument and, for a misspelt key, the closest real one.
+"""Command lines of ``key=value`` settings, read before torch or MLflow is imported, so that
+a bad argument is answered at once, naming it and, for a misspelt key, the closest real one.
 
 A command describes its settings in one table, key -> ``(field, constraint, help)``: the
 field of its settings dataclass that the key sets, what the value may be (a constraint of
-:mod:`pipeline.core.settings`, or :class:`Text`) and the line ``--help`` prints. Values are
-read as YAML: ``null``, ``true``, ``30``, ``[0,0,100,100]``; with YAML 1.2's plain scalars,
-as Hydra reads them (``1:30`` stays a string, ``on``/``yes`` are no booleans), not PyYAML's
-YAML 1.1 ones.
+:mod:`pipeline.core.settings`, or :class:`Text`) and its ``--help`` line. Values are read as
+YAML 1.2, as Hydra reads them: ``null``, ``true``, ``30``, ``[0,0,100,100]`` (``1:30`` stays
+a string, ``on``/``yes`` are no booleans).
 
 >>> from pipeline.core.settings import Integer
 >>> keys = {"steps": ("steps", Integer(1), "training steps")}
@@ -35,9 +33,8 @@ from pipeline.core.settings import check_settings
 
 
 class _Yaml12Loader(yaml.SafeLoader):
-    """PyYAML's safe loader with YAML 1.2's booleans, integers and floats: YAML 1.1 (what
-    PyYAML implements) reads ``1:30`` as 90 and ``on``/``yes`` as true, which no user of a
-    ``key=value`` command means (PyYAML has no 1.2 mode, hence the resolvers here)."""
+    """PyYAML's safe loader with YAML 1.2's booleans, integers and floats (PyYAML has only
+    YAML 1.1, which reads ``1:30`` as 90 and ``on``/``yes`` as true)."""
 
 
 _Yaml12Loader.yaml_implicit_resolvers = {
@@ -64,7 +61,7 @@ for _tag, _pattern, _first in (
 
 
 def read_value(text: str):
-    """One command-line value as YAML 1.2 reads it (see the module docstring)."""
+    """One command-line value as YAML 1.2 reads it."""
     return yaml.load(text, Loader=_Yaml12Loader)  # a SafeLoader: no arbitrary objects
 
 
@@ -83,16 +80,15 @@ class Text:
 
 def closest(word: str, choices: Sequence[str]) -> str:
     """`` (did you mean KEY?)`` for the choice nearest ``word`` (``--dry-run`` read as
-    ``dry_run``; a dotted key also matched by its last part, ``runs`` for ``paths.runs``),
-    or ``""`` when none is near."""
+    ``dry_run``; ``runs`` matches ``paths.runs``), or ``""`` when none is near."""
     names = {choice.rsplit(".", 1)[-1]: choice for choice in choices} | {c: c for c in choices}
     found = difflib.get_close_matches(word.lstrip("-").replace("-", "_"), list(names), n=1)
     return f" (did you mean {names[found[0]]}?)" if found else ""
 
 
 def read(argv: Sequence[str], keys: Mapping[str, tuple], command: str = "") -> dict:
-    """``{field: value}`` of the ``key=value`` arguments ``argv``, each value checked against
-    its key's constraint; raises :class:`ConfigError` naming the first bad argument
+    """``{field: value}`` of the ``key=value`` arguments ``argv``, each checked against its
+    key's constraint; raises :class:`ConfigError` naming the first bad argument
     (``command``, say ``"the bench"``, completes "is not a setting of ...")."""
     given: dict = {}
     for argument in argv:
@@ -124,14 +120,13 @@ def read(argv: Sequence[str], keys: Mapping[str, tuple], command: str = "") -> d
 
 
 def parse(argv: Sequence[str], keys: Mapping[str, tuple], settings_class: type, command: str = ""):
-    """``settings_class`` (a dataclass) from ``argv``: the defaults, overridden by
-    :func:`read`'s values."""
+    """``settings_class`` (a dataclass) from ``argv`` (:func:`read`)."""
     return settings_class(**read(argv, keys, command))
 
 
 def command_of(argv: Sequence[str], commands: Sequence[str]) -> tuple[str, list[str]]:
     """The command that ``argv``'s first word names, and the words after it; raises
-    :class:`ConfigError` when there is none or it is not one of ``commands``."""
+    :class:`ConfigError` when it is not one of ``commands``."""
     if not argv or "=" in argv[0]:
         raise ConfigError(f"no command: give one of {', '.join(commands)} first")
     if argv[0] not in commands:
@@ -143,13 +138,12 @@ def command_of(argv: Sequence[str], commands: Sequence[str]) -> tuple[str, list[
 
 
 def shown(value) -> str:
-    """``value`` as it is written on the command line (YAML: ``null``, ``true``,
-    ``[0,0,100,100]``)."""
+    """``value`` as it is written on the command line (``null``, ``true``, ``[0,0,1,1]``)."""
     if isinstance(value, list | tuple):
         return "[" + ",".join(shown(item) for item in value) + "]"
-    return (
-        "null" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
-    )
+    if value is None:
+        return "null"
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def usage(
@@ -160,8 +154,8 @@ def usage(
     synopsis: str = "[key=value ...]",
     notes: str = "",
 ) -> str:
-    """The ``--help`` text: the usage line, ``summary``, each key with its default (read
-    from ``defaults``, the settings dataclass's instance) and help, then ``notes``."""
+    """The ``--help`` text: the usage line, ``summary``, each key with its default (from
+    ``defaults``, an instance of the settings dataclass) and help, then ``notes``."""
     lines = [f"usage: {prog} {synopsis}", "", summary]
     for key, (field, _, text) in keys.items():
         lines.append(f"  {key}={shown(getattr(defaults, field))}")
@@ -172,9 +166,8 @@ def usage(
 def parse_args(
     prog: str, parse: Callable[[list[str]], object], usage: str, argv: Sequence[str] | None = None
 ):
-    """``parse(argv)`` for a command line (``sys.argv[1:]`` by default): ``-h``/``--help``
-    prints ``usage`` and exits 0; a :class:`ConfigError` prints one line, ``PROG: error:
-    ...``, on stderr and exits 2 (as argparse does)."""
+    """``parse(argv)`` (``sys.argv[1:]`` by default): ``-h``/``--help`` prints ``usage`` and
+    exits 0; a :class:`ConfigError` prints ``PROG: error: ...`` on stderr and exits 2."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if any(a in ("-h", "--help") for a in argv):
         print(usage)
@@ -188,9 +181,8 @@ def parse_args(
 
 @dataclass(frozen=True)
 class Command:
-    """One command's command line: its ``prog``, key table (``keys``), settings dataclass,
-    the ``--help`` summary, and ``what`` (say ``"the bench"``: completes "is not a setting
-    of ..."). A command whose parsing does more (a subcommand word, a post-processed value)
+    """One command's command line: its ``prog``, key table, settings dataclass, ``--help``
+    summary and ``what`` (:func:`read`'s ``command``). A command whose parsing does more
     passes its own ``parse`` to :meth:`parse_args`."""
 
     prog: str

@@ -1,9 +1,7 @@
 """sha256 records of the files of a cache entry, checked by several threads at once.
 
-A record is ``{"bytes": n, "sha256": hex}``; a file above :data:`CHUNK_BYTES` gets one
-sha256 per chunk instead, so that the chunks of one large file are hashed by several
-threads (hashlib releases the GIL) and a hit checks every byte at close to disk speed: on
-2 busy cores, an 800 MB entry takes about 0.4 s from the page cache, 0.5 s from disk.
+A file above :data:`CHUNK_BYTES` gets one sha256 per chunk, so that several threads hash
+one large file (hashlib releases the GIL): on 2 busy cores an 800 MB entry takes ~0.5 s.
 """
 
 from __future__ import annotations
@@ -26,8 +24,8 @@ def first_changed(
     folder: Path, records: Mapping[str, Mapping], progress: Callable[[int], Any] | None = None
 ) -> str | None:
     """What differs first between the files under ``folder`` and their ``records``
-    (:func:`listed_files`; sizes are taken as checked), or None. ``progress(n)`` is called
-    with the bytes of each file or chunk hashed."""
+    (:func:`listed_files`; sizes taken as checked), or None. ``progress(n)`` gets the bytes
+    of each file or chunk hashed."""
     pieces = [piece for name, record in records.items() for piece in _pieces(folder / name, record)]
     changed = _first_changed_piece(pieces, progress)
     if changed is None:
@@ -41,8 +39,7 @@ def first_changed(
 def listed_files(manifest: Mapping) -> dict[str, dict]:
     """``{relative path: record}`` of an entry's manifest. A record is ``{"bytes": n,
     "sha256": hex}``, or for files above :data:`CHUNK_BYTES` ``{"bytes": n, "chunk_bytes":
-    c, "sha256_chunks": [hex of bytes 0..c-1, of c..2c-1, ...]}`` (a manifest without them
-    is refused as incomplete: :class:`~pipeline.core.cache.StageCache`)."""
+    c, "sha256_chunks": [hex of bytes 0..c-1, of c..2c-1, ...]}``."""
     return dict(manifest.get("files", {}))
 
 
@@ -51,13 +48,12 @@ def is_hashed(record: Mapping) -> bool:
     return HASH in record or f"{HASH}_chunks" in record
 
 
-# A piece of a file to hash: (path, offset, length in bytes or None for "to the end",
-# expected digest or None).
+# A piece of a file to hash: (path, offset, length or None: to the end, expected digest).
 Piece = tuple[Path, int, int | None, str | None]
 
 
 def _pieces(path: Path, record: Mapping) -> list[Piece]:
-    """The pieces of a file that its record holds digests of (none when it holds none)."""
+    """The pieces of a file that its record holds digests of."""
     if f"{HASH}_chunks" in record:
         size, chunk = int(record["bytes"]), int(record["chunk_bytes"])
         return [
@@ -70,8 +66,7 @@ def _pieces(path: Path, record: Mapping) -> list[Piece]:
 
 
 def range_digest(path: Path, offset: int = 0, length: int | None = None) -> str:
-    """sha256 of ``length`` bytes of a file from ``offset`` (None: to its end), read in
-    blocks of :data:`HASH_BLOCK` bytes."""
+    """sha256 of ``length`` bytes of a file from ``offset`` (None: to its end)."""
     digest = hashlib.new(HASH)
     remaining = float("inf") if length is None else length
     view = memoryview(bytearray(int(min(HASH_BLOCK, max(remaining, 1)))))
@@ -118,8 +113,7 @@ def _first_changed_piece(
 
 
 def describe_files(folder: Path, skip: str = "manifest.json") -> dict[str, dict]:
-    """The record (:func:`listed_files`) of every file under ``folder`` but ``skip``, by
-    relative path."""
+    """The record (:func:`listed_files`) of every file under ``folder`` but ``skip``."""
     sizes = {}
     for path in sorted(folder.rglob("*")):
         name = path.relative_to(folder).as_posix()

@@ -1,16 +1,12 @@
 """Writing files safely: atomically, with a full disk reported as an error naming the file.
 
-- :func:`write_atomic` is the one way the project publishes a file: it is written under a
-  temporary name in the same folder, synced to disk, then renamed onto its name, so a
-  reader sees the old file or the new one, never a part of one (a killed run or a full
-  disk leaves no 0-byte table behind).
+- :func:`write_atomic` is the one way the project publishes a file (temporary sibling,
+  fsync, rename): a reader sees the old file or the new one, never a 0-byte table.
 - A full disk is a :class:`~pipeline.core.errors.DataError` naming the file and the space
-  left (:func:`no_space`), from whatever library was writing: some lose the errno on the
-  way (numpy: "N requested and M written", torch: "unexpected pos"), so a failed write on a
-  disk that is (nearly) full counts as one too (:func:`is_disk_full`).
-- :func:`reserved_memmap`: a ``.npy`` written through a memory map, its blocks allocated
-  first. Such a file is sparse until each page is first written, and a full disk then
-  kills the process with SIGBUS (no exception, no cleanup, the MLflow run left RUNNING).
+  left (:func:`no_space`), whatever library was writing; some lose the errno (numpy, torch),
+  so a failed write on a (nearly) full disk counts as one too (:func:`is_disk_full`).
+- :func:`reserved_memmap`: a ``.npy`` memory map with its blocks allocated first: a sparse
+  file meeting a full disk kills the process with SIGBUS (no cleanup, the run left RUNNING).
 """
 
 from __future__ import annotations
@@ -28,9 +24,8 @@ import numpy as np
 from pipeline.core.errors import DataError
 
 _FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
-# The C library's texts for them, which libraries that lose the errno still quote (OpenEXR:
-# 'Failed to write pixel data to image file "x.exr". No space left on device.'), and
-# SQLite's for SQLITE_FULL, which is all that reaches MLflow's store from a full disk.
+# Their C library texts, which libraries that lose the errno still quote (OpenEXR), and
+# SQLite's for SQLITE_FULL, all that reaches MLflow's store from a full disk.
 _FULL_TEXTS = (*(os.strerror(number) for number in _FULL_ERRNOS), "database or disk is full")
 # A write that failed while less than this is free failed for want of space.
 NEARLY_FULL_BYTES = 1 << 20
@@ -60,23 +55,28 @@ def free_bytes(path: str | os.PathLike) -> int | None:
     return None
 
 
+def error_chain(error: BaseException | None) -> Iterator[BaseException]:
+    """``error`` and the exceptions it was raised from (``__cause__``, ``__context__``)."""
+    seen: set[int] = set()
+    while error is not None and id(error) not in seen:
+        seen.add(id(error))
+        yield error
+        error = error.__cause__ or error.__context__
+
+
 def is_disk_full(error: BaseException, free: int | None = None) -> bool:
     """Whether ``error`` (raised by a write) means the disk or the quota is full.
 
-    True when it, or an exception it was raised from, carries ENOSPC or EDQUOT or quotes
-    their text (or SQLite's "database or disk is full"); or when it is an OSError without an errno or a RuntimeError (what libraries
-    that lose the errno raise) and ``free``, the bytes free when it was raised, is below
+    True when it or its causes carry ENOSPC or EDQUOT or quote their text (or SQLite's);
+    or when it is an OSError without an errno or a RuntimeError (what libraries that lose
+    the errno raise) and ``free``, the bytes free when it was raised, is below
     :data:`NEARLY_FULL_BYTES`.
     """
-    seen: set[int] = set()
-    cause: BaseException | None = error
-    while cause is not None and id(cause) not in seen:
-        seen.add(id(cause))
+    for cause in error_chain(error):
         if isinstance(cause, OSError) and cause.errno in _FULL_ERRNOS:
             return True
         if any(text in str(cause) for text in _FULL_TEXTS):
             return True
-        cause = cause.__cause__ or cause.__context__
     errno_lost = isinstance(error, RuntimeError) or (
         isinstance(error, OSError) and error.errno is None
     )
@@ -120,8 +120,7 @@ def disk_full_is_named(
     path: str | os.PathLike, hint: str = "free some space or write elsewhere"
 ) -> Iterator[None]:
     """Turn a full disk while the block writes ``path`` into :func:`no_space`'s
-    :class:`DiskFullError` (other errors pass unchanged). The space it names is measured
-    at once: a caller that removes what was written may raise a new one after."""
+    :class:`DiskFullError`; other errors pass unchanged."""
     try:
         yield
     except Exception as error:
@@ -147,26 +146,19 @@ def write_atomic(
     sync: bool = True,
     hint: str = "free some space or write elsewhere",
 ) -> Path:
-    """Write a file so that ``path`` holds the old file or the whole new one, never a part.
-
-    The content goes to a temporary file in the same folder (:func:`temporary_sibling`),
-    which is synced to disk and renamed onto ``path``; on any failure it is removed and
-    ``path`` is left as it was.
+    """Write a file so that ``path`` holds the old file or the whole new one, never a part:
+    a temporary sibling (:func:`temporary_sibling`), synced, renamed onto ``path``; on any
+    failure it is removed and ``path`` left as it was.
 
     Parameters
     ----------
-    path : the file to write.
+    path : the file to write; returned.
     content : bytes, or str (written as UTF-8), or a callable ``writer(tmp)`` that writes
         the whole file at the path ``tmp`` it is given, e.g.
-        ``lambda tmp: table.to_csv(tmp)`` or ``lambda tmp: fig.savefig(tmp, dpi=110)``.
-    sync : fsync the file before the rename (False for files written into a staging
-        folder that is itself published, and synced, as a whole: a sync per file costs a
-        few milliseconds).
+        ``lambda tmp: fig.savefig(tmp, dpi=110)``.
+    sync : fsync the file before the rename (False for files in a staging folder that is
+        published as a whole).
     hint : what the disk-full error advises.
-
-    Returns
-    -------
-    Path : ``path``.
 
     Raises
     ------
@@ -179,27 +171,20 @@ def write_atomic(
     try:
         if callable(data):
             data(tmp)
-            if sync:
-                fd = os.open(tmp, os.O_RDONLY)
-                try:
-                    os.fsync(fd)
-                finally:
-                    os.close(fd)
         else:
-            with open(tmp, "wb") as out:
-                out.write(data)
-                if sync:
-                    out.flush()
-                    os.fsync(out.fileno())
+            tmp.write_bytes(data)
+        if sync:
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
         os.replace(tmp, path)
     except BaseException as error:
         free = free_bytes(path.parent)  # before the temporary file gives its space back
         tmp.unlink(missing_ok=True)
-        if (
-            isinstance(error, Exception)
-            and not isinstance(error, DataError)
-            and is_disk_full(error, free)
-        ):
+        unnamed = isinstance(error, Exception) and not isinstance(error, DataError)
+        if unnamed and is_disk_full(error, free):
             # The space named is what is free once the temporary file is gone.
             raise no_space(path, needed=None if callable(data) else len(data), hint=hint) from error
         raise
@@ -237,8 +222,8 @@ def reserved_memmap(path: str | os.PathLike, shape: tuple[int, ...], dtype) -> n
 
 
 def output_array(out: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
-    """``out`` checked to be a writeable float32 array of ``shape`` (a reader's caller may
-    hand one in, e.g. a memory map), or a new one when None."""
+    """``out`` (a caller's array, e.g. a memory map) checked to be a writeable float32
+    array of ``shape``, or a new one when None."""
     from pipeline.core.errors import ConfigError
 
     if out is None:

@@ -1,9 +1,8 @@
 """The field's image error metrics beside RMSE: PSNR, per-image MSE, SSIM and FLIP.
 
-All are pure functions of two arrays of the same shape, ``reference`` first. Values are
-taken as they come: for the BTF pipeline that is the linear, normalised space (peak 1 =
-the crop's maximum after normalisation), except for LDR-FLIP, which expects sRGB-encoded
-values in [0, 1] because it models a viewer looking at a display.
+Pure functions of two arrays of the same shape, ``reference`` first, taken as they come
+(the BTF pipeline's linear normalised space), except LDR-FLIP, which models a display and
+expects sRGB-encoded values in [0, 1].
 
 Example
 -------
@@ -28,7 +27,7 @@ SSIM_K1, SSIM_K2 = 0.01, 0.03
 
 
 def _check_pair(reference, test) -> tuple[np.ndarray, np.ndarray]:
-    """Both arrays as float64, after checking that their shapes match and values are finite."""
+    """Both arrays as float64, checked to match in shape and be finite."""
     reference = np.asarray(reference, dtype=np.float64)
     test = np.asarray(test, dtype=np.float64)
     if reference.shape != test.shape:
@@ -89,13 +88,8 @@ def per_image_mse(reference, test, image_axes: tuple[int, ...] = (-3, -2, -1)) -
     Returns
     -------
     float
-        The mean over images of each image's mean squared error (mean over its pixels and
-        channels).
-
-    Notes
-    -----
-    All images have the same number of values, so the mean of their MSEs equals the MSE
-    over all values; the function fixes the protocol (channels averaged, not summed).
+        The mean over images of each image's MSE (over its pixels and channels, averaged,
+        not summed). All images have as many values, so this is the MSE over all values.
     """
     reference, test = _check_pair(reference, test)
     axes = tuple(image_axes)
@@ -112,11 +106,9 @@ def per_image_mse(reference, test, image_axes: tuple[int, ...] = (-3, -2, -1)) -
 def ssim(reference, test, data_range: float = 1.0) -> float:
     """Mean structural similarity (Wang et al. 2004) of two images, channels averaged.
 
-    A Gaussian window (sigma 1.5, 11 taps), K1 = 0.01, K2 = 0.03 and population
-    (co)variances; the map's border of 5 pixels, where the window leaves the image, is left
-    out of the mean. The same as scikit-image's ``structural_similarity(reference, test,
-    gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=data_range,
-    channel_axis=-1)`` (``channel_axis=None`` for grey images).
+    A Gaussian window (sigma 1.5, 11 taps), K1 = 0.01, K2 = 0.03, population (co)variances,
+    the map's 5-pixel border left out of the mean: scikit-image's ``structural_similarity``
+    with ``gaussian_weights=True, sigma=1.5, use_sample_covariance=False``.
 
     Parameters
     ----------
@@ -154,7 +146,6 @@ def ssim(reference, test, data_range: float = 1.0) -> float:
         (mean_ref**2 + mean_test**2 + c1) * (var_ref + var_test + c2)
     )
     inner = ssim_map[SSIM_RADIUS:-SSIM_RADIUS, SSIM_RADIUS:-SSIM_RADIUS]
-    # Every channel has as many pixels, so the mean over all is the mean of channel means.
     return float(np.mean(inner))
 
 
@@ -193,13 +184,12 @@ def flip(reference, test, pixels_per_degree: float = 67.0, dynamic_range: str = 
                 f"{name} for {mode.upper()}-FLIP must hold values {allowed}, "
                 f"got [{low:g}, {high:g}]"
             )
-    # NVIDIA's own implementation (PyPI flip-evaluator, the C++ code behind the paper's
-    # numbers) rather than a port: the metric is long and its published values come from
-    # that code. Imported here so that the other metrics work where it is not installed.
+    # NVIDIA's own code (flip-evaluator), which gave the published values; imported here so
+    # that the other metrics work without it.
     import flip_evaluator
 
-    # The package prints and calls sys.exit on bad arguments (hence the checks above), and
-    # its default `parameters` is a shared dict: pass a fresh one every time.
+    # It calls sys.exit on bad arguments (hence the checks above), and its default
+    # `parameters` is a shared dict: pass a fresh one every time.
     _, mean_error, _ = flip_evaluator.evaluate(
         np.ascontiguousarray(reference, dtype=np.float32),
         np.ascontiguousarray(test, dtype=np.float32),

@@ -1,9 +1,8 @@
 """Peak resident memory of the process and of each stage (Linux; elsewhere the process peak).
 
-Per-stage peaks use the kernel's resettable high-water mark: writing ``5`` to
-``/proc/self/clear_refs`` sets ``VmHWM`` back to the current RSS (Linux >= 4.0). That also
-resets what ``getrusage`` reports, so the process peak is kept here, as the maximum of the
-marks read before each reset.
+Per-stage peaks reset the kernel's high-water mark (``5`` to ``/proc/self/clear_refs`` sets
+``VmHWM`` to the current RSS), which ``getrusage`` reports too, so the process peak is kept
+here as the maximum of the marks read before each reset.
 """
 
 from __future__ import annotations

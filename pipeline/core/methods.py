@@ -1,15 +1,10 @@
 """The method registry: what the job and the tables command know of a method.
 
-A method is one :class:`Method` object that its package exports; its config file
-``conf/method/<name>.yaml`` names it with ``spec: <module>:<attribute>``. The job runs the
-method the composed config names; the tables command reads every ``conf/method/*.yaml``
-and asks each method's report for its sections. Neither names a method, so adding one is
-a new package plus a config file (``docs/design.md``, "Adding a method").
-
-A :class:`Method` lives in a light module of its package: its runner and figures are
-functions there that import the heavy modules when called, and its reports are module
-names imported when the tables are built. So registering a method costs no torch import,
-and a typo in a setting is answered before the heavy imports.
+A method is one :class:`Method` object that its package exports, named by its config file
+``conf/method/<name>.yaml`` (``spec: <module>:<attribute>``); neither the job nor the tables
+command names a method (``docs/design.md``, "Adding a method"). A :class:`Method` lives in
+a light module whose functions import the heavy ones when called, so registering it costs
+no torch import.
 """
 
 from __future__ import annotations
@@ -39,21 +34,18 @@ class Method:
     headline : the metrics printed at the end of a job (and returned to sweepers: the
         first one that exists).
     reports : modules whose ``sections(runs, out, settings) -> list[str]`` write the
-        method's tables and figures for ``python -m pipeline.tables``; methods sharing a
-        report (method A's three models) name the same modules, which run once.
+        method's tables and figures for ``python -m pipeline.tables`` (once per module).
     figures : ``(cfg, cache_keys, out) -> list[Path]`` drawing the figures of a finished
         job into ``out`` (logged under ``figures/``), or None.
     prepare : ``(cfg) -> None`` called before anything else of the job
         (process-wide state that must be set before torch loads), or None.
     run_name : ``(cfg) -> str``, the MLflow run's name; None: ``"<name> s<seed>"``.
     unused : ``(cfg) -> list[str]``, flattened settings this job does not read (e.g. the
-        method's learning rate when ``train.lr`` replaces it): not logged, not in the
-        recipe, so the UI's compare view shows only what made the model.
+        method's learning rate when ``train.lr`` replaces it): not logged, not in the recipe.
     schemas : Hydra structured configs to register before composing, as
-        ``(group, name, dataclass)``: the one source of a settings group's defaults,
-        which the YAML files extend (``defaults: [/<group>/<name>@_here_, _self_]``).
+        ``(group, name, dataclass)``, which the YAML files extend.
     check : ``(cfg) -> None`` raising :class:`ConfigError` for a bad setting, called for
-        every job of a sweep before the first runs, and by the job itself; or None.
+        every job of a sweep before the first runs; or None.
     settings : ``(prefix, dataclass)`` pairs whose fields declare their roles
         (:func:`pipeline.core.settings.setting`): the recipe leaves out what is not a result.
     """
@@ -146,11 +138,8 @@ def reports(methods: Iterable[Method]) -> list[Any]:
 
 
 def register_schemas(conf_dirs: Iterable[Path] = (CONF_DIR,)) -> None:
-    """Put every registered method's structured configs in Hydra's ConfigStore.
-
-    Called before Hydra composes (by ``python -m pipeline`` and the tests' compose helper):
-    a YAML file that extends a schema needs it stored first.
-    """
+    """Put every registered method's structured configs in Hydra's ConfigStore, which a
+    YAML file extending them needs before Hydra composes."""
     from hydra.core.config_store import ConfigStore
 
     store = ConfigStore.instance()

@@ -20,8 +20,7 @@ CHILDREN_GRACE_S = 10.0  # from SIGTERM to SIGKILL for a sweep's workers
 
 
 def process_alive(pid: int) -> bool:
-    """Whether process ``pid`` of this machine exists and has not ended (a zombie, ended
-    but not yet collected by its parent, has)."""
+    """Whether process ``pid`` of this machine exists and has not ended (a zombie has)."""
     if pid <= 0:  # os.kill(0, ...) would address the process group
         return False
     try:
@@ -60,28 +59,19 @@ def descendants(pid: int | None = None) -> list[int]:
 def stop_children(
     leftovers_in: Iterable[str | os.PathLike] = (), grace_s: float = CHILDREN_GRACE_S
 ) -> list[int]:
-    """Send SIGTERM to this process's children (a sweep's workers), so that they end
-    their runs FAILED and exit; SIGKILL what is left of them (and of their children)
-    after ``grace_s``, then remove their temporary files under ``leftovers_in`` (see
-    :func:`remove_temporaries`). Children that ignore SIGTERM (loky's resource tracker)
-    are left: they exit once this process is gone. Returns the pids signalled."""
+    """SIGTERM this process's children (a sweep's workers: their runs end FAILED), SIGKILL
+    what is left of their trees after ``grace_s``, then remove their temporary files under
+    ``leftovers_in`` (:func:`remove_temporaries`). Children that ignore SIGTERM (loky's
+    resource tracker) are left. Returns the pids signalled."""
     workers = [pid for pid in children() if not _ignores(pid, signal.SIGTERM)]
     tree = workers + [d for pid in workers for d in descendants(pid)]
-    for pid in workers:
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGTERM)
-    deadline = time.monotonic() + grace_s
-    while any(map(process_alive, workers)) and time.monotonic() < deadline:
-        time.sleep(0.05)
+    _signal_all(workers, signal.SIGTERM)
+    _wait(workers, grace_s)
     left = [pid for pid in tree if process_alive(pid)]
-    for pid in left:
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(pid, signal.SIGKILL)
+    _signal_all(left, signal.SIGKILL)
     if left:
         log.warning("killed processes %s: still running %.0f s after SIGTERM", left, grace_s)
-    deadline = time.monotonic() + 5.0
-    while any(map(process_alive, left)) and time.monotonic() < deadline:
-        time.sleep(0.05)
+    _wait(left, 5.0)
     # A worker killed before its own cleanup ran (loky kills the others once one is gone).
     remove_temporaries([Path(folder) for folder in leftovers_in], tree)
     return workers
@@ -93,22 +83,29 @@ def kill_tree(pid: int) -> None:
     miss; each is stopped first, so that none starts another while the tree is listed."""
     tree: list[int] = []
     while found := [p for p in [pid, *descendants(pid)] if p not in tree]:
-        for p in found:
-            if p != os.getpid():
-                with contextlib.suppress(ProcessLookupError):
-                    os.kill(p, signal.SIGSTOP)
+        _signal_all([p for p in found if p != os.getpid()], signal.SIGSTOP)
         tree += found
-    for p in reversed(tree):
+    _signal_all(reversed(tree), signal.SIGKILL)
+
+
+def _signal_all(pids: Iterable[int], signum: int) -> None:
+    for pid in pids:
         with contextlib.suppress(ProcessLookupError):
-            os.kill(p, signal.SIGKILL)
+            os.kill(pid, signum)
+
+
+def _wait(pids: list[int], timeout_s: float) -> None:
+    """Wait until ``pids`` have all ended, for at most ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while any(map(process_alive, pids)) and time.monotonic() < deadline:
+        time.sleep(0.05)
 
 
 def remove_temporaries(folders: Iterable[Path], pids: Iterable[int]) -> list[Path]:
-    """Remove the temporary files and folders of processes ``pids`` of this machine:
-    names beginning with a dot that carry the pid as their owner (``.tmp-<key>-<random>-
-    <pid>@<host>`` in the cache, ``.<name>.partial-<pid>-<random>`` for generated data,
-    ``.mlflow.db.partial-<pid>`` and its ``-journal``), one or two levels under
-    ``folders``. Returns what was removed."""
+    """Remove the temporary files and folders of processes ``pids`` of this machine, one or
+    two levels under ``folders``: hidden names that carry the pid as their owner
+    (``.tmp-<key>-<random>-<pid>@<host>``, ``.<name>.partial-<pid>-<random>``,
+    ``.mlflow.db.partial-<pid>-journal``). Returns what was removed."""
     host = re.escape(host_name())
     owners = "|".join(str(pid) for pid in pids)
     if not owners:

@@ -1,6 +1,5 @@
-"""Progress of a long loop, where a person looks for it: a tqdm bar on the terminal, and a
-line in the job's log every :data:`LOG_EVERY_S` seconds (what is being done, how far, the
-rate and the time left), since the log file keeps no bar.
+"""Progress of a long loop: a tqdm bar on the terminal, and a line in the job's log every
+:data:`LOG_EVERY_S` seconds (how far, the rate and the time left), which keeps no bar.
 
 >>> total = 0
 >>> for chunk in progress(range(3), "evaluate", unit="chunk"):
@@ -59,13 +58,8 @@ class progress:
     ):
         if total is None and iterable is not None and hasattr(iterable, "__len__"):
             total = len(iterable) * scale
-        self.iterable, self.what, self.total, self.unit, self.scale = (
-            iterable,
-            what,
-            total,
-            unit,
-            scale,
-        )
+        self.iterable, self.what, self.unit, self.scale = iterable, what, unit, scale
+        self.total = total
         self.done = 0
         self.postfix = ""
         self.start = self.last_log = time.monotonic()

@@ -1,11 +1,9 @@
 """A run's recipe: everything in its resolved config that can change a number in a table.
 
-Runs are seeds of one model only when their recipes are equal. :data:`NOT_RECIPE` lists the
-settings every method leaves out, each with the reason it cannot change any number in any
-table; the methods' own settings say so by their declared role (``speed``, ``log``:
-:func:`pipeline.core.settings.setting`); everything else is in, a null value included (it is logged as ``None``). Rendering
-(``btf.render.*``) is a view of a model, not the model: it has a recipe of its own
-(:func:`render_recipe_id`), and the render tables pool runs only when both are equal.
+Runs are seeds of one model only when their recipes are equal. Left out are
+:data:`NOT_RECIPE` (each with its reason) and the methods' settings declared ``speed`` or
+``log`` (:func:`pipeline.core.settings.setting`); everything else is in, null included.
+Rendering (``btf.render.*``) has a recipe of its own (:func:`render_recipe_id`).
 
 >>> recipe_id({"seed": 0, "train.lr": 0.1, "train.threads": 1}) == recipe_id(
 ...     {"seed": 3, "train.lr": 0.1, "train.threads": 2})
@@ -29,8 +27,8 @@ from pipeline.core.cache import canonical_json
 log = logging.getLogger(__name__)
 
 SPEED = "changes how fast the same numbers are computed (up to the order of float sums)"
-# The one documented list (glob patterns over flattened setting names). A test changes
-# every leaf setting of every experiment and checks it is either here or in the recipe.
+# Glob patterns over flattened setting names (a test checks every leaf setting is here or in
+# the recipe).
 NOT_RECIPE: dict[str, str] = {
     "seed": "the seed: runs that differ only in it are the seeds of one model",
     "paths.*": "where files go",
@@ -93,11 +91,8 @@ def render_recipe_id(params: Mapping[str, object]) -> str:
 
 
 def with_recipe(runs: pd.DataFrame, tag: str = RECIPE_TAG) -> pd.DataFrame:
-    """``runs`` less those without the recipe ``tag``, with one warning saying how many
-    were left out. A job's run gets the tag when it starts
-    (:func:`pipeline.core.run.job_run`), so a run without it was logged into the store
-    by something else (by hand, another program): whether it may pool with others as a seed
-    cannot be checked."""
+    """``runs`` less those without the recipe ``tag`` (logged by something other than a
+    job, so whether they pool as seeds cannot be checked), with one warning."""
     if runs.empty:
         return runs
     has = runs[tag].notna() if tag in runs else pd.Series(False, index=runs.index)
@@ -130,13 +125,12 @@ def recipe_suffixes(
     most: int = 3,
 ) -> pd.Series:
     """For each run, ``" [key=value, ...]"`` naming the recipe settings in which it differs
-    from the other runs with the same values in the columns ``by`` (say, dataset and model
-    label); ``""`` where their recipes are equal. ``runs`` has MLflow's ``params.*``.
+    from the other runs with the same values in the columns ``by``; ``""`` where their
+    recipes are equal. ``runs`` has MLflow's ``params.*``.
 
-    Runs that get the same suffix in a group have equal recipes (less the settings in
-    ``ignore``: the table's own axes, such as ``method.M``), so grouping by ``by`` plus the
-    suffix pools seeds only. A setting one run lacks counts as a difference; when the
-    ``most`` settings shown do not tell two recipes apart, the recipe's hash is added.
+    Runs with the same suffix in a group have equal recipes (less ``ignore``, the table's
+    own axes), so grouping by ``by`` plus the suffix pools seeds only. When the ``most``
+    settings shown do not tell two recipes apart, the recipe's hash is added.
     """
     suffix = pd.Series("", index=runs.index, dtype=object)
     if runs.empty:

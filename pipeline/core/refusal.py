@@ -1,10 +1,7 @@
-"""A refusal is one line: the command line checked as Hydra will compose it, before any
-job starts, and a bad setting found later ended with its message alone, no traceback.
-
-Hydra answers a misspelt key, a wrong type or an unknown option with a traceback and
-several lines of hints; :func:`check_command_line` composes the command line first
-(the first value of each sweep) and turns Hydra's error into one line naming the setting
-and, for a misspelt key, the closest real one. ``PIPELINE_DEBUG=1`` shows tracebacks.
+"""A refusal is one line, no traceback: :func:`check_command_line` composes the command line
+as Hydra will (each sweep at its first value) before any job starts, and turns Hydra's error
+into one line naming the setting and, for a misspelt key, the closest real one.
+``PIPELINE_DEBUG=1`` shows tracebacks.
 """
 
 from __future__ import annotations
@@ -34,8 +31,7 @@ def refuse(error: BaseException, status: int = 2) -> NoReturn:
 
 
 def first_values(overrides: Sequence[str]) -> list[str]:
-    """The command line with each sweep (``k=1,2``, ``range(3)``) at its first value: one
-    job's overrides, which compose as every job's do (or fail as the first would)."""
+    """The command line with each sweep (``k=1,2``, ``range(3)``) at its first value."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     lines = []
@@ -124,7 +120,8 @@ def _given(lines: Sequence[str], key: str) -> str:
 def _closest(key: str, lines: Sequence[str], conf_dir: Path, config_name: str) -> str:
     """`` (did you mean KEY?)`` among the settings the config has without ``key``."""
     from hydra import compose, initialize_config_dir
-    from omegaconf import DictConfig
+
+    from pipeline.core.settings import leaf_keys
 
     others = [line for line in lines if line.lstrip("+~").split("=", 1)[0] != key]
     try:
@@ -132,14 +129,7 @@ def _closest(key: str, lines: Sequence[str], conf_dir: Path, config_name: str) -
             cfg = compose(config_name=config_name, overrides=others)
     except Exception:  # another bad override: name the closest without its help
         return ""
-
-    def leaves(node, prefix=""):
-        for name, value in node.items():
-            yield f"{prefix}{name}"
-            if isinstance(value, DictConfig):
-                yield from leaves(value, f"{prefix}{name}.")
-
-    found = difflib.get_close_matches(key, list(leaves(cfg)), n=1, cutoff=0.6)
+    found = difflib.get_close_matches(key, leaf_keys(cfg), n=1, cutoff=0.6)
     return f" (did you mean {found[0]}?)" if found else ""
 
 

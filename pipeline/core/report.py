@@ -1,11 +1,8 @@
 """Report writing shared by the methods: runs read back from MLflow, tables on disk.
 
-Each method's ``report`` module turns a DataFrame of runs (one row per MLflow run, columns
-``params.*``, ``metrics.*`` and ``tags.*`` as ``mlflow.search_runs`` returns them) into
-Markdown sections, writing its tables with :func:`write_table`; ``python -m
-pipeline.tables`` fetches the runs once and hands them to each method. Every file is
-written atomically (:func:`write_file`): a table is whole or absent, never 0 bytes, and a
-full disk is a DataError naming the file and the space left.
+Each method's ``report`` module turns a DataFrame of runs (as ``mlflow.search_runs``
+returns them) into Markdown sections, writing its tables with :func:`write_table`. Every
+file is written atomically (:func:`write_file`); a full disk is a DataError naming it.
 """
 
 from __future__ import annotations
@@ -28,9 +25,8 @@ def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> 
     """Finished runs of the given MLflow experiments (all when empty) as one DataFrame,
     with the experiment's name in the column ``experiment``.
 
-    Named experiments that the store lacks, or a filter that matches none of their runs,
-    are a ConfigError naming what the store has: a typo must not give an empty report.
-    A folder without a store is a StoreError naming it (no empty store is created).
+    Named experiments that the store lacks, or a filter that matches no run, are a
+    ConfigError naming what the store has; a folder without a store is a StoreError.
     """
     import mlflow
 
@@ -66,8 +62,7 @@ def fetch_runs(runs_dir: str | Path, experiments, filter_string: str | None) -> 
 
 def logged_arrays(run_id: str, artifact_path: str) -> dict | None:
     """The ``.npz`` a run logged at ``artifact_path`` as ``{name: array}``; None when the
-    run has no such file (a run of older code, a model that logs none). Any other failure
-    (a tracking server out of reach) is raised."""
+    run has no such file. Any other failure (a server out of reach) is raised."""
     import tempfile
 
     import mlflow
@@ -88,9 +83,8 @@ def logged_arrays(run_id: str, artifact_path: str) -> dict | None:
 
 
 def first_with_data(group: pd.DataFrame, data_of, what: str, log) -> list[tuple[str, dict]]:
-    """Per model of ``group`` (labelled runs, sorted), the first run whose data
-    ``data_of(run_id)`` returns (the lowest seed that logged it), as ``(model, data)``;
-    a model none of whose runs logged it is named in a warning."""
+    """Per model of ``group`` (labelled runs, sorted), ``(model, data)`` of the first run
+    for which ``data_of(run_id)`` is not None; a model without one is named in a warning."""
     found = []
     for model, runs in group.groupby("model", sort=False):
         for _, run in runs.iterrows():
@@ -110,15 +104,8 @@ def safe_stem(text: str) -> str:
 
 
 def write_file(path: Path, content) -> Path:
-    """Write a report file atomically (:func:`pipeline.core.files.write_atomic`: ``content``
-    is bytes, text, or a callable writing the temporary path it is given, e.g.
-    ``lambda tmp: fig.savefig(tmp, dpi=110)``).
-
-    Raises
-    ------
-    DataError
-        Naming ``path`` and the space left, when the disk is full.
-    """
+    """Write a report file atomically (:func:`pipeline.core.files.write_atomic`, whose
+    ``content`` it takes); a full disk is a DataError naming ``path``."""
     return write_atomic(path, content, hint=TABLES_HINT)
 
 
@@ -132,12 +119,7 @@ def write_table(
 ) -> str:
     """Write ``stem``.md/.csv/.tex into ``out`` (each atomically); return the Markdown
     section. A missing value is an empty CSV cell and "–" in Markdown and LaTeX;
-    ``floatfmt`` formats the Markdown's numbers.
-
-    Raises
-    ------
-    DataError
-        Naming the file and the space left, when the disk is full.
+    ``floatfmt`` formats the Markdown's numbers. A full disk is a DataError naming the file.
     """
     index = table.index.name is not None
     write_file(out / f"{stem}.csv", table.to_csv(index=index))
@@ -165,18 +147,14 @@ def runs_of(runs: pd.DataFrame, methods) -> pd.DataFrame:
 
 
 def tables_settings() -> DictConfig:
-    """The ``tables`` section of ``conf/tables.yaml``: the tables command's defaults, also
-    read by a job that draws a table's figures for itself (method A's Fig. 7 pairs)."""
+    """The ``tables`` section of ``conf/tables.yaml``: the tables command's defaults."""
     return OmegaConf.load(CONF_DIR / "tables.yaml").tables
 
 
 def summary_html(summary: str, folder: Path) -> str:
-    """``summary`` (Markdown) as one self-contained HTML page: its tables as HTML tables and
-    every image it references from ``folder`` inlined as a data URI.
-
-    The MLflow UI shows an ``.html`` artifact rendered but a Markdown file as text, and an
-    artifact page cannot load a sibling file by a relative link: inlining is what makes the
-    figures appear there.
+    """``summary`` (Markdown) as one self-contained HTML page, every image it references
+    from ``folder`` inlined as a data URI: the MLflow UI renders an ``.html`` artifact, but
+    cannot load a sibling file by a relative link.
     """
     import base64
     import re
@@ -198,9 +176,8 @@ def summary_html(summary: str, folder: Path) -> str:
         "td,th{border:1px solid #ccc;padding:2px 6px;white-space:nowrap}"
         "img{max-width:100%}div.wide{overflow-x:auto}"
     )
-    html = html.replace("<table>", '<div class="wide"><table>').replace(
-        "</table>", "</table></div>"
-    )
+    html = html.replace("<table>", '<div class="wide"><table>')
+    html = html.replace("</table>", "</table></div>")
     return (
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><style>{style}</style>"
         f"</head><body>{html}</body></html>"

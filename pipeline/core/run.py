@@ -1,10 +1,5 @@
-"""The MLflow run of one job.
-
-A job's run (:func:`job_run`) holds its settings as params (those its model reads), the
-resolved config, the command line, the code's commit and the versions of the packages
-that shape results; it ends FAILED, naming the error, if the job raises. Its stages log
-to it through the context's :class:`~pipeline.core.run_log.RunLog`.
-"""
+"""The MLflow run of one job (:func:`job_run`); its stages log to it through the
+context's :class:`~pipeline.core.run_log.RunLog`."""
 
 from __future__ import annotations
 
@@ -69,18 +64,13 @@ def environment_tags() -> dict[str, str]:
 
 
 def _git_commit() -> str:
-    here = Path(__file__).resolve().parent
+    def git(*args: str) -> subprocess.CompletedProcess:
+        here = Path(__file__).resolve().parent
+        return subprocess.run(["git", *args], cwd=here, capture_output=True, text=True, timeout=10)
+
     try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=10
-        )
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
-            cwd=here,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
+        out = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.TimeoutExpired):
         return "unknown"
     if out.returncode != 0:
@@ -98,10 +88,8 @@ def _sweep_dir() -> Path | None:
 
 def _parent_run_id() -> str | None:
     sweep = _sweep_dir()
-    if sweep is None:
-        return None
-    marker = sweep / PARENT_RUN_FILE
-    return marker.read_text().strip() if marker.is_file() else None
+    marker = sweep / PARENT_RUN_FILE if sweep is not None else None
+    return marker.read_text().strip() if marker is not None and marker.is_file() else None
 
 
 @contextmanager
@@ -111,17 +99,15 @@ def job_run(
     description: str = "",
     unused: Sequence[str] = (),
 ) -> Iterator[Any]:
-    """Start the MLflow run of one job; it ends FAILED if the body raises.
+    """Start the MLflow run of one job; it ends FAILED, naming the error, if the body raises.
 
-    Besides the flattened config as params, the run holds the resolved config
-    (``config/resolved.yaml``), the command-line overrides (``config/overrides.yaml`` and
-    the tag ``overrides``), ``description`` as its note in the UI and, when the job runs
-    under Hydra, Hydra's own files and the job's log (``hydra/``), logged as it ends.
+    The run holds the flattened config as params (less ``unused``), the resolved config,
+    the overrides, the code's commit and package versions, ``description`` as its note
+    and, under Hydra, Hydra's files and the job's log (``hydra/``), logged as it ends.
 
-    The body's error is the one raised: logging those files and ending the run FAILED
-    must not replace it when they fail too (on a full disk, say; the run is then left
-    RUNNING for the next start to mark FAILED). A full disk met writing the store, in
-    the body or here, is raised as :func:`store_full`'s error.
+    The body's error is the one raised, even when ending the run fails too (the run is
+    then left RUNNING for the next start to mark FAILED). A full disk met writing the
+    store is raised as :func:`store_full`'s error.
     """
     import mlflow
 
@@ -150,8 +136,7 @@ def job_run(
         ) as run:
             run_id = run.info.run_id
             try:
-                # Every setting, unset ones (model.k of Neural BTF) as "None": a null is a
-                # value that the tables compare like any other (pipeline.core.recipe).
+                # Unset settings as "None": the tables compare a null like any other value.
                 mlflow.log_params({k: param_value(v) for k, v in params.items()})
                 mlflow.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config/resolved.yaml")
                 mlflow.log_text(OmegaConf.to_yaml(overrides), "config/overrides.yaml")
@@ -173,7 +158,7 @@ def job_run(
                 status = _end_failed_run(run_id)
                 raise
     except Exception as error:
-        # Here too when the run could not be created, or not ended FINISHED (left RUNNING).
+        # Also when the run could not be created, or not ended FINISHED (left RUNNING).
         full = store_full(error, uri, run_id, status)
         if full is None:
             raise
@@ -181,9 +166,8 @@ def job_run(
 
 
 def _end_failed_run(run_id: str) -> str:
-    """End the active run FAILED, before mlflow.start_run's exit would (whose error, when
-    the store cannot take it, would replace the job's); returns the status it is left
-    with: FAILED, or RUNNING for the next start to mark FAILED (:func:`fail_dead_runs`)."""
+    """End the active run FAILED before mlflow.start_run's exit would (whose error would
+    replace the job's); returns FAILED, or RUNNING when the store cannot take it."""
     import mlflow
 
     try:

@@ -9,9 +9,18 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+import tempfile
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any
+
+
+def _mlflow():
+    """The ``mlflow`` module, imported on first use."""
+    import mlflow
+
+    return mlflow
 
 
 class RunLog:
@@ -23,80 +32,59 @@ class RunLog:
 
     def metric(self, name: str, value: float, step: int | None = None) -> None:
         if self.on:
-            import mlflow
-
-            mlflow.log_metric(name, value, step=step)
+            _mlflow().log_metric(name, value, step=step)
 
     def metrics(self, values: Mapping[str, float], step: int | None = None) -> None:
         if self.on and values:
-            import mlflow
-
-            mlflow.log_metrics(dict(values), step=step)
+            _mlflow().log_metrics(dict(values), step=step)
 
     def series(self, name: str, values: Sequence[tuple[int, float]]) -> None:
         """A whole curve, ``(step, value)`` pairs, in one batch (not a call per step)."""
         if not self.on or not values:
             return
-        import mlflow
         from mlflow.entities import Metric
         from mlflow.tracking import MlflowClient
 
         now = int(time.time() * 1000)
         batch = [Metric(name, float(value), now, int(step)) for step, value in values]
-        MlflowClient().log_batch(mlflow.active_run().info.run_id, metrics=batch)
+        MlflowClient().log_batch(_mlflow().active_run().info.run_id, metrics=batch)
 
     def tags(self, values: Mapping[str, str]) -> None:
         if self.on and values:
-            import mlflow
-
-            mlflow.set_tags(dict(values))
+            _mlflow().set_tags(dict(values))
 
     def file(self, path: str | os.PathLike, folder: str | None = None) -> None:
         if self.on:
-            import mlflow
-
-            mlflow.log_artifact(str(path), folder)
+            _mlflow().log_artifact(str(path), folder)
 
     def files(self, named: Mapping[str, str | os.PathLike], folder: str) -> None:
         """Files under new names: ``{name in the run: path}``, under ``folder``."""
         if not self.on:
             return
-        import shutil
-        import tempfile
-
-        import mlflow
-
         with tempfile.TemporaryDirectory() as tmp:
             for name, path in named.items():
                 shutil.copyfile(path, os.path.join(tmp, name))
-            mlflow.log_artifacts(tmp, folder)
+            _mlflow().log_artifacts(tmp, folder)
 
     def folder(self, path: str | os.PathLike, folder: str | None = None) -> None:
         """Every file under ``path``, under ``folder`` of the run's artifacts."""
         if self.on:
-            import mlflow
-
-            mlflow.log_artifacts(str(path), folder)
+            _mlflow().log_artifacts(str(path), folder)
 
     def arrays(self, values: Mapping[str, Any], name: str) -> None:
         """Arrays as one ``.npz`` file, ``name`` its path in the run (``folder/file.npz``)."""
         if not self.on:
             return
-        import tempfile
-
-        import mlflow
         import numpy as np
 
         folder, _, file = name.rpartition("/")
         with tempfile.TemporaryDirectory() as tmp:
             np.savez(os.path.join(tmp, file), **values)
-            mlflow.log_artifact(os.path.join(tmp, file), folder or None)
+            _mlflow().log_artifact(os.path.join(tmp, file), folder or None)
 
     def text(self, text: str, name: str) -> None:
         if self.on:
-            import mlflow
-
-            mlflow.log_text(text, name)
+            _mlflow().log_text(text, name)
 
     def json(self, value: Any, name: str) -> None:
         self.text(json.dumps(value, indent=1), name)

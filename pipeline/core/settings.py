@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 import sys
 import types
@@ -38,20 +39,14 @@ class Integer:
     def ok(self, value) -> bool:
         if value is None:
             return self.optional
-        return (
-            isinstance(value, int)
-            and not isinstance(value, bool)
-            and (self.low is None or value >= self.low)
-            and (self.high is None or value <= self.high)
-        )
+        if isinstance(value, bool) or not isinstance(value, int):
+            return False
+        return (self.low is None or value >= self.low) and (self.high is None or value <= self.high)
 
     def __str__(self) -> str:
-        bounds = [
-            f">= {self.low}" if self.low is not None else "",
-            f"<= {self.high}" if self.high is not None else "",
-        ]
-        text = " and ".join(b for b in bounds if b)
-        return f"an integer {text}".rstrip() + (" or null" if self.optional else "")
+        low = f">= {self.low}" if self.low is not None else ""
+        high = f"<= {self.high}" if self.high is not None else ""
+        return _described("an integer", low, high, self.optional)
 
 
 @dataclass(frozen=True)
@@ -73,20 +68,22 @@ class Real:
             return False
         if not math.isfinite(value):
             return False
-        above = self.high is not None and (
+        if self.high is not None and (
             value > self.high or (value == self.high and not self.high_closed)
-        )
-        if above:
+        ):
             return False
         return self.low is None or value > self.low or (self.closed and value == self.low)
 
     def __str__(self) -> str:
-        bounds = [
-            "" if self.low is None else f"{'>=' if self.closed else '>'} {self.low:g}",
-            "" if self.high is None else f"{'<=' if self.high_closed else '<'} {self.high:g}",
-        ]
-        text = " and ".join(b for b in bounds if b)
-        return f"a finite number {text}".rstrip() + (" or null" if self.optional else "")
+        low = "" if self.low is None else f"{'>=' if self.closed else '>'} {self.low:g}"
+        high = "" if self.high is None else f"{'<=' if self.high_closed else '<'} {self.high:g}"
+        return _described("a finite number", low, high, self.optional)
+
+
+def _described(noun: str, low: str, high: str, optional: bool) -> str:
+    """``noun`` with its bounds (empty when none) and `` or null`` when ``optional``."""
+    text = " and ".join(b for b in (low, high) if b)
+    return f"{noun} {text}".rstrip() + (" or null" if optional else "")
 
 
 @dataclass(frozen=True)
@@ -122,11 +119,9 @@ class ListOf:
         )
 
     def __str__(self) -> str:
-        count = (
-            f"{self.length} "
-            if self.length is not None
-            else (f"at least {self.at_least} " if self.at_least else "")
-        )
+        count = f"at least {self.at_least} " if self.at_least else ""
+        if self.length is not None:
+            count = f"{self.length} "
         return f"a list of {count}items, each {self.item}"
 
 
@@ -155,8 +150,8 @@ Constraint = Integer | Real | OneOf | ListOf | Either
 def check_settings(cfg: Mapping | DictConfig, constraints: Mapping[str, Constraint]) -> None:
     """Raise :class:`ConfigError` naming the first setting (dotted name) whose value breaks
     its constraint; settings absent from ``cfg`` are not checked."""
-    omegaconf = sys.modules.get("omegaconf")  # a DictConfig means it is loaded; training
-    if omegaconf is not None and isinstance(cfg, omegaconf.DictConfig):  # may run without
+    omegaconf = sys.modules.get("omegaconf")  # a DictConfig means it is loaded
+    if omegaconf is not None and isinstance(cfg, omegaconf.DictConfig):
         cfg = omegaconf.OmegaConf.to_container(cfg, resolve=True)
     missing = object()
     for name, constraint in constraints.items():
@@ -176,10 +171,8 @@ def _select(cfg: Mapping, name: str, default):
 
 def check_fields(settings, prefix: str) -> None:
     """Check a dataclass's fields against the constraint each declares (:func:`setting`),
-    or, where it declares none, against its annotation (``int``, ``float``, ``str``,
-    ``bool``, ``X | None``): an ``int`` field refuses 1.5, True and NaN, a ``float`` field
-    refuses strings and non-finite values. Raises :class:`ConfigError` naming
-    ``prefix.field``."""
+    else against its annotation (``int``, ``float``, ``str``, ``bool``, ``X | None``: an
+    ``int`` refuses 1.5, True and NaN). Raises :class:`ConfigError` naming ``prefix.field``."""
     hints = typing.get_type_hints(type(settings))
     for field in dataclasses.fields(settings):
         value = getattr(settings, field.name)
@@ -215,13 +208,12 @@ class _String:
 
 
 def schema(settings_class: type, class_name: str | None = None, **extra: object) -> type:
-    """A Hydra structured config with the fields and defaults of ``settings_class``.
+    """A Hydra structured config with the fields and defaults of ``settings_class`` (a
+    mutable copy: the frozen settings dataclass stays the one source of defaults).
 
-    The settings dataclass stays the one source of defaults and checks (it is frozen and
-    checks itself when the job builds it; a structured config must be mutable, so this is
-    a plain copy of its fields). ``extra`` adds fields the config group holds besides
-    (name: default; a dict default becomes an open ``dict[str, Any]`` field), or gives a
-    field of the class another default in the config, which may then be null.
+    ``extra`` adds fields the config group holds besides (name: default; a dict default
+    becomes an open ``dict[str, Any]`` field), or gives a field another default in the
+    config, which may then be null.
     """
     hints = typing.get_type_hints(settings_class)
     fields = []
@@ -238,13 +230,8 @@ def schema(settings_class: type, class_name: str | None = None, **extra: object)
         fields.append((f.name, hints[f.name], default))
     for key, value in extra.items():
         if isinstance(value, dict):
-            fields.append(
-                (
-                    key,
-                    dict[str, typing.Any],
-                    dataclasses.field(default_factory=lambda v=value: dict(v)),
-                )
-            )
+            copy = dataclasses.field(default_factory=functools.partial(dict, value))
+            fields.append((key, dict[str, typing.Any], copy))
         else:
             fields.append((key, type(value) if value is not None else typing.Any, value))
     return dataclasses.make_dataclass(class_name or f"{settings_class.__name__}Schema", fields)
@@ -259,11 +246,10 @@ def check_added_keys(
 ) -> None:
     """Refuse a setting added with ``+key=value`` (or ``++``) that the config does not have.
 
-    Hydra refuses ``btf.crop.szie=32`` but adds ``+btf.crop.szie=32`` as a new key that no
-    code reads, so the run would go on with the default. Adding is allowed for config
-    groups (``+experiment=...``) and under the maps meant to be open (``tracking.tags``).
-    ``++key`` sets a key whether or not it exists: it is refused when the config composed
-    without it (``compose(overrides)``) lacks the key. The error names the closest setting.
+    Hydra adds ``+btf.crop.szie=32`` as a new key that no code reads. Adding is allowed for
+    config groups (``+experiment=...``) and under ``open_maps``; ``++key`` is refused when
+    the config composed without it (``compose(overrides)``) lacks the key. The error names
+    the closest setting.
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import OmegaConf
@@ -283,7 +269,7 @@ def check_added_keys(
                 base = compose([o.input_line for o in parsed if not o.is_force_add()])
             if OmegaConf.select(base, key, default=_ABSENT) is not _ABSENT:
                 continue  # ++ on a real setting: a plain change
-        known = [k for k in _leaf_keys(cfg) if k != key]
+        known = [k for k in leaf_keys(cfg) if k != key]
         close = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
         hint = f"; did you mean {close[0]}?" if close else ""
         raise ConfigError(
@@ -295,7 +281,8 @@ def check_added_keys(
 _ABSENT = object()
 
 
-def _leaf_keys(cfg: DictConfig, prefix: str = "") -> list[str]:
+def leaf_keys(cfg: DictConfig, prefix: str = "") -> list[str]:
+    """Every key of ``cfg``, dotted, its maps' included."""
     from omegaconf import DictConfig
 
     keys = []
@@ -303,13 +290,12 @@ def _leaf_keys(cfg: DictConfig, prefix: str = "") -> list[str]:
         name = f"{prefix}{key}"
         keys.append(name)
         if isinstance(value, DictConfig):
-            keys += _leaf_keys(value, name + ".")
+            keys += leaf_keys(value, name + ".")
     return keys
 
 
-# A setting's role, declared where the setting is (field metadata "role"): what its value
-# can change. Cache keys hold the RESULT settings of their stage, the recipe that tables
-# group runs by holds every RESULT setting, the logged parameters all that the model uses.
+# A setting's role (field metadata "role"): what its value can change. Cache keys and
+# recipes hold the RESULT settings.
 RESULT = "result"  # can change a number in a table
 SPEED = "speed"  # changes how fast the same numbers are computed (up to float sums)
 LOG = "log"  # changes what is logged or drawn, not the model
@@ -326,9 +312,9 @@ def setting(
 ):
     """A dataclass field with its role, its allowed values and one line of help.
 
-    ``added``: the setting came after results existed, and its default is what the code
-    before it did. At its default it is left out of cache keys, recipes and logged
-    parameters (:func:`at_added_default`), so those results stay the same model.
+    ``added``: the setting came after results existed, its default what the code did
+    before; at its default it is left out of cache keys, recipes and logged parameters
+    (:func:`at_added_default`), so those results stay the same model.
     """
     if role not in ROLES:
         raise ValueError(f"role={role!r} must be one of {', '.join(ROLES)}")

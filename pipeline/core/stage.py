@@ -1,9 +1,6 @@
 """The stage context every method's runners share: the config, the cache, and what ran.
-
-A runner calls :meth:`Context.run` with its stage's name and code version; the cache
-decides whether anything needs computing. Bump a stage's version where it is run when a
-code change alters its output.
-"""
+A runner calls :meth:`Context.run` with its stage's name and code version (bump it when a
+code change alters the output); the cache decides whether anything needs computing."""
 
 from __future__ import annotations
 
@@ -44,10 +41,9 @@ class Context:
         """Run (or fetch) ``stage`` at code ``version`` with its own ``settings``."""
         if not isinstance(version, str) or not version:
             raise TypeError(f"stage {stage!r} needs a version string, got {version!r}")
+        input_keys = {name: e.key for name, e in inputs.items()}
         with stage_peak() as peak:
-            entry = self.cache.run(
-                stage, version, settings, {name: e.key for name, e in inputs.items()}, compute
-            )
+            entry = self.cache.run(stage, version, settings, input_keys, compute)
         self.keys[stage] = entry.key
         self.seconds[stage] = entry.seconds
         self.peak_rss_mb[stage] = peak["mb"]
@@ -62,12 +58,9 @@ def plain_settings(node):
 
 
 def folder_fingerprint(root: Path) -> dict:
-    """Count, total size, newest mtime and a hash of the names of the files under ``root``.
-
-    Cheap (one stat per file) and part of the load key, so that editing a dataset in
-    place invalidates the cached decode, renaming files included (a rename keeps sizes
-    and mtimes, but the angles are read from the names).
-    """
+    """Count, total size, newest mtime and a hash of the names of the files under ``root``:
+    one stat per file, in the load key, so that a dataset edited in place (renamed files
+    included: angles are read from the names) is decoded again."""
     count, size, newest, names = 0, 0, 0, []
     for folder, _dirs, files in os.walk(root):
         relative = os.path.relpath(folder, root)

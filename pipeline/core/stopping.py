@@ -1,27 +1,24 @@
 """A stop signal always stops the job, whatever it interrupts.
 
-Python runs a signal handler in the main thread between two bytecodes, wherever that is:
-inside a garbage-collection callback or a ``__del__`` (where an exception it raises is
-printed and dropped), inside an import (where C code may turn it into another error), in
-the middle of SQLAlchemy. So a stop request (SIGTERM from ``kill``, ``timeout``, systemd or
-SLURM; SIGINT from Ctrl-C; SIGHUP) is first *recorded*, and then:
+Python runs a signal handler in the main thread between two bytecodes, wherever that is: in
+a ``__del__`` or garbage-collection callback (where its exception is dropped), in an import
+(where C code may turn it into another error). So a stop (SIGTERM, SIGINT, SIGHUP) is first
+*recorded*, and then:
 
-- **inside a job** (:func:`job_scope`) the handler raises :class:`Stopped`: the stack
-  unwinds as for any error (the MLflow run ends FAILED, the cache removes its temporary
-  folder) and the scope's end, the safe point, ends the process with status 128 + signal.
-  A ``Stopped`` that Python would drop ("Exception ignored in ...") is raised again a
-  moment later, elsewhere; any other error that surfaces while a stop is pending (C code
-  may turn it into one) is reported as the stop.
-- **outside a job** (imports, Hydra's setup, a sweep's launcher waiting for its workers)
-  the main thread is held where it is and the stop proceeds at once.
-- a **watchdog** thread, woken by the signal itself (``signal.set_wakeup_fd``, so even
-  while the main thread is inside a long C call), ends the process when the main thread
-  has not done so :data:`GRACE_S` seconds after the signal: it runs the cleanups
-  registered with :func:`on_stop` (each for at most :data:`CLEANUP_S` seconds: mark the
-  run FAILED, remove temporary files, stop a sweep's workers), then ``os._exit``.
+- **inside a job** (:func:`job_scope`) the handler raises :class:`Stopped`: the stack unwinds
+  as for any error (the run ends FAILED, the cache removes its temporary folder) and the
+  scope's end ends the process with status 128 + signal. A ``Stopped`` that Python would
+  drop is raised again a moment later; any other error surfacing while a stop is pending is
+  reported as the stop.
+- **outside a job** (imports, Hydra's setup, a launcher waiting for its workers) the main
+  thread is held where it is and the stop proceeds at once.
+- a **watchdog** thread, woken by the signal itself (``signal.set_wakeup_fd``, even during a
+  long C call), ends the process when the main thread has not :data:`GRACE_S` seconds after
+  the signal: it runs the :func:`on_stop` cleanups (each for at most :data:`CLEANUP_S`
+  seconds), then ``os._exit``.
 
-A sweep's workers watch their launcher (:data:`LAUNCHER_ENV`) and stop when it is gone,
-``kill -9`` included.
+A sweep's workers stop when their launcher (:data:`LAUNCHER_ENV`) is gone, ``kill -9``
+included.
 """
 
 from __future__ import annotations
@@ -54,8 +51,8 @@ LAUNCHER_ENV = "PIPELINE_SWEEP_LAUNCHER"
 
 
 class _State:
-    """What the handler, the watchdog and the job scope share (plain attributes only:
-    the handler may interrupt any code, so it takes no lock)."""
+    """What the handler, the watchdog and the job scope share (no lock: the handler may
+    interrupt any code)."""
 
     def __init__(self) -> None:
         self.pid = os.getpid()  # a forked child is not the process these describe
@@ -83,9 +80,8 @@ _state = _State()
 
 
 def install() -> bool:
-    """Stop on :data:`STOP_SIGNALS` for the rest of this process (``python -m pipeline``
-    and a sweep's workers call it first thing). Signals set to be ignored stay ignored.
-    Returns False, doing nothing, outside the main thread."""
+    """Stop on :data:`STOP_SIGNALS` for the rest of this process (ignored signals stay
+    ignored). Returns False, doing nothing, outside the main thread."""
     if threading.current_thread() is not threading.main_thread():
         return False
     if _state.mode is None:
@@ -99,12 +95,12 @@ def install() -> bool:
 
 @contextlib.contextmanager
 def job_scope(leftovers_in: Iterable[str | os.PathLike] = ()) -> Iterator[None]:
-    """The span of one job: a stop signal raises :class:`Stopped` inside it, and a stop
-    ends the process at its end (with :func:`install` not called, as in a test, the
-    handlers are installed for the span only and ``Stopped`` is raised instead).
+    """The span of one job: a stop signal raises :class:`Stopped` inside it and ends the
+    process at its end (without :func:`install`, as in a test, the handlers last for the
+    span and ``Stopped`` is raised instead).
 
-    ``leftovers_in``: folders (searched two levels deep) where this process's temporary
-    files may lie; those named with its pid are removed when a stop ends it."""
+    ``leftovers_in``: folders where this process's temporary files may lie, removed when a
+    stop ends it (:func:`~pipeline.core.process.remove_temporaries`)."""
     if _state.mode is None and _launcher() is not None:
         install()  # a sweep's worker: stop for good, and watch the launcher
     if _state.mode is None and threading.current_thread() is not threading.main_thread():
@@ -136,8 +132,8 @@ def job_scope(leftovers_in: Iterable[str | os.PathLike] = ()) -> Iterator[None]:
 
 
 def check() -> None:
-    """A safe point: raise :class:`Stopped` if a stop is pending inside a job (for code
-    whose loop may have swallowed the first one)."""
+    """A safe point: raise :class:`Stopped` if a stop is pending inside a job (for a loop
+    that may have swallowed the first one)."""
     if _state.signum is not None and _state.active and os.getpid() == _state.pid:
         raise Stopped(_state.signum)
 
@@ -155,9 +151,9 @@ def describe(signum: int | None = None) -> str:
 
 
 def on_stop(cleanup: Callable[[], object]) -> int:
-    """Run ``cleanup`` when a stop ends this process (in its own thread, for at most
-    :data:`CLEANUP_S` seconds; the latest registered first). Returns a token for
-    :func:`forget` (a plain number: the objects that keep it may be pickled)."""
+    """Run ``cleanup`` when a stop ends this process (at most :data:`CLEANUP_S` seconds,
+    the latest registered first). Returns a token for :func:`forget` (a plain number:
+    its holders may be pickled)."""
     token = _state.next_token
     _state.next_token += 1
     _state.cleanups[token] = cleanup
@@ -170,9 +166,8 @@ def forget(token: int) -> None:
 
 
 def watch_parent(pid: int) -> None:
-    """Stop this process (as SIGTERM would, see :func:`describe`) once its parent ``pid``
-    is gone: a sweep's worker must not outlive the launcher that would collect its
-    result, even one killed with ``kill -9``."""
+    """Stop this process (as SIGTERM would) once its parent ``pid`` is gone: a sweep's
+    worker must not outlive its launcher, even one killed with ``kill -9``."""
     if _state.parent_watch is not None:
         return
 
@@ -212,13 +207,18 @@ def _install() -> None:
 
 def _uninstall() -> None:
     """Undo a scoped install, and forget a stop that the scope raised."""
-    for signum, previous in _state.previous.items():
-        signal.signal(signum, previous)
-    signal.set_wakeup_fd(_state.previous_wakeup)
-    sys.unraisablehook = _state.previous_hook or sys.__unraisablehook__
-    _state.mode = None
+    _restore(_state.previous_wakeup)
     _state.signum, _state.reason, _state.raised, _state.deadline = None, "", False, None
     _state.redeliver_at = None
+
+
+def _restore(wakeup_fd: int) -> None:
+    """Put back the handlers and hook that :func:`_install` replaced."""
+    for signum, previous in _state.previous.items():
+        signal.signal(signum, previous)
+    signal.set_wakeup_fd(wakeup_fd)
+    sys.unraisablehook = _state.previous_hook or sys.__unraisablehook__
+    _state.mode = None
 
 
 def _handle(signum: int, frame) -> None:
@@ -251,9 +251,8 @@ def _handle(signum: int, frame) -> None:
 
 
 def _unraisable(unraisable) -> None:
-    """A ``Stopped`` dropped by Python (raised in a garbage-collection callback, a
-    ``__del__``, a weakref callback) is raised again: the watchdog delivers the signal
-    anew, from its own thread, so that it lands once this hook has returned."""
+    """A ``Stopped`` that Python dropped (raised in a ``__del__`` or callback) is raised
+    again: the watchdog delivers the signal anew once this hook has returned."""
     if isinstance(unraisable.exc_value, Stopped) and os.getpid() == _state.pid:
         _redeliver()
         return
@@ -270,8 +269,8 @@ _NO_RAISE = {_unraisable.__code__, _redeliver.__code__}
 
 
 def _dropped_there(frame) -> bool:
-    """Whether an exception raised in ``frame`` would be dropped: it runs (maybe through
-    other calls) inside a ``__del__`` or inside the hook that raises dropped stops again."""
+    """Whether an exception raised in ``frame`` would be dropped: it runs inside a
+    ``__del__`` or inside the hook that raises dropped stops again."""
     while frame is not None:
         if frame.f_code in _NO_RAISE or frame.f_code.co_name == "__del__":
             return True
@@ -298,16 +297,15 @@ def _watch() -> None:
                 # come back through the wakeup pipe as a new request).
                 _thread.interrupt_main(_state.signum)
         if _state.deadline is not None and time.monotonic() >= _state.deadline:
+            message = f"stopped by {describe()}"
             if _state.active:
-                _finish(
-                    f"stopped by {describe()}: the job did not stop within {GRACE_S:.0f} s "
-                    f"(the signal landed where it could not interrupt it); its run is "
-                    f"marked FAILED and the process ends"
+                message += (
+                    f": the job did not stop within {GRACE_S:.0f} s (the signal landed where "
+                    f"it could not interrupt it); its run is marked FAILED and the process ends"
                 )
             elif _state.jobs_ended:
-                _finish(f"stopped by {describe()} after the job's run had ended")
-            else:
-                _finish(f"stopped by {describe()}")
+                message += " after the job's run had ended"
+            _finish(message)
             time.sleep(60)  # the main thread is ending the process: give it time
             os._exit(128 + (_state.signum or signal.SIGTERM))
 
@@ -338,8 +336,8 @@ def _finish(message: str) -> None:
 
 
 def _bounded(function: Callable[[], object], timeout_s: float, fallback: str = "") -> None:
-    """Call ``function`` in a thread of its own and wait at most ``timeout_s``: whatever
-    lock the interrupted main thread holds, the process still ends."""
+    """Call ``function`` in its own thread for at most ``timeout_s``: whatever lock the
+    interrupted main thread holds, the process still ends."""
     done = threading.Event()
 
     def call() -> None:
@@ -380,11 +378,7 @@ def _forget_in_child() -> None:
     the parent's wakeup pipe; it gets the handlers that were there before."""
     if _state.mode is None or threading.current_thread() is not threading.main_thread():
         return
-    for signum, previous in _state.previous.items():
-        signal.signal(signum, previous)
-    signal.set_wakeup_fd(-1)
-    sys.unraisablehook = _state.previous_hook or sys.__unraisablehook__
-    _state.mode = None
+    _restore(-1)
 
 
 os.register_at_fork(after_in_child=_forget_in_child)

@@ -1,19 +1,12 @@
 """The MLflow store: where it is, its creation, its checks, and the runs whose process died.
 
-The store is SQLite at ``${paths.runs}/mlflow.db`` with artifacts in
-``${paths.runs}/artifacts`` unless ``MLFLOW_TRACKING_URI`` points at a shared server.
-MLflow 3.x creates its SQLite schema on first use and several processes doing that at
-once crash ("duplicate column"), so :func:`init_store` creates it under a file lock
-before any job logs; sweeps call it once in the launching process as well.
-
-A run records who runs it (tags ``host`` and ``pid``): any later start, ``cache gc`` and a
-stopping sweep mark FAILED the RUNNING runs whose process is gone from this machine.
-
-A full disk met while the store is created or a run writes to it is one error naming the
-store's ``mlflow.db`` and the space left (:func:`store_full`).
-
-The job's run is :mod:`pipeline.core.run`; a sweep's parent run
-:mod:`pipeline.core.sweep_run`.
+The store is SQLite at ``${paths.runs}/mlflow.db`` (artifacts in ``${paths.runs}/artifacts``)
+unless ``MLFLOW_TRACKING_URI`` names a server. MLflow creates its schema on first use, and
+processes doing that at once crash ("duplicate column"): :func:`init_store` creates it under
+a file lock. A run records its ``host`` and ``pid`` tags, so that a later start, ``cache gc``
+and a stopping sweep mark FAILED the RUNNING runs whose process is gone. A full disk met
+writing the store is one error naming its ``mlflow.db`` and the space left
+(:func:`store_full`).
 """
 
 from __future__ import annotations
@@ -35,7 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.core import stopping
 from pipeline.core.errors import DataError, StoreError
-from pipeline.core.files import DiskFullError, is_disk_full, no_space
+from pipeline.core.files import DiskFullError, error_chain, is_disk_full, no_space
 from pipeline.core.process import process_alive
 
 log = logging.getLogger(__name__)
@@ -53,20 +46,17 @@ _PARTIAL = re.compile(rf"\.{re.escape(DB_NAME)}\.partial-(\d+)(?:-journal|-wal|-
 
 
 def tracking_uri(runs: str | os.PathLike, must_exist: bool = True) -> str:
-    """The tracking URI: ``MLFLOW_TRACKING_URI`` if set, else SQLite under ``runs``.
-
-    ``runs`` is the jobs' ``paths.runs``; a relative one is taken from the current folder.
+    """The tracking URI: ``MLFLOW_TRACKING_URI`` if set, else SQLite under ``runs`` (the
+    jobs' ``paths.runs``, a relative one taken from the current folder).
 
     Raises
     ------
     StoreError
-        When ``must_exist`` and ``runs`` holds no store (``runs/mlflow.db``): MLflow would
-        create an empty one there and find no run in it (a relative ``paths.runs`` read
-        from another folder, a typo). Only a job creates a store (:func:`init_store`).
+        When ``must_exist`` and ``runs`` holds no ``mlflow.db``: MLflow would create an
+        empty one and find no run (a typo). Only a job creates a store (:func:`init_store`).
     """
     env = os.environ.get("MLFLOW_TRACKING_URI")
-    # mlflow.set_tracking_uri exports MLFLOW_TRACKING_URI for subprocesses; a value that we
-    # set ourselves is not the user's choice of server and must not outlive paths.runs.
+    # mlflow.set_tracking_uri exports MLFLOW_TRACKING_URI: our own value is no user's choice.
     if env and env != os.environ.get(_OWN_URI):
         return env
     uri = _sqlite_uri(runs)
@@ -85,15 +75,14 @@ def _sqlite_uri(runs: str | os.PathLike) -> str:
 
 
 def use_store(runs: str | os.PathLike, must_exist: bool = True) -> str:
-    """Point this process's MLflow client at the store of ``runs``; returns the URI.
-    ``must_exist``: as for :func:`tracking_uri` (a StoreError when ``runs`` holds none)."""
+    """Point this process's MLflow client at the store of ``runs`` (:func:`tracking_uri`);
+    returns the URI."""
     import mlflow
 
     uri = tracking_uri(runs, must_exist)
     mlflow.set_tracking_uri(uri)
     logging.getLogger("mlflow.store.db.utils").addFilter(_no_full_disk_traceback)  # once
-    # MLflow draws a bar for every artifact it copies (a model logged, a figure's data
-    # read back), which buries the job's own progress; set it to true to see them.
+    # MLflow draws a bar per artifact copied, which buries the job's own progress.
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     if uri == _sqlite_uri(runs):
         os.environ[_OWN_URI] = uri
@@ -103,8 +92,8 @@ def use_store(runs: str | os.PathLike, must_exist: bool = True) -> str:
 
 
 def _no_full_disk_traceback(record: logging.LogRecord) -> bool:
-    """False for MLflow's log of an SQL statement that failed for a full disk: it comes
-    with its traceback, and the job says it in one line (:func:`store_full`)."""
+    """False for MLflow's traceback of an SQL statement failed for a full disk (the job
+    says it in one line: :func:`store_full`)."""
     error = record.exc_info[1] if record.exc_info else None
     return error is None or not is_disk_full(error)
 
@@ -114,20 +103,16 @@ def init_store(
 ) -> str:
     """Create (or upgrade) the store and the experiment once; return the experiment id.
 
-    The experiment gets a description (its note in the UI): ``note``, or one written from
-    the composed config ``job`` of a job logging into it (:func:`describe_experiment`).
-
-    A new SQLite store is built under another name and renamed into place, so a process
-    killed while MLflow creates its tables never leaves a half-made ``mlflow.db``; such
-    a process's partial file is removed here. Runs of any experiment left RUNNING by a
-    process of this machine that no longer exists (killed with ``kill -9``, or the
-    machine went down) are marked FAILED.
+    The experiment's note is ``note``, or one written from the job's config ``job``
+    (:func:`describe_experiment`). A new SQLite store is built under another name and
+    renamed into place, so a killed process never leaves a half-made ``mlflow.db``. Runs
+    left RUNNING by a process of this machine that no longer exists are marked FAILED.
 
     Raises
     ------
     StoreError
-        Naming the store, when it cannot be opened (a damaged database, say), is empty,
-        or holds another program's tables.
+        Naming the store, when it cannot be opened, is empty, or holds another program's
+        tables.
     DataError
         Naming the store and the space left, when the disk is full (:func:`store_full`).
     """
@@ -136,7 +121,6 @@ def init_store(
     runs = Path(runs).resolve()
     runs.mkdir(parents=True, exist_ok=True)
     uri = use_store(runs, must_exist=False)  # the one place a store is created
-    # The lock serializes schema creation between processes that share this folder.
     with open(runs / ".mlflow.lock", "w") as lock, _store_full_is_named(uri):
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
@@ -164,9 +148,7 @@ def init_store(
                     client.set_experiment_tag(found.experiment_id, *EXPERIMENT_KIND)
                 experiment_id, tags = found.experiment_id, found.tags
             else:
-                location = None
-                if uri.startswith("sqlite:"):
-                    location = (runs / "artifacts").as_uri()
+                location = (runs / "artifacts").as_uri() if uri.startswith("sqlite:") else None
                 experiment_id = client.create_experiment(
                     experiment, artifact_location=location, tags=dict([EXPERIMENT_KIND])
                 )
@@ -188,12 +170,9 @@ def describe_experiment(
     job: DictConfig | None = None,
     note: str | None = None,
 ) -> None:
-    """Give the experiment a description (``mlflow.note.content``, shown above its runs):
-    ``note`` as given, or written from a job's config (:func:`experiment_note`): what its
-    methods compute, which metrics to read first, where a sweep leaves its tables.
-
-    A later job of another method or preset extends the written note; a note someone
-    edited in the UI (it no longer equals the one written) is left as it is.
+    """Set the experiment's note (shown above its runs): ``note``, or one written from a
+    job's config (:func:`experiment_note`), which a later job of another method or preset
+    extends. A note someone edited in the UI is left as it is.
     """
     if note is not None:
         if tags.get(NOTE_TAG) != note:
@@ -201,8 +180,6 @@ def describe_experiment(
         return
     if job is None or job.get("method") is None:
         return
-    import json
-
     from pipeline.core.methods import method_of
 
     old = json.loads(tags.get(DESCRIBED_TAG, '{"methods": {}, "presets": []}'))
@@ -211,16 +188,10 @@ def describe_experiment(
     method = method_of(job)
     bold = re.match(r"\*\*(.+?)\*\*", method.description)
     preset = _experiment_preset(job)
-    new = {
-        "methods": {
-            **old["methods"],
-            method.name: {
-                "title": bold.group(1).rstrip(".") if bold else method.name,
-                "headline": list(method.headline),
-            },
-        },
-        "presets": sorted(set(old["presets"]) | ({preset} if preset else set())),
-    }
+    title = bold.group(1).rstrip(".") if bold else method.name
+    methods = {**old["methods"], method.name: {"title": title, "headline": list(method.headline)}}
+    presets = sorted(set(old["presets"]) | ({preset} if preset else set()))
+    new = {"methods": methods, "presets": presets}
     if new == old and NOTE_TAG in tags:
         return
     client.set_experiment_tag(experiment_id, NOTE_TAG, experiment_note(name, new))
@@ -228,7 +199,7 @@ def describe_experiment(
 
 
 def experiment_note(name: str, described: Mapping) -> str:
-    """The description of experiment ``name`` whose jobs ran the methods and presets of
+    """The note of experiment ``name`` whose jobs ran the methods and presets of
     ``described`` (``{"methods": {name: {"title", "headline"}}, "presets": [...]}``)."""
     methods = described["methods"]
     presets = ", ".join(f"`experiment={p}`" for p in described["presets"])
@@ -254,8 +225,7 @@ def experiment_note(name: str, described: Mapping) -> str:
 
 
 def _experiment_preset(job: DictConfig) -> str | None:
-    """The ``experiment=`` preset of a job (or of a sweep's config, which holds its
-    ``hydra`` node), None outside Hydra."""
+    """The ``experiment=`` preset of a job or a sweep's config; None outside Hydra."""
     hydra_cfg = job.get("hydra") or hydra_config()
     choices = OmegaConf.select(hydra_cfg, "runtime.choices") if hydra_cfg is not None else None
     preset = choices.get("experiment") if choices is not None else None
@@ -275,15 +245,12 @@ def store_full(
     error: BaseException, uri: str, run_id: str | None = None, status: str | None = None
 ) -> DiskFullError | None:
     """The one-line error for ``error`` when it is a full disk met while MLflow wrote the
-    SQLite store of ``uri``; None for any other error.
+    SQLite store of ``uri`` (SQLite's "database or disk is full", or ENOSPC for an
+    artifact); None for any other error, a DataError (already named) or a server's store.
 
-    A full disk reaches the store as SQLite's "database or disk is full" (through
-    SQLAlchemy and MLflow) and an artifact as ENOSPC. The error names the file (the
-    store's ``mlflow.db``, or the artifact when the OSError says which), the space left
-    and, given ``run_id``, what became of that run: ``status`` FAILED, or else left
-    RUNNING (the store could not take even that), which the next start marks FAILED
-    (:func:`fail_dead_runs`). A DataError is already named, and a tracking server's disk
-    is not this machine's to measure: both give None.
+    It names the file (``mlflow.db``, or the artifact when the OSError says which), the
+    space left and, given ``run_id``, whether that run ended FAILED (``status``) or is left
+    RUNNING for the next start to mark FAILED.
     """
     db = sqlite_path(uri)
     if db is None or isinstance(error, DataError) or not is_disk_full(error):
@@ -300,17 +267,13 @@ def store_full(
 
 
 def _file_written(error: BaseException) -> Path | None:
-    """The file an ENOSPC in ``error``'s chain was writing, when it says (``shutil`` names
-    the destination of a copy ``filename2``, ``open`` its file ``filename``)."""
-    seen: set[int] = set()
-    cause: BaseException | None = error
-    while cause is not None and id(cause) not in seen:
-        seen.add(id(cause))
+    """The file an ENOSPC in ``error``'s chain was writing, when it says (a copy's
+    destination is its ``filename2``)."""
+    for cause in error_chain(error):
         if isinstance(cause, OSError) and cause.errno in (errno.ENOSPC, errno.EDQUOT):
             name = cause.filename2 or cause.filename
             if name:
                 return Path(os.fsdecode(name))
-        cause = cause.__cause__ or cause.__context__
     return None
 
 
@@ -327,7 +290,7 @@ def _store_full_is_named(uri: str) -> Iterator[None]:
 
 
 def _create_sqlite_store(db: Path) -> None:
-    """Let MLflow create its tables in a temporary file, then rename it to ``db``."""
+    """Let MLflow create its tables in a temporary file, renamed to ``db``."""
     from mlflow.tracking import MlflowClient
 
     partial = db.with_name(f".{db.name}.partial-{os.getpid()}")
@@ -343,10 +306,8 @@ def _create_sqlite_store(db: Path) -> None:
 
 
 def _close_engine(uri: str) -> None:
-    """Close the SQLAlchemy engine that MLflow keeps for ``uri`` as long as the process
-    lives (a private map of MLflow 3's SqlAlchemyStore; nothing to do without it): its
-    pooled connection holds the file open, so a partial store removed after a full disk
-    would keep its space taken, and the space named in the error would be wrong."""
+    """Close the SQLAlchemy engine MLflow keeps for ``uri`` (a private map of MLflow 3):
+    its pooled connection would keep a removed partial store's space taken."""
     from mlflow.store.tracking.sqlalchemy_store import SqlAlchemyStore
 
     engine = getattr(SqlAlchemyStore, "_engine_map", {}).pop(uri, None)
@@ -355,9 +316,8 @@ def _close_engine(uri: str) -> None:
 
 
 def remove_partial_stores(runs: Path) -> list[Path]:
-    """Remove the half-made stores (``.mlflow.db.partial-<pid>`` and its ``-journal``)
-    of processes killed while they created the store. Call it holding the store's lock:
-    a partial file is only written under that lock, so any found then is a leftover."""
+    """Remove the half-made stores (``.mlflow.db.partial-<pid>``, its ``-journal``) of
+    killed processes. Call it holding the store's lock, under which alone they are made."""
     removed = []
     for path in sorted(runs.glob(f".{DB_NAME}.partial-*")):
         match = _PARTIAL.fullmatch(path.name)
@@ -375,9 +335,8 @@ def remove_partial_stores(runs: Path) -> list[Path]:
 
 
 def check_sqlite_store(db: Path) -> None:
-    """Refuse a file at ``db`` that is not an MLflow store, before MLflow writes its
-    tables into it: an empty file, a file that is not SQLite, a database holding
-    another program's tables (none of :data:`MLFLOW_TABLES`).
+    """Refuse a file at ``db`` that is not an MLflow store (empty, not SQLite, or holding
+    none of :data:`MLFLOW_TABLES`) before MLflow writes its tables into it.
 
     Raises
     ------
@@ -399,12 +358,8 @@ def check_sqlite_store(db: Path) -> None:
     try:
         # Not read-only: a journal left by a killed writer must be rolled back first.
         with contextlib.closing(sqlite3.connect(db, timeout=30)) as connection:
-            tables = {
-                name
-                for (name,) in connection.execute(
-                    "SELECT name FROM sqlite_master WHERE type = 'table'"
-                )
-            }
+            query = "SELECT name FROM sqlite_master WHERE type = 'table'"
+            tables = {name for (name,) in connection.execute(query)}
     except sqlite3.Error as error:
         raise StoreError(
             f"the MLflow store {db} cannot be read ({type(error).__name__}: {error}); {aside}"
@@ -424,7 +379,7 @@ def check_sqlite_store(db: Path) -> None:
 
 def process_gone(run) -> bool:
     """Whether ``run`` (an MLflow Run) was started by a process of this machine (tags
-    ``host``, ``pid``) that no longer exists. Runs of other machines: False."""
+    ``host``, ``pid``) that no longer exists."""
     tags = run.data.tags
     if tags.get("host") != socket.gethostname() or not tags.get("pid", "").isdigit():
         return False
@@ -438,9 +393,9 @@ def fail_dead_runs(
     ended_by: str = "its process was gone at a later start",
     also_pid: int | None = None,
 ) -> list[str]:
-    """Mark FAILED the RUNNING runs whose process is gone from this machine (and, with
-    ``also_pid``, those of that process: this one, as it stops); returns their ids. All
-    experiments' runs unless ``experiment_ids`` says which. Other machines' are left."""
+    """Mark FAILED the RUNNING runs (of all experiments unless ``experiment_ids`` says
+    which) whose process is gone from this machine, and those of ``also_pid`` (this one, as
+    it stops); returns their ids."""
     if experiment_ids is None:
         experiment_ids = [e.experiment_id for e in all_pages(client.search_experiments)]
     if not experiment_ids:
@@ -458,12 +413,8 @@ def fail_dead_runs(
             continue
         client.set_tag(run.info.run_id, ENDED_BY_TAG, ended_by)
         client.set_terminated(run.info.run_id, status="FAILED")
-        if own:
-            log.warning("marked run %s FAILED (%s)", run.info.run_id, ended_by)
-        else:
-            log.warning(
-                "marked run %s FAILED: its process %s is gone", run.info.run_id, tags["pid"]
-            )
+        why = f" ({ended_by})" if own else f": its process {tags['pid']} is gone"
+        log.warning("marked run %s FAILED%s", run.info.run_id, why)
         ended.append(run.info.run_id)
     return ended
 
@@ -479,24 +430,22 @@ def all_pages(search, **kwargs) -> list:
             return found
 
 
-def _fail_runs_when_stopped(uri: str) -> None:
-    """At a stop (:mod:`pipeline.core.stopping`), end FAILED this process's RUNNING runs and
-    those of processes now gone (a sweep's killed workers, or its killed launcher)."""
-    from mlflow.tracking import MlflowClient
-
-    fail_dead_runs(
-        MlflowClient(uri), ended_by=f"stopped by {stopping.describe()}", also_pid=os.getpid()
-    )
-
-
 _STOP_CLEANUPS: dict[str, int] = {}  # tracking URI -> its cleanup's token (one per store)
 
 
 def fail_runs_at_stop(uri: str) -> None:
     """At a stop, end FAILED the runs of this store that this process (or a dead one) left
     RUNNING; registered once per store."""
-    if uri not in _STOP_CLEANUPS:
-        _STOP_CLEANUPS[uri] = stopping.on_stop(lambda: _fail_runs_when_stopped(uri))
+    if uri in _STOP_CLEANUPS:
+        return
+
+    def fail_runs() -> None:
+        from mlflow.tracking import MlflowClient
+
+        stopped = f"stopped by {stopping.describe()}"
+        fail_dead_runs(MlflowClient(uri), ended_by=stopped, also_pid=os.getpid())
+
+    _STOP_CLEANUPS[uri] = stopping.on_stop(fail_runs)
 
 
 def hydra_config():
@@ -509,15 +458,13 @@ def hydra_config():
         return None
 
 
-# The runs table of the UI shows no metric by default; a shared view (an experiment tag the
-# UI reads for ?viewStateShareKey=...) shows the headline metrics as columns, best first.
+# A shared view of the UI's runs table (an experiment tag read for ?viewStateShareKey=...).
 RESULTS_VIEW = "results"
 
 
 def share_results_view(experiment_id: str, headline: list[str], cfg: DictConfig) -> None:
-    """Set the experiment's shared view :data:`RESULTS_VIEW`: the runs table with the
-    headline metrics, the model and the seed as columns, sorted by the first headline
-    (:func:`results_url`)."""
+    """Set the experiment's shared view :data:`RESULTS_VIEW`: the headline metrics, the
+    model and the seed as columns, sorted by the first headline (:func:`results_url`)."""
     import mlflow
 
     if not headline:
@@ -536,8 +483,8 @@ def share_results_view(experiment_id: str, headline: list[str], cfg: DictConfig)
 
 
 def results_url(experiment_id: str, port: int = 5000) -> str:
-    """The address of the results view in ``mlflow ui`` (MLflow 3 opens its GenAI pages
-    without ``workflowType``)."""
+    """The address of the results view in ``mlflow ui`` (``workflowType``: not the GenAI
+    pages)."""
     return (
         f"http://127.0.0.1:{port}/#/experiments/{experiment_id}/runs"
         f"?viewStateShareKey={RESULTS_VIEW}&workflowType=machine_learning"

@@ -22,8 +22,8 @@ log = logging.getLogger(__name__)
 
 
 def swept_settings(config: DictConfig) -> dict[str, str]:
-    """The multirun's settings from its config's sweeper and its command line, in order:
-    ``{"variant": "neural_btf,k128", "seed": "0", ...}`` (the command line wins)."""
+    """The multirun's settings from its sweeper and its command line (which wins):
+    ``{"variant": "neural_btf,k128", "seed": "0", ...}``."""
     settings = {str(k): str(v) for k, v in (config.hydra.sweeper.get("params") or {}).items()}
     for override in config.hydra.overrides.task:
         key, _, value = override.partition("=")
@@ -32,12 +32,9 @@ def swept_settings(config: DictConfig) -> dict[str, str]:
 
 
 class SweepParentRun(Callback):
-    """Hydra callback: one MLflow parent run per multirun, its jobs as children.
-
-    Registered in ``conf/config.yaml`` under ``hydra.callbacks``. The parent's id is
-    written into the sweep folder, where every job (joblib worker or SLURM task) reads it.
-    When the launching process is stopped by a signal (:mod:`pipeline.core.stopping`), the
-    parent run ends FAILED at once, then the joblib workers are stopped (their runs end
+    """Hydra callback (``hydra.callbacks``): one MLflow parent run per multirun, its jobs
+    as children, which read its id from the sweep folder. When the launching process is
+    stopped, the parent run ends FAILED, then the workers are stopped (their runs end
     FAILED too); workers also stop by themselves when the launcher is killed outright.
     """
 
@@ -65,7 +62,7 @@ class SweepParentRun(Callback):
         tags["sweep.dir"] = str(sweep_dir)
         swept = swept_settings(config)
         tags["sweep.overrides"] = " ".join(f"{k}={v}" for k, v in swept.items())
-        # As for a job's run: a later start marks the parent FAILED if this process dies.
+        # A later start marks the parent FAILED if this process dies.
         tags.update(host=socket.gethostname(), pid=str(os.getpid()))
         tags[NOTE_TAG] = (
             f"**Hydra sweep** over `{tags['sweep.overrides'] or 'one job'}`. Its jobs are the "

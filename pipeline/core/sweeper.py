@@ -72,10 +72,8 @@ def expand(
         if not any(_chooses_otherwise(given[key], o) for key, o in parsed.items() if key in given):
             rest = {key: o for key, o in parsed.items() if key not in given}
             distinct.setdefault(tuple(o.input_line for o in rest.values()), rest)
-    kept = list(distinct.values())
-    n_kept = len(kept)  # an arm whose every key the command line replaced is still kept
-    if not kept:
-        kept = [{}]
+    n_kept = len(distinct)  # an arm whose every key the command line replaced is still kept
+    kept = list(distinct.values()) or [{}]
     if announce is not None and arms and n_kept < len(arms):
         chosen = [
             o.input_line for key, o in given.items() if "." not in key and not o.is_sweep_override()
@@ -84,11 +82,8 @@ def expand(
             f"{' '.join(chosen)} on the command line keeps "
             f"{n_kept} of the experiment's {len(arms)} arms"
         )
-    axes = [
-        o
-        for key, o in {o.get_key_element(): o for o in _parse(_lines(params))}.items()
-        if key not in given
-    ]
+    swept = {o.get_key_element(): o for o in _parse(_lines(params))}
+    axes = [o for key, o in swept.items() if key not in given]
     jobs = []
     for arm in kept:
         lists = [_choices(o) for o in given.values()]

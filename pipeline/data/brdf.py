@@ -22,12 +22,9 @@ MERL isotropic BRDF
     ``phi_d + 180 * (theta_d + 90 * theta_h)``, theta_h index ``floor(90 sqrt(theta_h /
     (pi/2)))``, theta_d index ``floor(theta_d / (pi/2) * 90)``, phi_d index
     ``floor(phi_d / pi * 180)``; channel scales 1/1500, 1.15/1500, 1.66/1500; negative means
-    missing. The reader returns the tabulated values at the lower edge of each index cell
-    (the angles the index formula maps exactly back to). The table has no phi_h axis
-    because the BRDF is isotropic: each value holds at every phi_h. The reader therefore
-    places each entry at its own azimuth phi_h (:func:`merl_azimuths`, spread evenly over
-    [0, 2 pi)) rather than at phi_h = 0, so the samples cover the half-vector hemisphere
-    as isotropy implies (see :func:`read_merl_brdf`).
+    missing. The reader places each value at the lower edge of its index cell (the angles
+    the index formula maps exactly back to) and, the table having no phi_h axis, at an
+    azimuth phi_h of its own (:func:`read_merl_brdf`).
 """
 
 from __future__ import annotations
@@ -41,6 +38,7 @@ from scipy.interpolate import RegularGridInterpolator
 
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.files import write_atomic
+from pipeline.data.directions import unit_vectors
 
 UTIA_THETA_DEG = np.arange(6) * 15.0
 UTIA_PHI_DEG = np.arange(48) * 7.5
@@ -84,24 +82,18 @@ class MeasuredBRDF:
         self.light = np.asarray(self.light, dtype=np.float64)
         self.view = np.asarray(self.view, dtype=np.float64)
         self.measured = np.asarray(self.measured, dtype=bool)
+        if self.half_diff is not None:
+            self.half_diff = np.asarray(self.half_diff, dtype=np.float64)
         n = self.reflectance.shape[0] if self.reflectance.ndim == 2 else -1
         if self.reflectance.ndim != 2 or self.reflectance.shape[1] != 3:
             raise DataError(
                 f"{self.source}: reflectance has shape {self.reflectance.shape}, expected (n, 3)"
             )
-        for name, arr, width in (("light", self.light, 2), ("view", self.view, 2)):
-            if arr.shape != (n, width):
-                raise DataError(f"{self.source}: {name} has shape {arr.shape}, expected ({n}, 2)")
-        if self.measured.shape != (n,):
-            raise DataError(
-                f"{self.source}: measured has shape {self.measured.shape}, expected ({n},)"
-            )
-        if self.half_diff is not None:
-            self.half_diff = np.asarray(self.half_diff, dtype=np.float64)
-            if self.half_diff.shape != (n, 3):
-                raise DataError(
-                    f"{self.source}: half_diff has shape {self.half_diff.shape}, expected ({n}, 3)"
-                )
+        expected = {"light": (n, 2), "view": (n, 2), "measured": (n,), "half_diff": (n, 3)}
+        for name, shape in expected.items():
+            value = getattr(self, name)
+            if value is not None and value.shape != shape:
+                raise DataError(f"{self.source}: {name} has shape {value.shape}, expected {shape}")
 
     @property
     def n_samples(self) -> int:
@@ -115,9 +107,7 @@ class MeasuredBRDF:
 def to_unit_vectors(directions: np.ndarray) -> np.ndarray:
     """Convert ``(theta, phi)`` directions of shape (..., 2) to unit vectors (..., 3)."""
     directions = np.asarray(directions, dtype=np.float64)
-    theta, phi = directions[..., 0], directions[..., 1]
-    sin_t = np.sin(theta)
-    return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), np.cos(theta)], axis=-1)
+    return unit_vectors(directions[..., 0], directions[..., 1])
 
 
 def to_angles(vectors: np.ndarray) -> np.ndarray:
@@ -126,6 +116,11 @@ def to_angles(vectors: np.ndarray) -> np.ndarray:
     theta = np.arccos(np.clip(vectors[..., 2], -1.0, 1.0))
     phi = np.mod(np.arctan2(vectors[..., 1], vectors[..., 0]), 2.0 * np.pi)
     return np.stack([theta, phi], axis=-1)
+
+
+def above_horizon(light: np.ndarray, view: np.ndarray) -> np.ndarray:
+    """Whether both directions of each pair lie above the horizon: (n, 2) each to (n,) bool."""
+    return (light[:, 0] < 0.5 * np.pi) & (view[:, 0] < 0.5 * np.pi)
 
 
 def half_vector_angles(light: np.ndarray, view: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -154,23 +149,9 @@ def half_vector_angles(light: np.ndarray, view: np.ndarray) -> tuple[np.ndarray,
 
 
 def missing_mask_by_polar_angle(brdf: MeasuredBRDF, max_theta_deg: float) -> MeasuredBRDF:
-    """Mark as missing every sample whose light or view polar angle exceeds a threshold.
-
-    Mimics measurement devices that cannot reach grazing directions. Samples already
-    missing stay missing.
-
-    Parameters
-    ----------
-    brdf : MeasuredBRDF
-        Input data (not modified).
-    max_theta_deg : float
-        Largest polar angle, in degrees, still measured; must lie in [0, 90].
-
-    Returns
-    -------
-    MeasuredBRDF
-        A copy with ``measured`` reduced.
-    """
+    """A copy of ``brdf`` in which every sample whose light or view polar angle exceeds
+    ``max_theta_deg`` (degrees, in [0, 90]) is missing too, as for a device that cannot
+    reach grazing directions."""
     if not np.isfinite(max_theta_deg) or not 0.0 <= max_theta_deg <= 90.0:
         raise ConfigError(f"max_theta_deg={max_theta_deg} must lie in [0, 90]")
     # A small slack keeps a grid angle that equals the threshold (e.g. 60 deg) measured.
@@ -206,12 +187,7 @@ def utia_directions() -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_utia_brdf(path: str | os.PathLike) -> MeasuredBRDF:
-    """Read a UTIA anisotropic BRDF binary (raw values, see the module docstring).
-
-    Parameters
-    ----------
-    path : path-like
-        The ``.bin`` file, 1,990,656 bytes.
+    """Read a UTIA anisotropic BRDF ``.bin`` (raw values, see the module docstring).
 
     Returns
     -------
@@ -248,24 +224,35 @@ def read_utia_brdf(path: str | os.PathLike) -> MeasuredBRDF:
     return MeasuredBRDF(reflectance, light, view, measured, source=str(path))
 
 
+def _checked(reflectance, measured, n: int, layout: str):
+    """``reflectance`` as float64 (n, 3) and ``measured`` as bool (n,) or None, checked."""
+    reflectance = np.asarray(reflectance, dtype=np.float64)
+    if reflectance.shape != (n, 3):
+        raise DataError(f"{layout} reflectance has shape {reflectance.shape}, expected ({n}, 3)")
+    if measured is not None:
+        measured = np.asarray(measured, dtype=bool)
+        if measured.shape != (n,):
+            raise DataError(f"{layout} measured mask has shape {measured.shape}, expected ({n},)")
+    return reflectance, measured
+
+
+def _write(path, payload: bytes) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_atomic(path, payload)
+
+
 def write_utia_brdf(
     path: str | os.PathLike, reflectance: np.ndarray, measured: np.ndarray | None = None
 ) -> Path:
-    """Write reflectance in UTIA file order as a UTIA binary (atomically).
+    """Write reflectance in UTIA file order as a UTIA binary (atomically); return ``path``.
 
     Parameters
     ----------
-    path : path-like
-        Destination file.
     reflectance : ndarray of shape (82944, 3)
         Linear RGB values ordered as :func:`utia_directions`.
     measured : ndarray of shape (82944,), bool, optional
         Missing samples are written as -1.
-
-    Returns
-    -------
-    Path
-        The written file.
 
     Raises
     ------
@@ -273,15 +260,9 @@ def write_utia_brdf(
         For a wrong shape, or a NaN or an infinity among the samples written (which
         :func:`read_utia_brdf` would refuse); nothing is written then.
     """
-    reflectance = np.asarray(reflectance, dtype=np.float64)
-    n = int(np.prod(UTIA_SHAPE[1:]))
-    if reflectance.shape != (n, 3):
-        raise DataError(f"UTIA reflectance has shape {reflectance.shape}, expected ({n}, 3)")
+    reflectance, measured = _checked(reflectance, measured, int(np.prod(UTIA_SHAPE[1:])), "UTIA")
     values = reflectance.copy()
     if measured is not None:
-        measured = np.asarray(measured, dtype=bool)
-        if measured.shape != (n,):
-            raise DataError(f"UTIA measured mask has shape {measured.shape}, expected ({n},)")
         values[~measured] = -1.0
     bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
     if bad.size:
@@ -289,28 +270,16 @@ def write_utia_brdf(
             f"UTIA reflectance for {path} holds non-finite values at {bad.size} measured "
             f"samples (the first: row {bad[0]}); mark missing samples with `measured`"
         )
-    payload = np.ascontiguousarray(values.T).astype("<f8").tobytes()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, payload)
-    return path
+    return _write(path, np.ascontiguousarray(values.T).astype("<f8").tobytes())
 
 
 def utia_interpolator(brdf: MeasuredBRDF):
     """Multilinear interpolation of UTIA-layout data, undefined (NaN) where data is missing.
 
     Mirrors eq. 22 of the paper: inside the measured range a linearly interpolated value,
-    outside it (theta above 75 deg, or a missing neighbour) no value.
-
-    Parameters
-    ----------
-    brdf : MeasuredBRDF
-        Data in UTIA file order (82944 samples), e.g. from :func:`read_utia_brdf`.
-
-    Returns
-    -------
-    callable
-        ``lookup(light, view) -> ndarray (n, 3)`` with NaN where undefined.
+    outside it (theta above 75 deg, or a missing neighbour) no value. ``brdf`` holds the
+    82944 samples in UTIA file order (:func:`read_utia_brdf`); the result is a callable
+    ``lookup(light (n, 2), view (n, 2)) -> ndarray (n, 3)``.
     """
     n = int(np.prod(UTIA_SHAPE[1:]))
     if brdf.n_samples != n:
@@ -329,15 +298,8 @@ def utia_interpolator(brdf: MeasuredBRDF):
     def lookup(light: np.ndarray, view: np.ndarray) -> np.ndarray:
         light = np.asarray(light, dtype=np.float64).reshape(-1, 2)
         view = np.asarray(view, dtype=np.float64).reshape(-1, 2)
-        points = np.stack(
-            [
-                light[:, 0],
-                np.mod(light[:, 1], 2 * np.pi),
-                view[:, 0],
-                np.mod(view[:, 1], 2 * np.pi),
-            ],
-            axis=-1,
-        )
+        points = np.concatenate([light, view], axis=1)
+        points[:, 1::2] = np.mod(points[:, 1::2], 2 * np.pi)
         return interp(points)
 
     return lookup
@@ -365,22 +327,12 @@ def merl_half_diff_angles() -> np.ndarray:
 
 
 def merl_azimuths(n: int) -> np.ndarray:
-    """Half-vector azimuths phi_h for ``n`` isotropic samples, spread evenly over [0, 2 pi).
+    """Half-vector azimuths phi_h, shape (n,), radians, for ``n`` isotropic samples.
 
     The golden-ratio (Weyl) sequence ``phi_h[k] = 2 pi frac(k / golden)``: deterministic,
-    equidistributed over every run of consecutive indices, and not aligned with the MERL
-    table's (theta_d, phi_d) axes (an index stride like ``k mod n_phi`` would tie phi_h to
-    phi_d, since the table index is ``phi_d + 180 (theta_d + 90 theta_h)``).
-
-    Parameters
-    ----------
-    n : int
-        Number of samples.
-
-    Returns
-    -------
-    ndarray of shape (n,)
-        Radians in [0, 2 pi).
+    equidistributed over [0, 2 pi) on every run of consecutive indices, and not aligned with
+    the MERL table's (theta_d, phi_d) axes (an index stride like ``k mod n_phi`` would tie
+    phi_h to phi_d, since the table index is ``phi_d + 180 (theta_d + 90 theta_h)``).
     """
     golden = 0.5 * (np.sqrt(5.0) - 1.0)
     return 2.0 * np.pi * np.mod(np.arange(n, dtype=np.float64) * golden, 1.0)
@@ -405,10 +357,7 @@ def half_diff_to_directions(
         ``(theta, phi)``; theta may exceed pi/2 (below the horizon) for some entries.
     """
     theta_h, theta_d, phi_d = half_diff[:, 0], half_diff[:, 1], half_diff[:, 2]
-    diff = np.stack(
-        [np.sin(theta_d) * np.cos(phi_d), np.sin(theta_d) * np.sin(phi_d), np.cos(theta_d)],
-        axis=-1,
-    )
+    diff = unit_vectors(theta_d, phi_d)
     # Rotate the difference vector about the bitangent by theta_h (phi_h = 0 needs no
     # rotation about the normal); that maps the half-vector frame to the surface frame.
     c, s = np.cos(theta_h), np.sin(theta_h)
@@ -425,12 +374,10 @@ def half_diff_to_directions(
 
 
 def read_merl_brdf(path: str | os.PathLike, spread_azimuths: bool = True) -> MeasuredBRDF:
-    """Read a MERL isotropic BRDF binary.
+    """Read a MERL isotropic BRDF ``.binary``.
 
     Parameters
     ----------
-    path : path-like
-        The ``.binary`` file.
     spread_azimuths : bool, optional
         Place table entry k at the half-vector azimuth ``merl_azimuths(n)[k]`` (default)
         instead of phi_h = 0. Isotropy makes each value hold at every phi_h; with
@@ -474,38 +421,19 @@ def read_merl_brdf(path: str | os.PathLike, spread_azimuths: bool = True) -> Mea
 def write_merl_brdf(
     path: str | os.PathLike, reflectance: np.ndarray, measured: np.ndarray | None = None
 ) -> Path:
-    """Write reflectance in MERL table order as a MERL binary (atomically).
+    """Write reflectance in MERL table order as a MERL binary (atomically); return ``path``.
 
     Parameters
     ----------
-    path : path-like
-        Destination file.
     reflectance : ndarray of shape (1458000, 3)
         Linear RGB values in the order of :func:`merl_half_diff_angles` (physical units:
         the channel scales are divided out before writing).
     measured : ndarray of shape (1458000,), bool, optional
         Missing entries are written as -1.
-
-    Returns
-    -------
-    Path
-        The written file.
     """
-    n = int(np.prod(MERL_DIMS))
-    reflectance = np.asarray(reflectance, dtype=np.float64)
-    if reflectance.shape != (n, 3):
-        raise DataError(f"MERL reflectance has shape {reflectance.shape}, expected ({n}, 3)")
+    reflectance, measured = _checked(reflectance, measured, int(np.prod(MERL_DIMS)), "MERL")
     raw = reflectance / MERL_SCALES
     if measured is not None:
-        measured = np.asarray(measured, dtype=bool)
-        if measured.shape != (n,):
-            raise DataError(f"MERL measured mask has shape {measured.shape}, expected ({n},)")
         raw[~measured] = -1.0
-    payload = (
-        np.array(MERL_DIMS, dtype="<i4").tobytes()
-        + np.ascontiguousarray(raw.T).astype("<f8").tobytes()
-    )
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, payload)
-    return path
+    header = np.array(MERL_DIMS, dtype="<i4").tobytes()
+    return _write(path, header + np.ascontiguousarray(raw.T).astype("<f8").tobytes())

@@ -6,12 +6,10 @@ surface with normal ``n``, tangent ``t`` and bitangent ``b`` at half vector ``h`
     sqrt((n_u + 1)(n_v + 1)) / (8 pi) * (n.h)^((n_u (t.h)^2 + n_v (b.h)^2) / (1 - (n.h)^2))
 
 times Fresnel over ``(k.h) max(n.k1, n.k2)``. Method A's synthetic fabrics
-(:mod:`pipeline.btf.synthetic`) shade every texel with it in the texel's own frame;
-method B's parametric baseline (:func:`pipeline.brdf_map.microfacet_model.ashikhmin_shirley_brdf`)
-fits it to a measured BRDF. The lobe lives here rather than in either method because
-methods do not import each other, and :mod:`pipeline.data.brdf` already holds the
-direction geometry (half vectors, local frames) that its callers feed it. The Fresnel
-term and the denominator's floor differ between the callers and stay with them.
+(:mod:`pipeline.btf.synthetic`) shade every texel with it; method B's parametric baseline
+(:func:`pipeline.brdf_map.microfacet_model.ashikhmin_shirley_brdf`) fits it. It lives here
+because methods do not import each other; the Fresnel term and the denominator's floor
+differ between the callers and stay with them.
 """
 
 from __future__ import annotations
@@ -26,17 +24,8 @@ _LOG_FLOOR = 1e-12
 
 
 def ashikhmin_shirley_normalization(n_u, n_v):
-    """The lobe's normalization ``sqrt((n_u + 1)(n_v + 1)) / (8 pi)``.
-
-    Parameters
-    ----------
-    n_u, n_v : float or ndarray, broadcastable
-        Phong exponents along the tangent and along the bitangent.
-
-    Returns
-    -------
-    float or ndarray of the broadcast shape
-    """
+    """The lobe's normalization ``sqrt((n_u + 1)(n_v + 1)) / (8 pi)`` for Phong exponents
+    ``n_u``, ``n_v`` along the tangent and the bitangent (floats or broadcastable arrays)."""
     return np.sqrt((n_u + 1.0) * (n_v + 1.0)) / (8.0 * np.pi)
 
 

@@ -17,11 +17,9 @@ Formats and their colour encodings:
     Some UTIA EXR files label their XYZ data R, G, B; when X, Y, Z are absent, R, G, B
     are read *as X, Y, Z*.
 
-A dataset may also be read straight from the ``.zip`` archive it was downloaded as (no
-unpacking): give the archive as the root. The view folders may sit at the archive's top
-level or inside one folder (``WOOL/tv000_pv000/...``); :func:`archive_fingerprint` is
-the same as the fingerprint of the folder ``unzip`` makes of it, and the images decode
-bit for bit the same.
+A dataset may also be read straight from its ``.zip`` archive (no unpacking): give the
+archive as the root. The view folders may sit at the archive's top level or inside one
+folder (``WOOL/tv000_pv000/...``); the images decode bit for bit as from the unpacked folder.
 
 How 8-bit images are linearized is a setting (``linearize``): each layout's own
 convention by default (:data:`DEFAULT_LINEARIZE`), or ``"gamma2.2"``, ``"srgb"`` or
@@ -83,10 +81,7 @@ from pipeline.data.images import (
 )
 
 # Image extensions (lower case, no dot) each format may use.
-FORMAT_EXTENSIONS: dict[str, tuple[str, ...]] = {
-    "ubo2003": ("jpg", "jpeg", "png", "exr"),
-    "utia": ("png", "exr"),
-}
+FORMAT_EXTENSIONS = {"ubo2003": ("jpg", "jpeg", "png", "exr"), "utia": ("png", "exr")}
 UBO2003_GAMMA = 2.2
 ARCHIVE_SUFFIX = ".zip"
 _VIEW_FOLDER = re.compile(r"^tv\d{3}_pv\d{3}$")
@@ -151,11 +146,7 @@ def _check_format(format: str) -> None:
         raise ConfigError(f"BTF format {format!r} is not one of {sorted(FORMAT_EXTENSIONS)}")
 
 
-def _parse_image_name(path, format: str):
-    # str(): the parsers take the name of a path, which a zipfile.Path is not.
-    if format == "ubo2003":
-        return parse_ubo2003_file_name(str(path))
-    return parse_utia_file_name(str(path))
+_NAME_PARSERS = {"ubo2003": parse_ubo2003_file_name, "utia": parse_utia_file_name}
 
 
 # --- zip archives ------------------------------------------------------------------------
@@ -197,9 +188,8 @@ def _archive_prefix(names: list[str], archive: Path) -> str:
 
 
 def _open_root(root: str | PathLike):
-    """The dataset's top folder: ``root`` itself, or the folder of a ``.zip`` archive
-    holding the view folders (a :class:`zipfile.Path`, which lists and reads members
-    like a Path)."""
+    """``root`` itself, or the view folders' folder in a ``.zip`` archive (a
+    :class:`zipfile.Path`, which lists and reads members like a Path)."""
     root = Path(root)
     if root.is_dir():
         return root
@@ -229,14 +219,11 @@ def _unzipped_mtime_ns(info: zipfile.ZipInfo) -> int:
 
 
 def archive_fingerprint(archive: str | PathLike) -> dict:
-    """The fingerprint of a zipped dataset, from the archive's directory alone (nothing is
-    decompressed).
+    """The fingerprint of a zipped dataset, from the archive's directory alone.
 
     The same as :func:`pipeline.core.stage.folder_fingerprint` of the folder holding the
-    view folders once ``unzip`` has unpacked it (which restores the recorded times): file
-    count, total uncompressed size, newest modification time and a hash of the names
-    relative to that folder. The load stage's cache key carries it instead of the
-    location, so the archive and its unpacked folder share one cache entry.
+    view folders once ``unzip`` has unpacked it (which restores the recorded times), so
+    the archive and its unpacked folder share one cache entry of the load stage.
 
     Raises
     ------
@@ -257,14 +244,7 @@ def archive_fingerprint(archive: str | PathLike) -> dict:
     }
 
 
-def _expected_name_hint(
-    folder,
-    format: str,
-    light: tuple[int, int],
-    view: tuple[int, int],
-    ext: str,
-    number_bases: set[int],
-):
+def _expected_name_hint(folder, format: str, light, view, ext: str, number_bases: set[int]):
     """Best guess of the path of a missing image, for the error message.
 
     UBO2003 running numbers are not implied by the angles; when every present file of the
@@ -279,25 +259,26 @@ def _expected_name_hint(
     return folder / ubo2003_file_name(0, *light, *view, ext).replace("00000", "?????", 1)
 
 
+def _visible_entries(folder) -> list:
+    """The entries of ``folder`` (a Path or zipfile.Path) not hidden, sorted by name."""
+    return [path for path in sorted(folder.iterdir(), key=str) if not path.name.startswith(".")]
+
+
 def _list_view_folder(folder, view: tuple[int, int], format: str) -> list[BTFFile]:
     """Parse and check the image names of one view folder; return them in light order."""
     allowed = FORMAT_EXTENSIONS[format]
-    image_paths = sorted(
-        (
-            path
-            for path in folder.iterdir()
-            if path.is_file()
-            and not path.name.startswith(".")
-            and path.suffix.lower().lstrip(".") in allowed
-        ),
-        key=str,
-    )
+    image_paths = [
+        path
+        for path in _visible_entries(folder)
+        if path.is_file() and path.suffix.lower().lstrip(".") in allowed
+    ]
     if not image_paths:
         raise DataError(f"view folder holds no {'/'.join(allowed)} images: {folder}")
     by_light: dict[tuple[int, int], Path] = {}
     number_bases: set[int] = set()
     for path in image_paths:
-        name = _parse_image_name(path, format)
+        # str(): the parsers take the name of a path, which a zipfile.Path is not.
+        name = _NAME_PARSERS[format](str(path))
         if (name.theta_view, name.phi_view) != view:
             raise DataError(
                 f"image's view angles (tv={name.theta_view}, pv={name.phi_view}) disagree "
@@ -351,25 +332,19 @@ def list_btf_files(root: str | PathLike, format: str = "ubo2003", views=None) ->
     Raises
     ------
     DataError
-        Naming the path at fault: missing root, an unreadable archive or one without
-        view folders, no view folders, an unparseable or
-        off-grid folder or file name, view angles disagreeing with the folder, a
-        requested view without a folder, a view folder lacking some of the 81 lights,
-        two images of the same light, or image files of mixed extensions.
+        Naming the path at fault: missing root, an unreadable archive, no view folders,
+        an unparseable or off-grid name, view angles disagreeing with the folder, a
+        requested view without a folder, a missing or doubled light, or image files of
+        mixed extensions.
     ConfigError
         For an unknown ``format`` or a ``views`` entry off the grid.
     """
     _check_format(format)
     root = _open_root(root)
     requested = None if views is None else canonical_views(views)
-    folders = sorted(
-        (
-            path
-            for path in root.iterdir()
-            if path.is_dir() and not path.name.startswith(".") and path.name != _MACOS_FORKS
-        ),
-        key=str,
-    )
+    folders = [
+        path for path in _visible_entries(root) if path.is_dir() and path.name != _MACOS_FORKS
+    ]
     if not folders:
         raise DataError(f"no view folders (tvTTT_pvPPP) in BTF root {root}")
     folder_of_view: dict[tuple[int, int], Path] = {}
@@ -427,23 +402,18 @@ def decode_btf_image(
     DataError
         Naming the file, if it is missing, corrupt, lacks the channels, or holds NaN/Inf.
     """
-    _check_format(format)
-    linearize = check_linearize(linearize, format)
+    linearize = check_linearize(linearize, format)  # checks the format too
     path = path if isinstance(path, zipfile.Path) else Path(path)
     if path.suffix.lower() == ".exr":
         if format == "ubo2003":
             return read_exr_channels(path, ("R", "G", "B"))
         channels = read_exr(path)
-        if all(name in channels for name in "XYZ"):
-            xyz = np.stack([channels[name] for name in "XYZ"], axis=-1)
-        elif all(name in channels for name in "RGB"):
-            xyz = np.stack([channels[name] for name in "RGB"], axis=-1)  # UTIA labelling
-        else:
-            raise DataError(
-                f"UTIA EXR has neither X, Y, Z nor R, G, B channels "
-                f"(has {sorted(channels)}): {path}"
-            )
-        return xyz_to_linear_srgb(xyz)
+        for names in ("XYZ", "RGB"):  # some UTIA files label their XYZ data R, G, B
+            if all(name in channels for name in names):
+                return xyz_to_linear_srgb(np.stack([channels[name] for name in names], axis=-1))
+        raise DataError(
+            f"UTIA EXR has neither X, Y, Z nor R, G, B channels (has {sorted(channels)}): {path}"
+        )
     encoded = read_image_8bit(path)
     if linearize == "gamma2.2":
         return gamma_decode(encoded, UBO2003_GAMMA)
@@ -460,8 +430,7 @@ def encode_btf_image(
     *,
     sync: bool = True,
 ) -> None:
-    """Write one linear RGB image the way ``format`` stores it; the inverse of
-    :func:`decode_btf_image` up to quantization.
+    """Write one linear RGB image as ``format`` stores it (:func:`decode_btf_image`'s inverse).
 
     Parameters
     ----------
@@ -475,8 +444,7 @@ def encode_btf_image(
     quality : int
         JPEG quality 1..100.
     sync : bool
-        fsync the file before it is renamed into place; a writer that publishes a whole
-        folder at once (the synthetic BTF's staging folder) syncs nothing file by file.
+        fsync before the rename; False for a staging folder published as a whole.
     """
     _check_format(format)
     suffix = Path(path).suffix.lower().lstrip(".")
@@ -496,11 +464,8 @@ def encode_btf_image(
 def count_btf_images(
     root: str | PathLike, format: str = "ubo2003", views=None
 ) -> tuple[int, int, int]:
-    """(n_images, height, width) of a dataset, checking names and reading one header.
-
-    Use it to allocate an ``out`` array (e.g. a ``.npy`` memmap) for :func:`load_btf`.
-    Raises the same errors as :func:`list_btf_files`.
-    """
+    """(n_images, height, width) of a dataset, checking names and reading one header, to
+    allocate :func:`load_btf`'s ``out``; raises as :func:`list_btf_files`."""
     files = list_btf_files(root, format, views)
     height, width = image_size(files[0].path)
     return len(files), height, width
@@ -518,12 +483,8 @@ def load_btf(
 
     Parameters
     ----------
-    root : path-like
-        Dataset folder holding the view folders ``tvTTT_pvPPP``, or its ``.zip`` archive.
-    format : {"ubo2003", "utia"}
-    views : sequence of (θ_view, φ_view) in degrees, or None
-        Load only these views; None loads every view folder present (a subset of the 81
-        on disk is valid).
+    root, format, views
+        As in :func:`list_btf_files`.
     out : ndarray of shape (n_images, H, W, 3), float32, optional
         Writable array (e.g. ``np.lib.format.open_memmap``) to decode into, so a large
         dataset is never held twice; get its shape from :func:`count_btf_images`.
@@ -539,12 +500,9 @@ def load_btf(
 
     Raises
     ------
-    DataError
-        Naming the path at fault: see :func:`list_btf_files`; also a missing, truncated
-        or corrupt image, an image whose size differs from the first one, NaN/Inf in an
-        EXR.
-    ConfigError
-        For an unknown format, an off-grid view, or an ``out`` of the wrong shape/dtype.
+    DataError, ConfigError
+        As :func:`list_btf_files`; also a DataError for a missing, corrupt or
+        differently sized image or NaN/Inf in an EXR, a ConfigError for a wrong ``out``.
     """
     linearize = check_linearize(linearize, format)
     files = list_btf_files(root, format, views)
@@ -562,14 +520,10 @@ def load_btf(
                 f"{files[0].path} is {width}x{height}: {entry.path}"
             )
         out[index] = image
-    directions = np.deg2rad(
-        np.array([entry[1:] for entry in files], dtype=np.float64).reshape(-1, 4)
-    )
-    view_folders = [entry.path.parent for entry in files[::N_DIRECTIONS]]
     return BTF(
         images=out,
-        directions=directions,
+        directions=np.deg2rad(np.array([entry[1:] for entry in files], np.float64).reshape(-1, 4)),
         paths=[entry.path for entry in files],
-        view_folders=view_folders,
+        view_folders=[entry.path.parent for entry in files[::N_DIRECTIONS]],
         root=Path(root),
     )

@@ -22,10 +22,8 @@ light and view on sets of their own. :func:`direction_sets` finds the light and 
 set of any list of (light, view) pairs, so that the chain never needs the 81-grid;
 :func:`fibonacci_hemisphere` makes such a set.
 
-File and folder names::
-
-    UBO2003:  tv030_pv030/00008 tl000 pl000 tv030 pv030.jpg
-    UTIA:     tv000_pv000/tl000_pl000_tv000_pv000.png   (or .exr)
+File and folder names: :func:`view_folder_name`, :func:`ubo2003_file_name`,
+:func:`utia_file_name`.
 
 Examples
 --------
@@ -52,14 +50,7 @@ import numpy as np
 from pipeline.core.errors import ConfigError, DataError
 
 # (θ in degrees, number of azimuths on that ring); the azimuth step is 360 / count.
-RINGS_DEGREES: tuple[tuple[int, int], ...] = (
-    (0, 1),
-    (15, 6),
-    (30, 12),
-    (45, 18),
-    (60, 20),
-    (75, 24),
-)
+RINGS_DEGREES = ((0, 1), (15, 6), (30, 12), (45, 18), (60, 20), (75, 24))
 N_DIRECTIONS = 81
 
 
@@ -79,13 +70,7 @@ class ImageName(NamedTuple):
 
 
 def grid_81_degrees() -> np.ndarray:
-    """The 81 standard directions in whole degrees, in canonical order.
-
-    Returns
-    -------
-    ndarray of shape (81, 2), int64
-        Rows (θ, φ) in degrees.
-    """
+    """The 81 standard directions in canonical order, shape (81, 2) int64: (θ, φ) in degrees."""
     rows = [
         (theta, step_index * (360 // count))
         for theta, count in RINGS_DEGREES
@@ -95,13 +80,7 @@ def grid_81_degrees() -> np.ndarray:
 
 
 def grid_81() -> np.ndarray:
-    """The 81 standard directions in radians, in canonical order.
-
-    Returns
-    -------
-    ndarray of shape (81, 2), float64
-        Rows (θ, φ) in radians; θ is the angle from the surface normal.
-    """
+    """The 81 standard directions in canonical order, shape (81, 2) float64: (θ, φ) in radians."""
     return np.deg2rad(grid_81_degrees().astype(np.float64))
 
 
@@ -118,14 +97,8 @@ def unit_vectors(theta: np.ndarray, phi: np.ndarray) -> np.ndarray:
 
 
 def direction_index(theta_degrees: int, phi_degrees: int) -> int:
-    """Canonical index (0..80) of a grid direction given in whole degrees.
-
-    Raises
-    ------
-    KeyError
-        If (θ, φ) is not one of the 81 grid directions. Callers turn this into a
-        DataError or ConfigError naming the file or setting at fault.
-    """
+    """Canonical index (0..80) of a grid direction given in whole degrees; a KeyError for
+    any other, which callers turn into an error naming the file or setting at fault."""
     return _INDEX_OF_DEGREES[(int(theta_degrees), int(phi_degrees))]
 
 
@@ -137,17 +110,12 @@ def is_grid_direction(theta_degrees: float, phi_degrees: float) -> bool:
 
 
 def canonical_views(views=None) -> list[tuple[int, int]]:
-    """Check a list of view directions (degrees) and return it in canonical order.
+    """Check a list of view directions and return it as (int, int) pairs in canonical order.
 
     Parameters
     ----------
     views : sequence of (θ_view, φ_view) in degrees, or None
         None means all 81 views. Duplicates are dropped.
-
-    Returns
-    -------
-    list of (int, int)
-        The views in canonical (grid) order.
 
     Raises
     ------
@@ -173,25 +141,10 @@ def canonical_views(views=None) -> list[tuple[int, int]]:
 
 
 def btf_directions(views=None) -> np.ndarray:
-    """Light and view directions of a BTF's images, view-major, in radians.
-
-    Parameters
-    ----------
-    views : sequence of (θ_view, φ_view) in degrees, or None
-        Restrict to these views (put in canonical order); None means all 81.
-
-    Returns
-    -------
-    ndarray of shape (n_views * 81, 4), float64
-        Rows (θ_light, φ_light, θ_view, φ_view); row ``v * 81 + l`` is light ``l`` (in
-        canonical order) under the ``v``-th view.
-    """
+    """Light and view directions of a BTF's images (:func:`product_directions` of the grid
+    and ``views``, which are as in :func:`canonical_views`), shape (n_views * 81, 4)."""
     view_degrees = np.array(canonical_views(views), dtype=np.float64).reshape(-1, 2)
-    grid = grid_81()
-    n_views = len(view_degrees)
-    lights = np.tile(grid, (n_views, 1))
-    view_radians = np.repeat(np.deg2rad(view_degrees), N_DIRECTIONS, axis=0)
-    return np.concatenate([lights, view_radians], axis=1)
+    return product_directions(grid_81(), np.deg2rad(view_degrees))
 
 
 # --- any direction set ----------------------------------------------------------------
@@ -312,15 +265,9 @@ def fibonacci_hemisphere(count: int, max_theta_degrees: float = 80.0) -> np.ndar
 def product_directions(lights: np.ndarray, views: np.ndarray) -> np.ndarray:
     """Every light under every view, view-major as the readers order a BTF's images.
 
-    Parameters
-    ----------
-    lights : ndarray of shape (L, 2); views : ndarray of shape (V, 2)
-        (θ, φ) radians.
-
-    Returns
-    -------
-    ndarray of shape (V · L, 4), float64
-        Row ``v * L + l`` is (light ``l``, view ``v``).
+    ``lights`` (L, 2) and ``views`` (V, 2) are (θ, φ) radians; the result has shape
+    (V · L, 4), float64, rows (θ_light, φ_light, θ_view, φ_view), row ``v * L + l`` being
+    (light ``l``, view ``v``).
     """
     lights = np.asarray(lights, dtype=np.float64).reshape(-1, 2)
     views = np.asarray(views, dtype=np.float64).reshape(-1, 2)
@@ -359,13 +306,8 @@ def view_folder_name(theta_view: float, phi_view: float) -> str:
 
 
 def parse_view_folder_name(path: str | PathLike) -> tuple[int, int]:
-    """(θ_view, φ_view) in whole degrees from a folder name like ``tv030_pv030``.
-
-    Raises
-    ------
-    DataError
-        Naming the folder, if its name does not follow the pattern.
-    """
+    """(θ_view, φ_view) in whole degrees from a folder name like ``tv030_pv030``; a
+    DataError names a folder whose name does not follow the pattern."""
     match = _VIEW_FOLDER_PATTERN.match(Path(path).name)
     if match is None:
         raise DataError(f"view folder name not of the form 'tvTTT_pvPPP': {path}")
@@ -380,17 +322,8 @@ def ubo2003_file_name(
     phi_view: float,
     ext: str = "jpg",
 ) -> str:
-    """UBO2003 image name: ``00008 tl000 pl000 tv030 pv030.jpg``.
-
-    Parameters
-    ----------
-    number : int
-        Running number, 0..99999 (a full dataset uses 0..6560).
-    theta_light, phi_light, theta_view, phi_view : float
-        Angles in whole degrees.
-    ext : str
-        Extension without the dot.
-    """
+    """UBO2003 image name ``00008 tl000 pl000 tv030 pv030.jpg``: the running ``number``
+    (0..99999; a full dataset uses 0..6560), angles in whole degrees, ``ext`` without the dot."""
     if not 0 <= number <= 99999:
         raise ConfigError(f"running number {number} does not fit five digits")
     tl, pl, tv, pv = _name_angles(theta_light, phi_light, theta_view, phi_view)
@@ -398,13 +331,8 @@ def ubo2003_file_name(
 
 
 def parse_ubo2003_file_name(path: str | PathLike) -> ImageName:
-    """Running number and angles from a UBO2003 image name (the folder part is ignored).
-
-    Raises
-    ------
-    DataError
-        Naming the file, if its name does not follow the pattern.
-    """
+    """Running number and angles from a UBO2003 image name (the folder part is ignored); a
+    DataError names a file whose name does not follow the pattern."""
     match = _UBO2003_FILE_PATTERN.match(Path(path).name)
     if match is None:
         raise DataError(
@@ -423,13 +351,8 @@ def utia_file_name(
 
 
 def parse_utia_file_name(path: str | PathLike) -> ImageName:
-    """Angles from a UTIA image name (the folder part is ignored); ``number`` is None.
-
-    Raises
-    ------
-    DataError
-        Naming the file, if its name does not follow the pattern.
-    """
+    """Angles from a UTIA image name (the folder part is ignored); ``number`` is None. A
+    DataError names a file whose name does not follow the pattern."""
     match = _UTIA_FILE_PATTERN.match(Path(path).name)
     if match is None:
         raise DataError(f"UTIA image name not of the form 'tlTTT_plPPP_tvTTT_pvPPP.ext': {path}")

@@ -50,10 +50,9 @@ def _in_memory(path: str, size: int, mtime_ns: int, row: int, col: int, height: 
 
 
 class ImageABRDFs(CropABRDFs):
-    """A crop of decoded images (N, H, W, 3) as the (M, N, 3) float32 array-like method A's
-    stages read (:class:`~pipeline.data.crop_abrdfs.CropABRDFs`: the indexing); each read
-    gathers only the texels and images asked for (for crops too large to hold:
-    :func:`crop_abrdfs`)."""
+    """A crop of decoded images (N, H, W, 3) as a
+    :class:`~pipeline.data.crop_abrdfs.CropABRDFs`: each read gathers only the texels and
+    images asked for."""
 
     def __init__(self, images: np.ndarray, texels: tuple[int, int, int, int]):
         self.images = images

@@ -62,17 +62,7 @@ _SRGB_LINEAR_BREAK = 0.0031308
 
 
 def srgb_eotf(encoded: np.ndarray) -> np.ndarray:
-    """sRGB decoding (IEC 61966-2-1): encoded values in [0, 1] to linear values.
-
-    Parameters
-    ----------
-    encoded : ndarray of any shape
-        Encoded values; values outside [0, 1] are clipped first.
-
-    Returns
-    -------
-    ndarray of the same shape, float32
-    """
+    """sRGB decoding (IEC 61966-2-1) of encoded values (clipped to [0, 1]), float32, same shape."""
     encoded = np.clip(np.asarray(encoded, dtype=np.float32), 0.0, 1.0)
     return np.where(
         encoded <= _SRGB_ENCODED_BREAK,
@@ -82,17 +72,7 @@ def srgb_eotf(encoded: np.ndarray) -> np.ndarray:
 
 
 def srgb_oetf(linear: np.ndarray) -> np.ndarray:
-    """sRGB encoding (IEC 61966-2-1): linear values to encoded values in [0, 1].
-
-    Parameters
-    ----------
-    linear : ndarray of any shape
-        Linear values; values outside [0, 1] are clipped first.
-
-    Returns
-    -------
-    ndarray of the same shape, float32
-    """
+    """sRGB encoding (IEC 61966-2-1) of linear values (clipped to [0, 1]), float32, same shape."""
     linear = np.clip(np.asarray(linear, dtype=np.float32), 0.0, 1.0)
     return np.where(
         linear <= _SRGB_LINEAR_BREAK,
@@ -160,17 +140,8 @@ _EIGHT_BIT_MODES = {"1", "L", "LA", "P", "RGB", "RGBA", "CMYK", "YCbCr"}
 
 
 def read_image_8bit(path: str | PathLike) -> np.ndarray:
-    """Read an 8-bit JPEG or PNG as float32 code values / 255 (still encoded).
-
-    Grey images are repeated to three channels; an alpha channel is dropped.
-
-    Parameters
-    ----------
-    path : path-like
-
-    Returns
-    -------
-    ndarray of shape (H, W, 3), float32 in [0, 1]
+    """Read an 8-bit JPEG or PNG as code values / 255 (still encoded), shape (H, W, 3),
+    float32 in [0, 1]. Grey images are repeated to three channels; alpha is dropped.
 
     Raises
     ------
@@ -203,8 +174,7 @@ def quantize_8bit(encoded: np.ndarray) -> np.ndarray:
 def write_image_8bit(
     path: str | PathLike, encoded: np.ndarray, quality: int = 95, *, sync: bool = True
 ) -> None:
-    """Write encoded values in [0, 1] as an 8-bit image (atomically); the format follows
-    the extension.
+    """Write encoded values in [0, 1] as an 8-bit image (atomically).
 
     Parameters
     ----------
@@ -272,10 +242,6 @@ def image_size(path: str | PathLike) -> tuple[int, int]:
 def read_exr(path: str | PathLike) -> dict[str, np.ndarray]:
     """Read every channel of a single-part scanline or tiled EXR, one array per channel.
 
-    Parameters
-    ----------
-    path : path-like
-
     Returns
     -------
     dict of str to ndarray of shape (H, W), float32
@@ -312,23 +278,9 @@ def read_exr(path: str | PathLike) -> dict[str, np.ndarray]:
 
 
 def read_exr_channels(path: str | PathLike, names: Sequence[str]) -> np.ndarray:
-    """Read the named channels of an EXR, stacked on the last axis.
-
-    Parameters
-    ----------
-    path : path-like
-    names : sequence of str
-        Channel names in the order wanted, e.g. ``("R", "G", "B")``.
-
-    Returns
-    -------
-    ndarray of shape (H, W, len(names)), float32
-
-    Raises
-    ------
-    DataError
-        As :func:`read_exr`, or naming the file and the missing channels.
-    """
+    """The channels ``names`` (e.g. ``("R", "G", "B")``) of an EXR, stacked on the last
+    axis: shape (H, W, len(names)), float32. Raises as :func:`read_exr`, or a DataError
+    naming the file and the missing channels."""
     channels = read_exr(path)
     missing = [name for name in names if name not in channels]
     if missing:
@@ -347,18 +299,12 @@ def write_exr(
 
     Parameters
     ----------
-    path : path-like
     image : ndarray of shape (H, W, C)
         Values to store; they are rounded to half precision.
     names : sequence of C str
         Channel names, e.g. ``("R", "G", "B")`` or ``("X", "Y", "Z")``.
     sync : bool
-        As in :func:`write_image_8bit`.
-
-    Raises
-    ------
-    DataError
-        Naming the file when the disk is full.
+        As in :func:`write_image_8bit`; a full disk is a DataError naming the file.
     """
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != len(names):

@@ -18,8 +18,7 @@ direction rather than (0, 0, 1).
 
 Images may be JPEG, PNG (sRGB-encoded: linearized with the IEC 61966-2-1 EOTF; 16-bit
 grey PNGs keep their precision, 16-bit RGB ones are reduced to 8 bits by Pillow) or EXR
-(taken as linear). In memory a stack is float32, shape (n, H, W, 3),
-linear RGB, in the order of the ``.lp`` file.
+(taken as linear).
 
 Example
 -------
@@ -31,12 +30,13 @@ Example
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.errors import DataError
+from pipeline.core.errors import ConfigError, DataError
+from pipeline.data.directions import unit_vectors
 from pipeline.data.images import read_exr, srgb_eotf
 
 __all__ = [
@@ -95,13 +95,9 @@ class LightStack:
         index = np.asarray(index)
         if index.dtype == bool:
             index = np.flatnonzero(index)
-        return LightStack(
-            images=self.images[index],
-            light_dirs=self.light_dirs[index],
-            paths=[self.paths[i] for i in index],
-            normals=self.normals,
-            lp_path=self.lp_path,
-            view_dir=self.view_dir,
+        paths = [self.paths[i] for i in index]
+        return replace(
+            self, images=self.images[index], light_dirs=self.light_dirs[index], paths=paths
         )
 
 
@@ -141,17 +137,8 @@ def _read_pillow(path: Path) -> np.ndarray:
 
 
 def read_linear_rgb(path: str | os.PathLike) -> np.ndarray:
-    """Read one image as linear RGB.
-
-    Parameters
-    ----------
-    path : path-like
-        A JPEG or PNG (sRGB-encoded, linearized here) or an EXR (taken as linear).
-
-    Returns
-    -------
-    ndarray of shape (H, W, 3), float32
-    """
+    """Read a JPEG or PNG (sRGB-encoded, linearized here) or an EXR (taken as linear) as
+    linear RGB of shape (H, W, 3), float32."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"image file {path} does not exist")
@@ -165,10 +152,6 @@ def read_linear_rgb(path: str | os.PathLike) -> np.ndarray:
 
 def read_lp(lp_path: str | os.PathLike) -> tuple[list[Path], np.ndarray]:
     """Parse an RTI ``.lp`` file.
-
-    Parameters
-    ----------
-    lp_path : path-like
 
     Returns
     -------
@@ -243,25 +226,15 @@ def _resolve_image(lp_path: Path, number: int, name: str) -> Path:
     raise DataError(f"{lp_path}, line {number}: listed image {candidate} does not exist")
 
 
-def write_lp(
-    path: str | os.PathLike, filenames: list[str], dirs: np.ndarray, precision: int = 9
-) -> Path:
-    """Write an RTI ``.lp`` file.
+def write_lp(path: str | os.PathLike, filenames: list[str], dirs: np.ndarray) -> Path:
+    """Write an RTI ``.lp`` file at ``path`` and return it.
 
     Parameters
     ----------
-    path : path-like
-        The ``.lp`` file to write.
     filenames : list of str
         Image file names, relative to the ``.lp`` file's folder; no line breaks.
     dirs : array_like of shape (n, 3)
-        Vectors towards the light (written as given; readers normalize).
-    precision : int
-        Digits after the decimal point.
-
-    Returns
-    -------
-    Path
+        Vectors towards the light, written as given (readers normalize) with 9 decimals.
     """
     path = Path(path)
     dirs = np.asarray(dirs, dtype=np.float64)
@@ -273,7 +246,7 @@ def write_lp(
     for name, (x, y, z) in zip(filenames, dirs, strict=True):
         if not name or any(c in name for c in "\r\n"):
             raise DataError(f"{path}: file name {name!r} cannot be written to a .lp line")
-        lines.append(f"{name} {x:.{precision}f} {y:.{precision}f} {z:.{precision}f}")
+        lines.append(f"{name} {x:.9f} {y:.9f} {z:.9f}")
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
 
@@ -282,19 +255,15 @@ def write_lp(
 
 
 def load_normal_map(path: str | os.PathLike, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Read a normal map and return unit normals.
+    """Read a normal map as unit normals of shape (H, W, 3), float32.
 
     Parameters
     ----------
     path : path-like
-        ``.png`` (n = 2 v / vmax - 1 with vmax = 255 or 65535; no sRGB curve),
-        ``.npy`` of shape (H, W, 3), or ``.exr`` with R, G, B = x, y, z.
+        ``.png`` (n = 2 v / 255 - 1, no sRGB curve), ``.npy`` of shape (H, W, 3), or
+        ``.exr`` with R, G, B = x, y, z.
     shape : (H, W), optional
         The expected image size; a mismatch is a DataError.
-
-    Returns
-    -------
-    ndarray of shape (H, W, 3), float32
     """
     path = Path(path)
     if not path.is_file():
@@ -359,10 +328,6 @@ def load_light_stack(
     normals : path-like or ndarray of shape (H, W, 3), optional
         A normal map (see :func:`load_normal_map`) or an array of normals.
 
-    Returns
-    -------
-    LightStack
-
     Raises
     ------
     DataError
@@ -406,11 +371,10 @@ def load_light_stack(
         images[index] = image
 
     normal_map = None
-    if normals is not None:
-        if isinstance(normals, np.ndarray):
-            normal_map = _check_normals(normals, "array", images.shape[1:3])
-        else:
-            normal_map = load_normal_map(normals, images.shape[1:3])
+    if isinstance(normals, np.ndarray):
+        normal_map = _check_normals(normals, "array", images.shape[1:3])
+    elif normals is not None:
+        normal_map = load_normal_map(normals, images.shape[1:3])
     return LightStack(
         images=images, light_dirs=light_dirs, paths=paths, normals=normal_map, lp_path=lp_path
     )
@@ -445,9 +409,7 @@ def load_btf_view(root: str | os.PathLike, format: str = "ubo2003", view=(0, 0))
     DataError
         As :func:`pipeline.data.btf.load_btf` (missing folder, missing lights, ...).
     """
-    from pipeline.core.errors import ConfigError
     from pipeline.data.btf import load_btf
-    from pipeline.data.directions import unit_vectors
 
     angles = np.asarray(view, dtype=np.float64)
     if angles.shape != (2,):

@@ -5,12 +5,8 @@ Nothing is decoded until asked: :func:`~pipeline.data.ubo2014_header.read_dfmf` 
 the header and locates the factors, :func:`select_rows` turns the dataset's views and
 lights into direction rows, and :func:`~pipeline.data.ubo2014_decode.decode_dfmf`
 multiplies only those rows at the texels of a crop. :func:`load_ubo2014` does all three
-and returns a :class:`~pipeline.data.btf.BTF`.
-
-The reader's modules: :mod:`pipeline.data.ubo2014_format` (the layout and the parsed
-header), :mod:`pipeline.data.ubo2014_header` (parsing it),
-:mod:`pipeline.data.ubo2014_decode` (values from the factors, with the conventions of
-row order, origin, colour model and cosine), and this one.
+and returns a :class:`~pipeline.data.btf.BTF`. The layout is described in
+:mod:`pipeline.data.ubo2014_format`.
 
 Examples
 --------
@@ -18,9 +14,8 @@ Examples
 >>> rows = select_rows(dfmf, views=[0, 10], lights=None)               # doctest: +SKIP
 >>> images = decode_dfmf(dfmf, rows, crop=(0, 0, 100, 100))            # doctest: +SKIP
 
-From the shell: ``python -m pipeline.data.ubo2014_bench info file=PATH`` (header, views and
-lights), ``python -m pipeline.data.ubo2014_bench bench [file=PATH]`` (peak memory of loading
-a crop).
+From the shell: ``python -m pipeline.data.ubo2014_info file=PATH`` (header, views and
+lights); ``python -m benchmarks.ubo2014_load`` (peak memory of loading a crop).
 """
 
 from __future__ import annotations
@@ -83,7 +78,6 @@ def select_rows(dfmf: DFMFFile, views=None, lights=None) -> np.ndarray:
 
     Parameters
     ----------
-    dfmf : DFMFFile
     views, lights : sequence or None
         None: all. Otherwise entries each either an index into the file's views (lights),
         or ``[θ, φ]`` in degrees within :data:`MATCH_TOLERANCE_DEG` of one (lights are
@@ -115,14 +109,10 @@ def count_ubo2014_images(
 
 
 def load_ubo2014(
-    path: str | PathLike,
-    views=None,
-    lights=None,
-    crop=None,
-    out: np.ndarray | None = None,
-    include_cosine: bool = True,
+    path: str | PathLike, views=None, lights=None, crop=None, out: np.ndarray | None = None
 ):
-    """Load a crop of a UBO2014 BTF as linear RGB images in view-major order.
+    """Load a crop of a UBO2014 BTF as linear RGB images in view-major order; raises as
+    :func:`read_dfmf`, :func:`select_rows` and :func:`decode_dfmf`.
 
     Parameters
     ----------
@@ -134,8 +124,6 @@ def load_ubo2014(
         a UBO2014 file: give ``out`` as a memory map).
     out : ndarray of shape (n_images, height, width, 3), float32, optional
         Get the shape from :func:`count_ubo2014_images`.
-    include_cosine : bool
-        See :func:`decode_dfmf`.
 
     Returns
     -------
@@ -143,17 +131,12 @@ def load_ubo2014(
         ``images`` (n, height, width, 3); ``directions`` (n, 4) = (θ_light, φ_light,
         θ_view, φ_view) radians from the file; ``paths`` the file for every image;
         ``view_folders`` empty; ``root`` the file.
-
-    Raises
-    ------
-    DataError, ConfigError
-        As :func:`read_dfmf`, :func:`select_rows` and :func:`decode_dfmf`.
     """
     from pipeline.data.btf import BTF
 
     dfmf = read_dfmf(path)
     rows = select_rows(dfmf, views, lights)
-    images = decode_dfmf(dfmf, rows, crop, out=out, include_cosine=include_cosine)
+    images = decode_dfmf(dfmf, rows, crop, out=out)
     return BTF(
         images=images,
         directions=dfmf.directions()[rows],

@@ -13,9 +13,8 @@ Conventions of this decoder, each as btflib decodes:
   and 2 chroma ratios, ``U = c1·Y + ε``, ``V = c2·Y + ε`` (ε =
   :data:`~pipeline.data.ubo2014_format.DRR_EPS`, hard-coded in btflib and pysmtb, not
   stored), then BT.601 YUV → RGB (:data:`~pipeline.data.ubo2014_format.YUV_TO_RGB`),
-  clipped to [0, 1] as btflib does (``clip=False`` keeps the unclipped values). The
-  colour mean and transform and the RGB scale are read but not applied: btflib ignores
-  them too.
+  clipped to [0, 1] as btflib does. The colour mean and transform and the RGB scale are
+  read but not applied: btflib ignores them too.
 - The incident cosine. Method A expects it *in* the data, as UBO2003 photographs have it.
   A file whose cosine flag is 0 (or a version-1 file, which has no flag: pysmtb reads that
   as "not in the data") stores values with the cosine divided out; the decoder multiplies
@@ -27,6 +26,7 @@ Conventions of this decoder, each as btflib decodes:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -60,27 +60,16 @@ def channel_factors(dfmf: DFMFFile, channel: int) -> tuple[np.ndarray, np.ndarra
 
 
 def check_crop(crop, dfmf: DFMFFile) -> tuple[int, int, int, int]:
-    """``crop`` = [row, col, height, width] texels (None: all) checked against the texture.
-
-    Raises
-    ------
-    ConfigError
-        Naming the crop and the texture size, when it does not fit.
-    """
+    """``crop`` = [row, col, height, width] texels (None: all) checked against the texture;
+    a ConfigError names a crop that does not fit, and the texture size."""
     if crop is None:
         return 0, 0, dfmf.height, dfmf.width
     try:
         row, col, height, width = (int(value) for value in crop)
     except (TypeError, ValueError):
         raise ConfigError(f"crop {crop!r} is not [row, col, height, width]") from None
-    if (
-        height < 1
-        or width < 1
-        or row < 0
-        or col < 0
-        or row + height > dfmf.height
-        or (col + width > dfmf.width)
-    ):
+    inside = row + height <= dfmf.height and col + width <= dfmf.width
+    if min(height, width) < 1 or min(row, col) < 0 or not inside:
         raise ConfigError(
             f"crop {[row, col, height, width]} does not fit the texture of "
             f"{dfmf.height} × {dfmf.width} texels (height × width): {dfmf.path}"
@@ -104,9 +93,7 @@ def crop_texel_factors(dfmf: DFMFFile, channel: int, crop=None) -> np.ndarray:
     return np.ascontiguousarray(block, dtype=_compute_dtype(dfmf)).reshape(height * width, -1)
 
 
-def decode_block(
-    direction_factors, texel_factors, color_model: int, clip: bool = True
-) -> np.ndarray:
+def decode_block(direction_factors, texel_factors, color_model: int) -> np.ndarray:
     """Values of some directions at some texels from their factors.
 
     Parameters
@@ -116,8 +103,6 @@ def decode_block(
     texel_factors : sequence of 3 ndarrays of shape (m, K_c)
         The SV rows of each channel.
     color_model : {0, 11}
-    clip : bool
-        Colour model 11 only: clip RGB to [0, 1] as btflib does.
 
     Returns
     -------
@@ -135,13 +120,14 @@ def decode_block(
         [luminance, channels[1] * luminance + DRR_EPS, channels[2] * luminance + DRR_EPS], axis=-1
     )
     rgb = yuv @ YUV_TO_RGB.T
-    return np.clip(rgb, 0.0, 1.0, out=rgb) if clip else rgb
+    return np.clip(rgb, 0.0, 1.0, out=rgb)
 
 
 @dataclass(frozen=True)
 class _Factors:
     """What decoding some direction rows at a crop needs: the rows' U, the crop's SV (each
-    per channel, in the compute type) and the cosine each row is multiplied by (or None)."""
+    per channel, in the compute type), the cosine each row is multiplied by (or None), and
+    the file's colour model and path."""
 
     rows: np.ndarray
     directions: list[np.ndarray]
@@ -149,19 +135,29 @@ class _Factors:
     cosine: np.ndarray | None
     height: int
     width: int
+    color_model: int
+    path: Path
 
-    def check_finite(self, values: np.ndarray, rows: np.ndarray, path) -> None:
-        """Raise :class:`DataError` naming ``path`` where ``values`` (n_rows, m, 3) are not
-        finite."""
+    def decode(self, rows, texels) -> np.ndarray:
+        """Values (n_rows, n_texels, 3) of some of :attr:`rows` at some of the crop's texels
+        (each an index array or a slice), times the cosine; a :class:`DataError` names the
+        file where they are not finite."""
+        u = [factor[rows] for factor in self.directions]
+        sv = [factor[texels] for factor in self.texels]
+        values = decode_block(u, sv, self.color_model)
         finite = np.isfinite(values)
         if not finite.all():
-            bad = rows[~finite.all(axis=(1, 2))]
+            bad = self.rows[rows][~finite.all(axis=(1, 2))]
             raise DataError(
-                f"the factors give NaN or Inf at {len(bad)} direction rows (first {bad[0]}): {path}"
+                f"the factors give NaN or Inf at {len(bad)} direction rows (first {bad[0]}): "
+                f"{self.path}"
             )
+        if self.cosine is not None:
+            values *= self.cosine[rows, None, None]
+        return values
 
 
-def _factors(dfmf: DFMFFile, rows, crop, include_cosine: bool) -> _Factors:
+def _factors(dfmf: DFMFFile, rows, crop, include_cosine: bool = True) -> _Factors:
     if len(dfmf.channels) != 3:
         raise DataError(
             f"UBO2014 file has {len(dfmf.channels)} channels {list(dfmf.channel_names)}; "
@@ -185,7 +181,14 @@ def _factors(dfmf: DFMFFile, rows, crop, include_cosine: bool) -> _Factors:
         cosine=cosine,
         height=height,
         width=width,
+        color_model=dfmf.color_model,
+        path=dfmf.path,
     )
+
+
+# About how many bytes of values decode_dfmf computes at once: its memory stays at the
+# direction factors of its rows, the crop's texel factors and one such block.
+BLOCK_BYTES = 32 << 20
 
 
 def decode_dfmf(
@@ -195,14 +198,11 @@ def decode_dfmf(
     *,
     out: np.ndarray | None = None,
     include_cosine: bool = True,
-    clip: bool = True,
-    block_bytes: int = 32 << 20,
 ) -> np.ndarray:
     """Decode the chosen direction rows at a crop of texels, and nothing else, as images.
 
     Parameters
     ----------
-    dfmf : DFMFFile
     rows : array-like of int, or None
         Direction rows (:func:`pipeline.data.ubo2014.select_rows`); None: all ``n_directions``.
     crop : [row, col, height, width] or None
@@ -212,11 +212,6 @@ def decode_dfmf(
     include_cosine : bool
         Multiply by cos θ_light when the file says the cosine is not in its data (see the
         module docstring); False returns the stored values.
-    clip : bool
-        See :func:`decode_block`.
-    block_bytes : int
-        About how many bytes of values are computed at once: memory stays at the
-        direction factors of ``rows``, the crop's texel factors and one such block.
 
     Returns
     -------
@@ -236,31 +231,23 @@ def decode_dfmf(
     height, width = f.height, f.width
     out = output_array(out, (len(f.rows), height, width, 3))
     # Three float32 values per texel and direction, and about as much in temporaries.
-    step = max(1, block_bytes // (2 * 3 * 4 * height * width))
+    step = max(1, BLOCK_BYTES // (2 * 3 * 4 * height * width))
     for start in range(0, len(f.rows), step):
         stop = min(start + step, len(f.rows))
-        block = decode_block(
-            [u[start:stop] for u in f.directions], f.texels, dfmf.color_model, clip
-        )
-        f.check_finite(block, f.rows[start:stop], dfmf.path)
-        if f.cosine is not None:
-            block *= f.cosine[start:stop, None, None]
+        block = f.decode(slice(start, stop), slice(None))
         out[start:stop] = block.reshape(stop - start, height, width, 3)
     return out
 
 
 class FactorABRDFs(CropABRDFs):
-    """A crop's ABRDFs (texels × direction rows × 3) served from a DFMF file's factors:
-    indexing decodes just the texels (and directions) asked for, a small matrix product,
-    so the decoded crop is never written or held (a whole UBO2014 material would be
-    43.8 GB; its factors are a few MB).
-
-    It stands in for the (M, N, 3) float32 array method A's stages read
-    (:class:`~pipeline.data.crop_abrdfs.CropABRDFs`: the indexing).
+    """A crop's ABRDFs (texels × direction rows × 3) served from a DFMF file's factors, as
+    the (M, N, 3) float32 array-like method A's stages read
+    (:class:`~pipeline.data.crop_abrdfs.CropABRDFs`): indexing decodes just the texels (and
+    directions) asked for, a small matrix product, so the decoded crop is never written or
+    held (a whole UBO2014 material would be 43.8 GB; its factors are a few MB).
 
     Parameters
     ----------
-    dfmf : DFMFFile
     rows : array-like of int
         Direction rows (:func:`pipeline.data.ubo2014.select_rows`).
     crop : [row, col, height, width]
@@ -268,19 +255,11 @@ class FactorABRDFs(CropABRDFs):
     """
 
     def __init__(self, dfmf: DFMFFile, rows, crop):
-        self.path = dfmf.path
-        self.color_model = dfmf.color_model
-        self._factors = _factors(dfmf, rows, crop, include_cosine=True)
+        self._factors = _factors(dfmf, rows, crop)
         m = self._factors.height * self._factors.width
         self.shape = (m, len(self._factors.rows), 3)
 
     def _read(self, texel_rows: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """(len(texel_rows), len(rows), 3): those texels at those direction rows."""
-        f = self._factors
-        u = [factor[rows] for factor in f.directions]
-        sv = [factor[texel_rows] for factor in f.texels]
-        block = decode_block(u, sv, self.color_model)  # (directions, texels, 3)
-        f.check_finite(block, f.rows[rows], self.path)
-        if f.cosine is not None:
-            block *= f.cosine[rows, None, None]
+        block = self._factors.decode(rows, texel_rows)  # (directions, texels, 3)
         return np.ascontiguousarray(block.transpose(1, 0, 2))

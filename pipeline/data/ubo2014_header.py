@@ -66,16 +66,8 @@ def _c_string(raw: bytes) -> str:
 
 
 def read_dfmf(path: str | PathLike) -> DFMFFile:
-    """Parse a DFMF file's header and locate its factors (which are not read).
-
-    Parameters
-    ----------
-    path : path-like
-        A UBO2014 ``.btf`` file.
-
-    Returns
-    -------
-    DFMFFile
+    """Parse the header of a UBO2014 ``.btf`` (DFMF) file and locate its factors (which are
+    not read).
 
     Raises
     ------

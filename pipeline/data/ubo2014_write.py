@@ -79,7 +79,9 @@ def factorize(matrix: np.ndarray, components: int | None = None):
 
     Returns
     -------
-    S : ndarray of shape (K,); U : (rows, K), orthonormal columns; SV : (columns, K) = (S·Vᵀ)ᵀ
+    S : ndarray of shape (K,)
+    U : ndarray of shape (rows, K), orthonormal columns
+    SV : ndarray of shape (columns, K), (S·Vᵀ)ᵀ
     """
     u, s, vt = np.linalg.svd(matrix, full_matrices=False)
     k = len(s) if components is None else int(components)
@@ -147,9 +149,7 @@ def write_dfmf(
     sync : bool
         fsync before the rename.
 
-    Returns
-    -------
-    Path : ``path``.
+    Returns ``path``.
     """
     if (values is None) == (factors is None):
         raise ConfigError("write_dfmf needs exactly one of values and factors")
@@ -186,36 +186,23 @@ def write_dfmf(
                 f"need ({rows}, {k}) and ({columns}, {k})"
             )
 
+    def counted(text: str) -> bytes:
+        encoded = text.encode("utf-8")
+        return struct.pack("<I", len(encoded)) + encoded
+
     body = b""
     if version > 1:
         body += struct.pack("<I", int(cosine_in_data))
     if version > 2:
-        encoded = xml.encode("utf-8")
-        body += struct.pack("<I", len(encoded)) + encoded
+        body += counted(xml)
     if version > 3:
-        body += struct.pack("<I", len(channel_names))
-        for name in channel_names:
-            encoded = name.encode("utf-8")
-            body += struct.pack("<I", len(encoded)) + encoded
-    header = (
-        FIXED_HEADER.pack(
-            FIXED_HEADER.size + len(body),
-            version,
-            measurement_setup.encode("latin-1"),
-            image_sensor.encode("latin-1"),
-            light_source.encode("latin-1"),
-            ppmm,
-            *rgb_scale,
-        )
-        + body
-    )
+        body += struct.pack("<I", len(channel_names)) + b"".join(map(counted, channel_names))
+    texts = [text.encode("latin-1") for text in (measurement_setup, image_sensor, light_source)]
+    header = FIXED_HEADER.pack(FIXED_HEADER.size + len(body), version, *texts, ppmm, *rgb_scale)
     directions = [struct.pack("<I", n_views)]
     for view, lights in zip(view_angles, light_angles, strict=True):
-        directions += [
-            view.astype("<f4").tobytes(),
-            struct.pack("<I", n_lights),
-            lights.astype("<f4").tobytes(),
-        ]
+        light_list = struct.pack("<I", n_lights) + lights.astype("<f4").tobytes()
+        directions += [view.astype("<f4").tobytes(), light_list]
     size = struct.pack("<II", width, height)
     if with_rotations:
         rotations = np.zeros((0, 3, 3)) if rotations is None else np.asarray(rotations)
@@ -230,7 +217,7 @@ def write_dfmf(
 
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as handle:
-            handle.write(SIGNATURE + (ROTATIONS_MARK if with_rotations else b"") + header)
+            handle.write(SIGNATURE + (ROTATIONS_MARK if with_rotations else b"") + header + body)
             handle.write(b"".join(directions) + size + colour)
             for s, u, sv in factors:
                 handle.write(CHANNEL_HEADER.pack(scalar.itemsize, len(s), rows, columns))

@@ -33,16 +33,6 @@ import numpy as np
 from pipeline.core.errors import ConfigError
 from pipeline.fourier.series import check_coeffs, check_dirs, check_images
 
-__all__ = [
-    "ptm_basis",
-    "hsh_basis",
-    "fit_ptm",
-    "render_ptm",
-    "fit_hsh",
-    "render_hsh",
-    "lambertian_normals",
-]
-
 
 def ptm_basis(light_dirs) -> np.ndarray:
     """PTM basis [lu², lv², lu lv, lu, lv, 1] for lights (n, 3); returns (n, 6)."""
@@ -96,16 +86,9 @@ def _render_shared_basis(coeffs: np.ndarray, basis: np.ndarray, single: bool) ->
 
 
 def fit_ptm(images, light_dirs) -> np.ndarray:
-    """Fit a polynomial texture map.
+    """Fit a polynomial texture map to images (N, H, W, 3), N >= 6, under lights (N, 3).
 
-    Parameters
-    ----------
-    images : ndarray of shape (N, H, W, 3), N >= 6
-    light_dirs : array_like of shape (N, 3)
-
-    Returns
-    -------
-    ndarray of shape (H, W, 3, 6), float32, in the order of :func:`ptm_basis`.
+    Returns (H, W, 3, 6) float32 coefficients in the order of :func:`ptm_basis`.
     """
     dirs, _ = check_dirs(light_dirs)
     return _fit_shared_basis(check_images(images, len(dirs)), ptm_basis(dirs))
@@ -119,16 +102,9 @@ def render_ptm(coeffs, light_dirs) -> np.ndarray:
 
 
 def fit_hsh(images, light_dirs) -> np.ndarray:
-    """Fit order-2 hemispherical harmonics.
+    """Fit order-2 hemispherical harmonics to images (N, H, W, 3), N >= 9, under lights (N, 3).
 
-    Parameters
-    ----------
-    images : ndarray of shape (N, H, W, 3), N >= 9
-    light_dirs : array_like of shape (N, 3)
-
-    Returns
-    -------
-    ndarray of shape (H, W, 3, 9), float32, in the order of :func:`hsh_basis`.
+    Returns (H, W, 3, 9) float32 coefficients in the order of :func:`hsh_basis`.
     """
     dirs, _ = check_dirs(light_dirs)
     return _fit_shared_basis(check_images(images, len(dirs)), hsh_basis(dirs))

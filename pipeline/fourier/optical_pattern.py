@@ -28,16 +28,6 @@ from scipy.ndimage import gaussian_filter
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.fourier.series import VIEW, render_fourier
 
-__all__ = [
-    "check_weights",
-    "blend_renders",
-    "render_optical_pattern",
-    "normalize_weights",
-    "stripe_weights",
-    "blob_weights",
-    "load_weight_map",
-]
-
 # Weight maps often come from 8-bit images; sums within this of 1 are accepted.
 _SUM_TOLERANCE = 1e-3
 
@@ -65,17 +55,8 @@ def check_weights(weights, shape: tuple[int, int] | None = None) -> np.ndarray:
 
 
 def blend_renders(renders, weights) -> np.ndarray:
-    """Eq. 20: Σ_i α_i I_i.
-
-    Parameters
-    ----------
-    renders : ndarray of shape (n_regions, H, W, 3)
-    weights : ndarray of shape (n_regions, H, W)
-
-    Returns
-    -------
-    ndarray of shape (H, W, 3), float32
-    """
+    """Eq. 20, Σ_i α_i I_i, of renders (n_regions, H, W, 3) and weights (n_regions, H, W):
+    an (H, W, 3) float32 image."""
     renders = np.asarray(renders)
     if renders.ndim != 4:
         raise ConfigError(f"renders must have shape (n_regions, H, W, C), got {renders.shape}")
@@ -262,9 +243,8 @@ def load_weight_map(path: str | os.PathLike, n_regions: int | None = None) -> np
                     values = np.asarray(image, dtype=np.float64)
                     values = values / (65535.0 if values.max() > 255 else 255.0)
                 else:
-                    values = (
-                        np.asarray(image.convert("L" if grey else "RGB"), dtype=np.float64) / 255.0
-                    )
+                    converted = image.convert("L" if grey else "RGB")
+                    values = np.asarray(converted, dtype=np.float64) / 255.0
         except (OSError, UnidentifiedImageError, SyntaxError) as exc:
             raise DataError(f"cannot read weight map {path}: {exc}") from exc
         if values.ndim == 2:

@@ -18,7 +18,6 @@ same keys: a pattern job reuses the fit of a ``fourier`` run with the same M and
 
 from __future__ import annotations
 
-import logging
 import time
 from pathlib import Path
 
@@ -40,29 +39,20 @@ from pipeline.fourier.optical_pattern import (
 )
 from pipeline.fourier.quilting import candidate_positions, quilt, random_tiling, seam_cost
 from pipeline.fourier.series import render_fourier
-from pipeline.fourier.stack import data_stage
+from pipeline.fourier.stack import data_stage, file_settings
 from pipeline.fourier.synthetic import SyntheticStackConfig, make_synthetic_scene
-
-log = logging.getLogger(__name__)
 
 
 def _file_settings(kind: str, value: str) -> dict:
-    path = Path(value).expanduser().resolve()
-    if not path.is_file():
-        raise ConfigError(f"method.pattern.{kind}={value!r} is not a known choice nor a file")
-    stat = path.stat()
-    return {"path": str(path), "fingerprint": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns}}
+    return file_settings(value, f"method.pattern.{kind}={value!r} is not a known choice nor a file")
 
 
 def target_settings(cfg) -> dict:
     """The target object of the pattern: the synthetic pot or a normal-map file."""
     pattern = cfg.method.pattern
     if str(pattern.target) == "pot":
-        return {
-            "kind": "pot",
-            "size": [int(n) for n in pattern.size],
-            "seed": int(pattern.pot_seed),
-        }
+        size = [int(n) for n in pattern.size]
+        return {"kind": "pot", "size": size, "seed": int(pattern.pot_seed)}
     return {"kind": "file", **_file_settings("target", str(pattern.target))}
 
 
@@ -75,9 +65,6 @@ def target_normals(target: dict) -> tuple[np.ndarray, np.ndarray]:
         return scene.normals, scene.mask
     normals = load_normal_map(target["path"])
     return normals, np.ones(normals.shape[:2], dtype=bool)
-
-
-# --------------------------------------------------------------------------- quilting
 
 
 def quilt_stage(ctx: Context, fitted: Entry, segmented: Entry, out_shape) -> Entry:
@@ -110,34 +97,18 @@ def quilt_stage(ctx: Context, fitted: Entry, segmented: Entry, out_shape) -> Ent
                     f"region {region} ({int(mask.sum())} pixels) holds no "
                     f"{block}x{block} block: lower method.quilting.block_size"
                 )
+            grid = (source, out_shape, block, overlap)
             start = time.perf_counter()
-            quilted = quilt(
-                source,
-                out_shape,
-                block,
-                overlap,
-                quilting["tolerance"],
-                np.random.default_rng([quilting["seed"], region]),
-                mask=mask,
-            )
+            rng = np.random.default_rng([quilting["seed"], region])
+            quilted = quilt(*grid, quilting["tolerance"], rng, mask=mask)
             summary["seconds_quilting"] += time.perf_counter() - start
-            tiled = random_tiling(
-                source,
-                out_shape,
-                block,
-                overlap,
-                np.random.default_rng([quilting["seed"], region, 1]),
-                mask=mask,
-            )
+            rng = np.random.default_rng([quilting["seed"], region, 1])
+            tiled = random_tiling(*grid, rng, mask=mask)
             summary[f"seam_cost_quilting_r{region}"] = seam_cost(quilted, block, overlap)
             summary[f"seam_cost_random_r{region}"] = seam_cost(tiled, block, overlap)
-            save_arrays(
-                folder,
-                **{
-                    f"quilted_r{region}": quilted.reshape(*out_shape, 3, n_coeffs),
-                    f"random_r{region}": tiled.reshape(*out_shape, 3, n_coeffs).astype(np.float32),
-                },
-            )
+            arrays = {f"quilted_r{region}": quilted.reshape(*out_shape, 3, n_coeffs)}
+            arrays[f"random_r{region}"] = tiled.reshape(*out_shape, 3, n_coeffs).astype(np.float32)
+            save_arrays(folder, **arrays)
         for kind in ("quilting", "random"):
             summary[f"seam_cost_{kind}"] = float(
                 np.mean([summary[f"seam_cost_{kind}_r{r}"] for r in regions])
@@ -146,9 +117,6 @@ def quilt_stage(ctx: Context, fitted: Entry, segmented: Entry, out_shape) -> Ent
 
     inputs = {"fourier_fit": fitted, "stack_segmentation": segmented}
     return ctx.run("pattern_quilt", settings, inputs, compute, version="1")
-
-
-# --------------------------------------------------------------------------- pattern
 
 
 def weight_maps(pattern: dict, n_regions: int, shape) -> np.ndarray:
@@ -204,13 +172,8 @@ def pattern_stage(ctx: Context, fitted: Entry, quilted: Entry, target: dict) -> 
         save_arrays(folder, pattern=image, weights=weights.astype(np.float32))
         return {"mean": float(image[on_object].mean()), "max": float(image.max())}
 
-    return ctx.run(
-        "pattern_render",
-        settings,
-        {"pattern_quilt": quilted, "fourier_fit": fitted},
-        compute,
-        version="1",
-    )
+    inputs = {"pattern_quilt": quilted, "fourier_fit": fitted}
+    return ctx.run("pattern_render", settings, inputs, compute, version="1")
 
 
 def _quilting_figure(path, quilted: Entry, regions, light, view, clamp, exposure) -> None:
@@ -234,9 +197,6 @@ def _quilting_figure(path, quilted: Entry, regions, light, view, clamp, exposure
             axes[row, col].axis("off")
     fig.tight_layout()
     save_figure(fig, path, dpi=90)
-
-
-# --------------------------------------------------------------------------- the job
 
 
 def run(ctx: Context) -> dict[str, float]:

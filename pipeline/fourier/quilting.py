@@ -31,17 +31,6 @@ from scipy import fft
 
 from pipeline.core.errors import ConfigError
 
-__all__ = [
-    "quilt",
-    "random_tiling",
-    "seam_cost",
-    "min_error_boundary_cut",
-    "candidate_positions",
-]
-
-
-# --------------------------------------------------------------------------- cut
-
 
 def min_error_boundary_cut(cost) -> np.ndarray:
     """Cheapest top-to-bottom path through an error surface (Efros & Freeman, §2.1).
@@ -87,9 +76,6 @@ def _cut_kernel(cost: np.ndarray) -> np.ndarray:
     return path
 
 
-# --------------------------------------------------------------------------- checks
-
-
 def candidate_positions(mask, block_size: int) -> np.ndarray:
     """Top-left corners (row, col) of all blocks lying fully inside ``mask``.
 
@@ -114,7 +100,9 @@ def candidate_positions(mask, block_size: int) -> np.ndarray:
     return np.argwhere(counts == b * b)
 
 
-def _check_settings(source, out_shape, block_size, overlap, mask, tolerance=0.0):
+def _check_settings(source, out_shape, block_size, overlap, mask, rng, tolerance=0.0):
+    if not isinstance(rng, np.random.Generator):
+        raise ConfigError(f"rng must be a numpy.random.Generator, got {rng!r}")
     source = np.asarray(source, dtype=np.float64)
     if source.ndim == 2:
         source = source[..., None]
@@ -163,15 +151,11 @@ def _grid(out_shape, block_size, overlap):
     return [(i * step, j * step) for i in range(counts[0]) for j in range(counts[1])], canvas
 
 
-# --------------------------------------------------------------------------- quilting
-
-
 class OverlapSearch:
     """All-candidate overlap SSD by FFT cross-correlation against a fixed source."""
 
     def __init__(self, source: np.ndarray, block_size: int, overlap: int):
         self.shape = source.shape[:2]
-        self.block_size = block_size
         self.source_fft = fft.rfft2(source, axes=(0, 1), workers=-1)  # (H, W', C)
         energy_fft = fft.rfft2((source**2).sum(axis=-1), workers=-1)
         self.masks, self.masked_energy = {}, {}
@@ -189,10 +173,9 @@ class OverlapSearch:
         """Σ_ab signal[y + a, x + b] kernel[a, b] for all (y, x) (circular; the valid
         corners never wrap)."""
         kernel_fft = fft.rfft2(kernel, s=self.shape, axes=(0, 1), workers=-1)
+        product = signal_fft * np.conj(kernel_fft)
         if kernel.ndim == 3:  # multi-channel: correlate per channel, sum in frequency
-            product = (signal_fft * np.conj(kernel_fft)).sum(axis=-1)
-        else:
-            product = signal_fft * np.conj(kernel_fft)
+            product = product.sum(axis=-1)
         return fft.irfft2(product, s=self.shape, workers=-1)
 
     def errors(self, template: np.ndarray, left: bool, top: bool) -> np.ndarray:
@@ -227,7 +210,6 @@ def quilt(
     tolerance: float = 0.1,
     rng: np.random.Generator | None = None,
     mask=None,
-    channel_weights=None,
     return_positions: bool = False,
 ):
     """Synthesize a larger map from ``source`` by Image Quilting.
@@ -248,8 +230,6 @@ def quilt(
         The only source of randomness.
     mask : ndarray of shape (H, W), bool, optional
         The region: only blocks fully inside it are candidates.
-    channel_weights : array_like of shape (C,), optional
-        Weights of each channel in the overlap error (the result is unweighted).
     return_positions : bool
         Also return the source corner chosen for each output block.
 
@@ -259,28 +239,18 @@ def quilt(
         float64 for float64 input, float32 otherwise.
     positions : ndarray of shape (n_blocks, 2), int, only with ``return_positions``
     """
-    if rng is None or not isinstance(rng, np.random.Generator):
-        raise ConfigError(f"rng must be a numpy.random.Generator, got {rng!r}")
     out_dtype = _output_dtype(source)
     source, out_shape, block_size, overlap, candidates = _check_settings(
-        source, out_shape, block_size, overlap, mask, tolerance
+        source, out_shape, block_size, overlap, mask, rng, tolerance
     )
-    weights = np.ones(source.shape[2])
-    if channel_weights is not None:
-        weights = np.asarray(channel_weights, dtype=np.float64)
-        if weights.shape != (source.shape[2],) or np.any(weights < 0):
-            raise ConfigError(
-                f"channel_weights must be {source.shape[2]} values >= 0, got shape {weights.shape}"
-            )
-    scale = np.sqrt(weights)
-    search = OverlapSearch(source * scale, block_size, overlap)
+    search = OverlapSearch(source, block_size, overlap)
     corners, canvas_shape = _grid(out_shape, block_size, overlap)
     canvas = np.zeros((*canvas_shape, source.shape[2]))
     chosen = np.empty((len(corners), 2), dtype=np.int64)
     for index, (y0, x0) in enumerate(corners):
         left, top = x0 > 0, y0 > 0
         if (left or top) and overlap:
-            template = canvas[y0 : y0 + block_size, x0 : x0 + block_size] * scale
+            template = canvas[y0 : y0 + block_size, x0 : x0 + block_size]
             errors = search.errors(template, left, top)[candidates[:, 0], candidates[:, 1]]
             best = errors.min()
             # The absolute slack absorbs FFT round-off when the best match is exact.
@@ -312,19 +282,16 @@ def random_tiling(
 
     Parameters and returns as :func:`quilt` (without tolerance).
     """
-    if rng is None or not isinstance(rng, np.random.Generator):
-        raise ConfigError(f"rng must be a numpy.random.Generator, got {rng!r}")
     out_dtype = _output_dtype(source)
     source, out_shape, block_size, overlap, candidates = _check_settings(
-        source, out_shape, block_size, overlap, mask
+        source, out_shape, block_size, overlap, mask, rng
     )
     corners, canvas_shape = _grid(out_shape, block_size, overlap)
     canvas = np.zeros((*canvas_shape, source.shape[2]))
     for y0, x0 in corners:
         sy, sx = candidates[rng.integers(len(candidates))]
-        canvas[y0 : y0 + block_size, x0 : x0 + block_size] = source[
-            sy : sy + block_size, sx : sx + block_size
-        ]
+        patch = source[sy : sy + block_size, sx : sx + block_size]
+        canvas[y0 : y0 + block_size, x0 : x0 + block_size] = patch
     return canvas[: out_shape[0], : out_shape[1]].astype(out_dtype)
 
 
@@ -343,10 +310,6 @@ def seam_cost(output, block_size: int, overlap: int, reference=None) -> float:
     block_size, overlap : int
         The grid used to make ``output``.
     reference : ndarray of shape (h, w, C), optional
-
-    Returns
-    -------
-    float
     """
     output = np.asarray(output, dtype=np.float64)
     if output.ndim == 2:
@@ -355,17 +318,10 @@ def seam_cost(output, block_size: int, overlap: int, reference=None) -> float:
         raise ConfigError(f"output must have shape (H, W, C), got {output.shape}")
     if int(block_size) != block_size or not 0 <= overlap < block_size:
         raise ConfigError(f"need 0 <= overlap={overlap} < block_size={block_size}")
-    step = block_size - overlap
     height, width, _ = output.shape
-    dx = ((output[:, 1:] - output[:, :-1]) ** 2).sum(axis=-1)  # pair (x, x+1): (H, W-1)
-    dy = ((output[1:] - output[:-1]) ** 2).sum(axis=-1)  # pair (y, y+1): (H-1, W)
-    # Pairs (x, x+1) with x in [x0 - 1, x0 + overlap - 1] for each seam column x0.
-    seam_cols = np.zeros(width - 1, dtype=bool)
-    for x0 in range(step, width, step):
-        seam_cols[max(x0 - 1, 0) : min(x0 + overlap, width - 1)] = True
-    seam_rows = np.zeros(height - 1, dtype=bool)
-    for y0 in range(step, height, step):
-        seam_rows[max(y0 - 1, 0) : min(y0 + overlap, height - 1)] = True
+    dx, dy = _neighbour_differences(output)
+    seam_cols = _seam_pairs(width, block_size - overlap, overlap)
+    seam_rows = _seam_pairs(height, block_size - overlap, overlap)
     values = np.concatenate([dx[:, seam_cols].ravel(), dy[seam_rows].ravel()])
     if values.size == 0:
         raise ConfigError(
@@ -379,8 +335,24 @@ def seam_cost(output, block_size: int, overlap: int, reference=None) -> float:
             reference = reference[..., None]
         if reference.ndim != 3 or reference.shape[2] != output.shape[2]:
             raise ConfigError(f"reference {reference.shape} must be (h, w, {output.shape[2]})")
-        ref_dx = ((reference[:, 1:] - reference[:, :-1]) ** 2).sum(axis=-1)
-        ref_dy = ((reference[1:] - reference[:-1]) ** 2).sum(axis=-1)
+        ref_dx, ref_dy = _neighbour_differences(reference)
         baseline = float(np.concatenate([ref_dx.ravel(), ref_dy.ravel()]).mean())
         cost /= max(baseline, 1e-300)
     return cost
+
+
+def _neighbour_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Squared differences summed over channels of the pairs (x, x+1), shape (H, W-1), and
+    (y, y+1), shape (H-1, W), of an (H, W, C) image."""
+    dx = ((image[:, 1:] - image[:, :-1]) ** 2).sum(axis=-1)
+    dy = ((image[1:] - image[:-1]) ** 2).sum(axis=-1)
+    return dx, dy
+
+
+def _seam_pairs(length: int, step: int, overlap: int) -> np.ndarray:
+    """Which of the ``length - 1`` neighbour pairs (x, x+1) touch an overlap strip: x in
+    [x0 - 1, x0 + overlap - 1] for each seam at x0 = step, 2 step, ..."""
+    pairs = np.zeros(length - 1, dtype=bool)
+    for x0 in range(step, length, step):
+        pairs[max(x0 - 1, 0) : min(x0 + overlap, length - 1)] = True
+    return pairs

@@ -224,16 +224,8 @@ def plot_rms_vs_m(runs: pd.DataFrame, path: Path, title: str) -> Path:
         if column in runs and runs[column].notna().any():
             ax.axhline(float(runs[column].median()), color="k", ls=style, lw=1, label=name)
     M, lam, rms, _ = best_point(runs)
-    ax.plot(
-        [M],
-        [rms],
-        marker="*",
-        ms=14,
-        color="gold",
-        mec="k",
-        ls="none",
-        label=f"chosen M={M}, λ={lam:g}",
-    )
+    chosen = f"chosen M={M}, λ={lam:g}"
+    ax.plot([M], [rms], marker="*", ms=14, color="gold", mec="k", ls="none", label=chosen)
     ax.set_yscale("log")
     ax.set_xlabel("M (highest harmonic)")
     ax.set_ylabel("RMS on validation lights (linear RGB)")
@@ -276,7 +268,6 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
     """Method C's sections for ``runs`` (any methods' runs; C's are picked out), with their
     tables and plots written into ``out``. ``settings`` (``conf/tables.yaml``) is unused."""
     out = Path(out)
-    write = write_table
     labelled = label_runs(runs)
     if labelled.empty:
         return [
@@ -284,87 +275,72 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
             "`python -m pipeline -m experiment=fourier_sweep` first.\n"
         ]
     sections = []
-    summary = summary_table(labelled)
-    sections.append(
-        write(
-            summary.reset_index(),
-            out,
-            "fourier_summary",
-            "Method C: (M, λ) chosen on validation lights (Fig. 6), reported on test lights",
-            "The held-out lights are split in two (`dataset.validation_every`): chosen = the "
-            "(M, λ) with the lowest RMS on the validation lights; the test columns are the "
-            "RMS on the other, test lights (linear RGB, all pixels and channels), which took "
-            "no part in the choice. PTM and HSH are fitted on the same training lights. "
-            "Synthetic: reference = the generator's noise-free renders.",
-        )
+
+    def add(table: pd.DataFrame, stem: str, title: str, note: str) -> None:
+        sections.append(write_table(table, out, stem, title, note))
+
+    add(
+        summary_table(labelled).reset_index(),
+        "fourier_summary",
+        "Method C: (M, λ) chosen on validation lights (Fig. 6), reported on test lights",
+        "The held-out lights are split in two (`dataset.validation_every`): chosen = the "
+        "(M, λ) with the lowest RMS on the validation lights; the test columns are the "
+        "RMS on the other, test lights (linear RGB, all pixels and channels), which took "
+        "no part in the choice. PTM and HSH are fitted on the same training lights. "
+        "Synthetic: reference = the generator's noise-free renders.",
     )
     for setup, group in labelled.groupby("setup", sort=True):
         slug = _slug(setup)
         M, lam, validation, test = best_point(group)
-        sections.append(
-            write(
-                fig6_table(group, "validation"),
-                out,
-                f"fig6_{slug}",
-                f"Fig. 6, {setup}: RMS on validation lights",
-                f"Rows M, columns λ; PTM and HSH do not depend on M or λ (one value per row). "
-                f"Lowest: M = {M}, λ = {lam:g} ({validation:.4g}; on the test lights "
-                f"{test:.4g}); the paper chose M = 10, λ = 3.14. Solver: {solvers(group)}.",
-            )
+        add(
+            fig6_table(group, "validation"),
+            f"fig6_{slug}",
+            f"Fig. 6, {setup}: RMS on validation lights",
+            f"Rows M, columns λ; PTM and HSH do not depend on M or λ (one value per row). "
+            f"Lowest: M = {M}, λ = {lam:g} ({validation:.4g}; on the test lights "
+            f"{test:.4g}); the paper chose M = 10, λ = 3.14. Solver: {solvers(group)}.",
         )
-        sections.append(
-            write(
-                fig6_table(group, "test"),
-                out,
-                f"fig6_test_{slug}",
-                f"Fig. 6, {setup}: RMS on test lights (for reference; not used to choose)",
-                "As above, on the test lights.",
-            )
+        add(
+            fig6_table(group, "test"),
+            f"fig6_test_{slug}",
+            f"Fig. 6, {setup}: RMS on test lights (for reference; not used to choose)",
+            "As above, on the test lights.",
         )
         plot = plot_rms_vs_m(group, out / f"fig6_{slug}.png", f"Fig. 6: {setup}")
         sections.append(f"![Fig. 6, {setup}]({plot.name})\n")
         condition = condition_table(group)
         if not condition.empty:
-            sections.append(
-                write(
-                    condition,
-                    out,
-                    f"fourier_condition_{slug}",
-                    f"Method C, {setup}: conditioning of the unregularized fit",
-                    "cond(A) = σ_max / σ_min of each pixel's design matrix (lights x 2M + 2, "
-                    "eq. 17), median and largest over the pixels whose normal is not the "
-                    "view (where it is, A is singular by construction); "
-                    "rank-deficient = the fraction of pixels where np.linalg.lstsq's cutoff "
-                    "drops a singular value (e.g. normal = view, where θs = θd). "
-                    f"Solver: {solvers(group)}.",
-                )
+            add(
+                condition,
+                f"fourier_condition_{slug}",
+                f"Method C, {setup}: conditioning of the unregularized fit",
+                "cond(A) = σ_max / σ_min of each pixel's design matrix (lights x 2M + 2, "
+                "eq. 17), median and largest over the pixels whose normal is not the "
+                "view (where it is, A is singular by construction); "
+                "rank-deficient = the fraction of pixels where np.linalg.lstsq's cutoff "
+                "drops a singular value (e.g. normal = view, where θs = θd). "
+                f"Solver: {solvers(group)}.",
             )
     segmentation = segmentation_table(labelled)
     if not segmentation.empty:
-        sections.append(
-            write(
-                segmentation.reset_index(),
-                out,
-                "fourier_segmentation",
-                "Method C: segmentation accuracy, all pixels and object pixels",
-                "Against the ground-truth region map, up to a renaming of the labels; object "
-                "pixels = not the backdrop (label 0). RGB is the paper's colour space (the "
-                "default, `method.segmentation.colour_space`); chromaticity divides by the "
-                "channel sum (not in the paper). The paper's method uses one representative "
-                "pixel per true region (the deepest one), k-means `n_regions` clusters.",
-            )
+        add(
+            segmentation.reset_index(),
+            "fourier_segmentation",
+            "Method C: segmentation accuracy, all pixels and object pixels",
+            "Against the ground-truth region map, up to a renaming of the labels; object "
+            "pixels = not the backdrop (label 0). RGB is the paper's colour space (the "
+            "default, `method.segmentation.colour_space`); chromaticity divides by the "
+            "channel sum (not in the paper). The paper's method uses one representative "
+            "pixel per true region (the deepest one), k-means `n_regions` clusters.",
         )
     pattern = pattern_table(runs)
     if not pattern.empty:
-        sections.append(
-            write(
-                pattern.reset_index(),
-                out,
-                "fourier_pattern",
-                "Method C: quilting and segmentation",
-                "Seam cost: mean squared neighbour difference of the coefficients across the "
-                "block seams (averaged over regions); random tiling uses the same block grid "
-                "with straight seams. Segmentation accuracy against the synthetic ground truth.",
-            )
+        add(
+            pattern.reset_index(),
+            "fourier_pattern",
+            "Method C: quilting and segmentation",
+            "Seam cost: mean squared neighbour difference of the coefficients across the "
+            "block seams (averaged over regions); random tiling uses the same block grid "
+            "with straight seams. Segmentation accuracy against the synthetic ground truth.",
         )
     return sections

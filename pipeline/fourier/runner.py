@@ -5,39 +5,14 @@
                 ├─► relight_baselines ──────────────┼─► fourier_evaluate (metrics, figures)
                 └─► stack_segmentation ─────────────┘  (segmentation: its own metrics, figure)
 
-* ``stack_data``: reads the folder's ``.lp`` stack with the real reader and splits the
-  lights into training and held-out ones. ``dataset=synthetic_stack`` (``root: null``)
-  first writes the built-in pot under ``${paths.data}``; its held-out lights are the
-  stack's own ``heldout/`` set and, since ``scene.json`` is there, the reference images
-  are the generator's noise-free renders (the 8-bit PNGs differ from them by
-  quantization only). ``dataset=light_stack`` holds out every ``holdout_every``-th light
-  of the folder; its reference images are the measured ones. A dataset with
-  ``format: ubo2003|utia`` (``dataset=btf_view``, or ``dataset=ubo2003|utia`` with one
-  ``dataset.views`` entry) reads that one view folder of a BTF (81 lights) in the
-  material's frame, with the folder's view direction in eq. 4 (the view is (0, 0, 1)
-  otherwise). The held-out lights are split in turn into validation lights (every
-  ``validation_every``-th, from the first) and test lights: M and λ are chosen on the
-  former and reported on the latter (``pipeline/fourier/report.py``).
-  ``crop``/``downsample`` shrink every array alike. The key holds the folder's
-  fingerprint, so editing the folder in place re-reads it.
-* ``stack_normals``: ``given`` (the stack's ``normals.npy``), ``flat`` (0, 0, 1),
-  ``photometric`` (Lambertian photometric stereo on the training images) or a file.
-* ``fourier_fit``: eq. 19 with ``method.M``, ``method.lam``, ``method.clamp_diffuse``
-  and the solver that runs (``method.solver: auto`` = SVD least squares at λ = 0, normal
-  equations at λ > 0); logged as the tag ``fourier_solver``.
-* ``fourier_condition``: cond(A) of every pixel's unregularized design matrix; its key
-  does not hold λ, so a Fig. 6 sweep computes it once per M.
-* ``relight_baselines``: PTM and HSH on the same training lights; their key does not
-  hold M or λ, so a Fig. 6 sweep fits them once.
-* ``stack_segmentation``: the paper's nearest-representative labelling and k-means, in
-  RGB and in chromaticity, scored against the ground-truth regions when the stack has
-  them: over all pixels and over the object's pixels (region label != 0, the backdrop).
-* ``fourier_evaluate``: held-out (all, validation, test) and training RMS, figures.
+``stack_data`` (:mod:`pipeline.fourier.stack`) reads the stack and splits its lights into
+training, validation and test lights; each stage here is described where it is defined.
+A stage's key holds only what it reads: ``fourier_condition`` has no λ and
+``relight_baselines`` neither M nor λ, so a Fig. 6 sweep computes them once per M and once.
 """
 
 from __future__ import annotations
 
-import logging
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -48,13 +23,7 @@ from pipeline.core.cache import Entry, save_arrays, save_json
 from pipeline.core.errors import ConfigError, DataError
 from pipeline.core.stage import Context, plain_settings
 from pipeline.data.light_stack import load_normal_map
-from pipeline.fourier.baselines import (
-    fit_hsh,
-    fit_ptm,
-    lambertian_normals,
-    render_hsh,
-    render_ptm,
-)
+from pipeline.fourier.baselines import fit_hsh, fit_ptm, lambertian_normals, render_hsh, render_ptm
 from pipeline.fourier.figures import heldout_figure, normals_figure, segmentation_figure
 from pipeline.fourier.segmentation import (
     COLOUR_SPACES,
@@ -71,12 +40,7 @@ from pipeline.fourier.series import (
     rms_error,
 )
 from pipeline.fourier.settings import fourier_settings
-from pipeline.fourier.stack import data_stage, shrink, unit_normals, view_of
-
-log = logging.getLogger(__name__)
-
-
-# --------------------------------------------------------------------------- normals
+from pipeline.fourier.stack import data_stage, file_settings, shrink, unit_normals, view_of
 
 
 def normals_stage(ctx: Context, data: Entry) -> Entry:
@@ -92,17 +56,8 @@ def normals_stage(ctx: Context, data: Entry) -> Entry:
             "normals.npy: use flat, photometric or a normal-map file"
         )
     elif mode not in ("given", "flat"):
-        path = Path(mode).expanduser().resolve()
-        if not path.is_file():
-            raise ConfigError(
-                f"dataset.normals={mode!r} is neither given, flat, photometric nor a file"
-            )
-        stat = path.stat()
-        settings = {
-            "mode": "file",
-            "path": str(path),
-            "fingerprint": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns},
-        }
+        error = f"dataset.normals={mode!r} is neither given, flat, photometric nor a file"
+        settings = {"mode": "file", **file_settings(mode, error)}
 
     def compute(folder: Path) -> dict:
         shape = data.array("train_images").shape[1:3]
@@ -131,9 +86,6 @@ def normals_stage(ctx: Context, data: Entry) -> Entry:
         return {"mean_nz": float(normals[..., 2].mean())}
 
     return ctx.run("stack_normals", settings, {"stack_data": data}, compute, version="1")
-
-
-# --------------------------------------------------------------------------- fits
 
 
 def fit_settings(cfg) -> dict:
@@ -171,13 +123,8 @@ def fit_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
         save_arrays(folder, coeffs=coeffs)
         return {"seconds": seconds, "n_coeffs": int(coeffs.shape[-1])}
 
-    return ctx.run(
-        "fourier_fit",
-        settings,
-        {"stack_data": data, "stack_normals": normals},
-        compute,
-        version="2",
-    )
+    inputs = {"stack_data": data, "stack_normals": normals}
+    return ctx.run("fourier_fit", settings, inputs, compute, version="2")
 
 
 def condition_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
@@ -194,13 +141,8 @@ def condition_stage(ctx: Context, data: Entry, normals: Entry) -> Entry:
     def compute(folder: Path) -> dict:
         view = view_of(data)
         normal_map = normals.array("normals", mmap=False)
-        cond, truncated = design_condition(
-            data.array("train_dirs"),
-            normal_map,
-            int(settings["M"]),
-            view=view,
-            clamp_diffuse=bool(settings["clamp_diffuse"]),
-        )
+        M, clamp = int(settings["M"]), bool(settings["clamp_diffuse"])
+        cond, truncated = design_condition(data.array("train_dirs"), normal_map, M, view, clamp)
         unit = normal_map / np.linalg.norm(normal_map, axis=-1, keepdims=True)
         generic = (unit @ view < 1.0 - 1e-6) & np.isfinite(cond)
         metrics = {"frac_pixels_rank_deficient": float(truncated.mean())}
@@ -243,12 +185,8 @@ def baselines_stage(ctx: Context, data: Entry) -> Entry:
         save_json(folder, "metrics", metrics)
         return metrics
 
-    return ctx.run(
-        "relight_baselines", {"models": ["ptm", "hsh"]}, {"stack_data": data}, compute, version="2"
-    )
-
-
-# --------------------------------------------------------------------------- segmentation
+    settings = {"models": ["ptm", "hsh"]}
+    return ctx.run("relight_baselines", settings, {"stack_data": data}, compute, version="2")
 
 
 def representative_points(regions: np.ndarray) -> list[list[int]]:
@@ -274,16 +212,7 @@ def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
     ``segmentation_accuracy_object_<name>`` (object pixels: ground-truth label != 0) in
     the chosen colour space, and the same with ``_rgb`` / ``_chromaticity`` appended.
     """
-    seg = plain_settings(ctx.cfg.method.segmentation)
-    if seg["features"] not in ("mean_colour", "coefficients"):
-        raise ConfigError(
-            f"method.segmentation.features={seg['features']!r} is not mean_colour or coefficients"
-        )
-    if seg["colour_space"] not in COLOUR_SPACES:
-        raise ConfigError(
-            f"method.segmentation.colour_space={seg['colour_space']!r} is not one of "
-            f"{list(COLOUR_SPACES)}"
-        )
+    seg = plain_settings(ctx.cfg.method.segmentation)  # checked by settings.CONSTRAINTS
     points = seg["points"]
     if points is None and data.manifest["summary"]["regions"]:
         points = representative_points(data.array("regions", mmap=False))
@@ -296,25 +225,16 @@ def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
 
     def compute(folder: Path) -> dict:
         mean = mean_image(data.array("train_images"))
+        kmeans = {"k": seg["n_regions"], "seed": seg["seed"], "n_init": seg["n_init"]}
         labels = {}  # (name, colour space or None) -> (H, W) labels
         for space in spaces:
             if points is not None:
                 labels["paper", space] = segment_by_representatives(mean, points, space)
             if seg["features"] == "mean_colour":
-                labels["kmeans", space] = segment_kmeans(
-                    mean,
-                    seg["n_regions"],
-                    seed=seg["seed"],
-                    colour_space=space,
-                    n_init=seg["n_init"],
-                )
+                labels["kmeans", space] = segment_kmeans(mean, colour_space=space, **kmeans)
         if seg["features"] == "coefficients":
-            labels["kmeans", None] = segment_kmeans(
-                fitted.array("coeffs", mmap=False),
-                seg["n_regions"],
-                seed=seg["seed"],
-                n_init=seg["n_init"],
-            )
+            coeffs = fitted.array("coeffs", mmap=False)
+            labels["kmeans", None] = segment_kmeans(coeffs, **kmeans)
         used = {name: found for (name, space), found in labels.items() if space in (chosen, None)}
         save_arrays(folder, mean_image=mean, **{f"labels_{k}": v for k, v in used.items()})
         metrics = {}
@@ -334,9 +254,6 @@ def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
         return metrics
 
     return ctx.run("stack_segmentation", settings, inputs, compute, version="2")
-
-
-# --------------------------------------------------------------------------- evaluation
 
 
 def evaluate_stage(
@@ -382,9 +299,6 @@ def evaluate_stage(
         "relight_baselines": baselines,
     }
     return ctx.run("fourier_evaluate", figures, inputs, compute, version="2")
-
-
-# --------------------------------------------------------------------------- the job
 
 
 def describe(cfg, data: Entry) -> str:

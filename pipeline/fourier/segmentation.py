@@ -36,17 +36,6 @@ from scipy.optimize import linear_sum_assignment
 from pipeline.core.errors import ConfigError
 from pipeline.fourier.settings import COLOUR_SPACES  # declared with method.segmentation.*
 
-__all__ = [
-    "mean_image",
-    "segment_by_representatives",
-    "segment_kmeans",
-    "segmentation_accuracy",
-    "score_segmentation",
-    "COLOUR_SPACES",
-]
-
-_COLOUR_SPACES = COLOUR_SPACES
-
 
 def mean_image(images) -> np.ndarray:
     """Average over lights: (n, H, W, C) -> (H, W, C), float32."""
@@ -57,8 +46,8 @@ def mean_image(images) -> np.ndarray:
 
 
 def _to_colour_space(image: np.ndarray, colour_space: str) -> np.ndarray:
-    if colour_space not in _COLOUR_SPACES:
-        raise ConfigError(f"colour_space must be one of {_COLOUR_SPACES}, got {colour_space!r}")
+    if colour_space not in COLOUR_SPACES:
+        raise ConfigError(f"colour_space must be one of {COLOUR_SPACES}, got {colour_space!r}")
     image = image.astype(np.float64)
     if colour_space == "chromaticity":
         total = image.sum(axis=-1, keepdims=True)
@@ -106,7 +95,6 @@ def segment_kmeans(
     colour_space: str | None = None,
     mask=None,
     n_init: int = 4,
-    standardize: bool = False,
 ) -> np.ndarray:
     """Automatic segmentation: k-means on per-pixel features.
 
@@ -124,12 +112,6 @@ def segment_kmeans(
         Only these pixels are clustered; the rest get label -1.
     n_init : int
         k-means restarts.
-    standardize : bool
-        Scale each feature to unit variance over the pixels first. Off by default:
-        Fourier coefficients share the units of intensity, and standardizing lets the
-        noisy high harmonics outweigh the diffuse and constant terms that separate
-        materials (on a synthetic pot, standardizing lowered the accuracy:
-        docs/performance.md).
 
     Returns
     -------
@@ -152,14 +134,14 @@ def segment_kmeans(
     mask = np.asarray(mask, dtype=bool)
     if mask.shape != (height, width):
         raise ConfigError(f"mask {mask.shape} does not match the image {(height, width)}")
+    # Not standardized: Fourier coefficients share the units of intensity, and unit
+    # variance lets the noisy high harmonics outweigh the terms that separate materials
+    # (on a synthetic pot it lowered the accuracy: docs/performance.md).
     samples = features[mask].astype(np.float64)
     if isinstance(k, bool) or int(k) != k or k < 1 or k > len(samples):
         raise ConfigError(
             f"k={k!r} must be an integer in [1, {len(samples)}] (the number of pixels clustered)"
         )
-    if standardize:
-        spread = samples.std(axis=0)
-        samples = (samples - samples.mean(axis=0)) / np.where(spread > 0, spread, 1.0)
     model = KMeans(n_clusters=int(k), n_init=n_init, random_state=seed).fit(samples)
     labels = np.full((height, width), -1, dtype=int)
     labels[mask] = model.labels_

@@ -46,44 +46,20 @@ import numpy as np
 
 from pipeline.core.errors import ConfigError
 
-__all__ = [
-    "fit_fourier",
-    "render_fourier",
-    "fourier_features",
-    "fourier_penalty",
-    "design_condition",
-    "resolve_solver",
-    "n_fourier_coeffs",
-    "rms_error",
-]
-
 VIEW = (0.0, 0.0, 1.0)
 # Pixels per batch of normal equations: bounds the (pixels, lights, K) design tensor to
 # about 64 MB in float64 so that a 400x400 capture fits on a small machine.
 _BATCH_BYTES = 64 * 2**20
 # Relative eigenvalue cutoff of the normal equations. Forming AᵀA loses everything below
-# about eps·‖AᵀA‖, so eigenvalues under 1e-14 of the largest are round-off: dropping
-# them keeps systems with cond(A) up to ~1e7 exact and truncates the rest (a truncated
-# pseudo-inverse). With λ > 0 the penalty lifts the small eigenvalues, so nothing is
-# dropped; without regularization the paper's geometry is far worse: on the 6 x 55
-# light grid, cond(A) is ~1e12 at M = 10 for a generic normal (θs spans well under a
-# period, so high harmonics are nearly dependent) -- the reason eq. 19 is needed, and the
-# reason λ = 0 is not solved this way (see ``resolve_solver``).
+# about eps·‖AᵀA‖, so smaller eigenvalues are round-off: dropping them keeps systems with
+# cond(A) up to ~1e7 exact and truncates the rest. With λ > 0 the penalty lifts them.
 _EIG_CUTOFF = 1e-14
-
-
-def n_fourier_coeffs(M: int) -> int:
-    """Number of coefficients per pixel and channel, 2M + 2."""
-    return 2 * int(M) + 2
 
 
 def fourier_penalty(M: int) -> np.ndarray:
     """Diagonal of the eq. 19 penalty, shape (2M + 2,): [0, 0, 1, 1, 4, 4, ..., M², M²]."""
     orders = np.repeat(np.arange(1, M + 1, dtype=np.float64), 2)
     return np.concatenate([[0.0, 0.0], orders**2])
-
-
-# --------------------------------------------------------------------------- checks
 
 
 def check_dirs(light_dirs, name: str = "light_dirs") -> tuple[np.ndarray, bool]:
@@ -142,9 +118,6 @@ def check_coeffs(coeffs, n_coeffs: int | None = None) -> np.ndarray:
     return coeffs
 
 
-# --------------------------------------------------------------------------- kernels
-
-
 def _features(
     light_dirs: np.ndarray, normals: np.ndarray, view: np.ndarray, M: int, clamp_diffuse: bool
 ) -> np.ndarray:
@@ -163,19 +136,20 @@ def _features(
     return features
 
 
-def _batch_size(n_lights: int, n_coeffs: int) -> int:
-    return max(1, _BATCH_BYTES // (8 * max(1, n_lights) * n_coeffs))
+def _pixel_batches(n_pixels: int, n_lights: int, n_coeffs: int):
+    """Slices of at most ``_BATCH_BYTES`` of design tensor each, covering ``n_pixels``."""
+    step = max(1, _BATCH_BYTES // (8 * max(1, n_lights) * n_coeffs))
+    for start in range(0, n_pixels, step):
+        yield slice(start, min(start + step, n_pixels))
 
 
 def _solve_normal(design: np.ndarray, observed: np.ndarray, penalty: np.ndarray) -> np.ndarray:
     """Eq. 19 by batched normal equations: (AᵀA + λD) x = Aᵀy per pixel.
 
-    design (P, n, K), observed (P, n, C), penalty (K,) -> (P, K, C). A symmetric
-    eigendecomposition with a relative cutoff rather than a plain ``solve``: with λ = 0
-    some pixels are exactly rank-deficient (where the normal equals the view,
-    cos θs = cos θd for every light, so two columns coincide), and a plain solve blows
-    round-off up into huge coefficients. Dropping eigenvalues below ``_EIG_CUTOFF``
-    times the largest gives the minimum-norm least-squares solution there.
+    design (P, n, K), observed (P, n, C), penalty (K,) -> (P, K, C). An eigendecomposition
+    cut at ``_EIG_CUTOFF``, not a plain ``solve``, which blows round-off up into huge
+    coefficients where a pixel is rank-deficient (normal = view at λ = 0): the
+    minimum-norm least-squares solution there.
     """
     design_t = design.transpose(0, 2, 1)  # (P, K, n)
     gram = design_t @ design  # (P, K, K)
@@ -191,12 +165,9 @@ def _solve_normal(design: np.ndarray, observed: np.ndarray, penalty: np.ndarray)
 def _solve_svd(design: np.ndarray, observed: np.ndarray, penalty: np.ndarray) -> np.ndarray:
     """Eq. 19 by batched SVD of the augmented system [A; sqrt(λD)] x = [y; 0].
 
-    Same result as :func:`_solve_normal` where that is well conditioned, but works on
-    cond(A) instead of cond(A)², like ``np.linalg.lstsq`` and with its cutoff
-    (singular values below eps · max(rows, K) of the largest, i.e. round-off). With
-    λ = 0 the zero rows are left out, so the result is ``lstsq(A, y)`` itself: plain
-    least squares, minimum-norm where a pixel is exactly rank-deficient. Slower
-    (docs/performance.md).
+    Works on cond(A) instead of cond(A)², like ``np.linalg.lstsq`` and with its cutoff.
+    With λ = 0 the zero rows are left out, so the result is ``lstsq(A, y)`` itself.
+    Slower (docs/performance.md).
     """
     n_pixels, n_rows, n_coeffs = design.shape
     if np.any(penalty):
@@ -223,11 +194,9 @@ SOLVER_NAMES = ("auto", *_SOLVERS)
 def resolve_solver(solver: str, lam: float) -> str:
     """The solver that actually runs: ``"auto"`` is ``"svd"`` at λ = 0, ``"normal"`` above.
 
-    λ = 0 is plain least squares on a design that can be very badly conditioned (cond(A)
-    ~1e12 on the paper's grid at M = 10): only an SVD (``np.linalg.lstsq``'s method)
-    solves it without truncating. With λ > 0 the penalty conditions the normal equations,
-    which are several times faster and agree with the SVD. ``"normal"`` and ``"svd"`` are
-    used as given; ``"normal"`` at λ = 0 is a truncated pseudo-inverse (kept to compare).
+    Only an SVD solves the badly conditioned λ = 0 problem without truncating; with λ > 0
+    the normal equations are several times faster and agree with it. ``"normal"`` and
+    ``"svd"`` are used as given (``"normal"`` at λ = 0 is kept to compare).
     """
     if solver not in SOLVER_NAMES:
         raise ConfigError(f"solver must be one of {list(SOLVER_NAMES)}, got {solver!r}")
@@ -236,17 +205,16 @@ def resolve_solver(solver: str, lam: float) -> str:
     return solver
 
 
-def _fit_kernel(images, light_dirs, normals, view, M, lam, clamp_diffuse, solver) -> np.ndarray:
+def _one_blas_thread():
     # threadpoolctl ships with scikit-learn. The batched LAPACK calls are thousands of
     # tiny problems: BLAS threads only add overhead, and on a busy machine OpenBLAS's
     # threaded SVD of such stacks was far slower than single-threaded (docs/performance.md).
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _fit_batches(images, light_dirs, normals, view, M, lam, clamp_diffuse, solver)
+    return threadpool_limits(limits=1, user_api="blas")
 
 
-def _fit_batches(images, light_dirs, normals, view, M, lam, clamp_diffuse, solver) -> np.ndarray:
+def _fit_kernel(images, light_dirs, normals, view, M, lam, clamp_diffuse, solver) -> np.ndarray:
     n_lights, height, width, _ = images.shape
     n_coeffs = 2 * M + 2
     n_pixels = height * width
@@ -254,13 +222,12 @@ def _fit_batches(images, light_dirs, normals, view, M, lam, clamp_diffuse, solve
     flat_normals = normals.reshape(n_pixels, 3)
     penalty = lam * fourier_penalty(M)
     coeffs = np.empty((n_pixels, 3, n_coeffs), dtype=np.float64)
-    step = _batch_size(n_lights, n_coeffs)
-    for start in range(0, n_pixels, step):  # batches of pixels, bounded memory
-        stop = min(start + step, n_pixels)
-        design = _features(light_dirs, flat_normals[start:stop], view, M, clamp_diffuse)
-        observed = targets[:, start:stop].astype(np.float64).transpose(1, 0, 2)  # (P, n, 3)
-        solution = _SOLVERS[solver](design, observed, penalty)  # (P, K, 3)
-        coeffs[start:stop] = solution.transpose(0, 2, 1)
+    with _one_blas_thread():
+        for batch in _pixel_batches(n_pixels, n_lights, n_coeffs):
+            design = _features(light_dirs, flat_normals[batch], view, M, clamp_diffuse)
+            observed = targets[:, batch].astype(np.float64).transpose(1, 0, 2)  # (P, n, 3)
+            solution = _SOLVERS[solver](design, observed, penalty)  # (P, K, 3)
+            coeffs[batch] = solution.transpose(0, 2, 1)
     return coeffs.reshape(height, width, 3, n_coeffs)
 
 
@@ -270,16 +237,11 @@ def _render_kernel(coeffs, light_dirs, normals, view, M, clamp_diffuse) -> np.nd
     flat_coeffs = coeffs.reshape(n_pixels, 3, n_coeffs)
     flat_normals = normals.reshape(n_pixels, 3)
     out = np.empty((len(light_dirs), n_pixels, 3), dtype=np.float32)
-    step = _batch_size(len(light_dirs), n_coeffs)
-    for start in range(0, n_pixels, step):
-        stop = min(start + step, n_pixels)
-        design = _features(light_dirs, flat_normals[start:stop], view, M, clamp_diffuse)
+    for batch in _pixel_batches(n_pixels, len(light_dirs), n_coeffs):
+        design = _features(light_dirs, flat_normals[batch], view, M, clamp_diffuse)
         # (P, n, K) x (P, 3, K) -> (n, P, 3)
-        out[:, start:stop] = np.einsum("pnk,pck->npc", design, flat_coeffs[start:stop])
+        out[:, batch] = np.einsum("pnk,pck->npc", design, flat_coeffs[batch])
     return out.reshape(len(light_dirs), height, width, 3)
-
-
-# --------------------------------------------------------------------------- public
 
 
 def fourier_features(
@@ -303,11 +265,9 @@ def fourier_features(
     -------
     ndarray of shape (n, H, W, 2M + 2), float64
     """
-    dirs, _ = check_dirs(light_dirs)
-    normals = _check_normals(normals)
-    M = _check_order(M)
+    dirs, normals, M, view = _check_geometry(light_dirs, normals, M, view)
     height, width, _ = normals.shape
-    design = _features(dirs, normals.reshape(-1, 3), _check_view(view), M, clamp_diffuse)
+    design = _features(dirs, normals.reshape(-1, 3), view, M, clamp_diffuse)
     return design.transpose(1, 0, 2).reshape(len(dirs), height, width, 2 * M + 2)
 
 
@@ -316,13 +276,7 @@ def design_condition(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Condition number of each pixel's unregularized design matrix A (eq. 17).
 
-    Parameters
-    ----------
-    light_dirs : array_like of shape (n, 3)
-    normals : array_like of shape (H, W, 3)
-    M : int
-    view : array_like of shape (3,)
-    clamp_diffuse : bool
+    Parameters as :func:`fourier_features`.
 
     Returns
     -------
@@ -332,21 +286,15 @@ def design_condition(
         Where ``np.linalg.lstsq`` (and the λ = 0 fit) drops a singular value as
         round-off: the pixel is numerically rank-deficient (e.g. normal = view).
     """
-    from threadpoolctl import threadpool_limits
-
-    dirs, _ = check_dirs(light_dirs)
-    normals = _check_normals(normals)
-    M = _check_order(M)
-    view = _check_view(view)
+    dirs, normals, M, view = _check_geometry(light_dirs, normals, M, view)
     height, width, _ = normals.shape
     flat = normals.reshape(-1, 3)
     n_coeffs = 2 * M + 2
     singular = np.empty((len(flat), min(len(dirs), n_coeffs)))
-    step = _batch_size(len(dirs), n_coeffs)
-    with threadpool_limits(limits=1, user_api="blas"):
-        for start in range(0, len(flat), step):
-            design = _features(dirs, flat[start : start + step], view, M, clamp_diffuse)
-            singular[start : start + step] = np.linalg.svd(design, compute_uv=False)
+    with _one_blas_thread():
+        for batch in _pixel_batches(len(flat), len(dirs), n_coeffs):
+            design = _features(dirs, flat[batch], view, M, clamp_diffuse)
+            singular[batch] = np.linalg.svd(design, compute_uv=False)
     with np.errstate(divide="ignore"):
         cond = singular[:, 0] / singular[:, -1]
     truncated = singular[:, -1] <= _lstsq_cutoff(len(dirs), n_coeffs) * singular[:, 0]
@@ -357,6 +305,12 @@ def _check_order(M) -> int:
     if isinstance(M, bool) or int(M) != M or M < 0:
         raise ConfigError(f"M (highest harmonic) must be an integer >= 0, got {M!r}")
     return int(M)
+
+
+def _check_geometry(light_dirs, normals, M, view):
+    """Checked (lights (n, 3), normals (H, W, 3), M, view (3,)) of one fit's geometry."""
+    dirs, _ = check_dirs(light_dirs)
+    return dirs, _check_normals(normals), _check_order(M), _check_view(view)
 
 
 def fit_fourier(
@@ -390,12 +344,9 @@ def fit_fourier(
         Use max(cos θd, 0) as the diffuse basis (not in the paper); pass the same value
         to :func:`render_fourier`.
     solver : {"auto", "normal", "svd"}
-        "auto" (default): "svd" at λ = 0 (plain least squares, equal to
-        ``np.linalg.lstsq``), "normal" at λ > 0 (:func:`resolve_solver`).
-        "normal": batched normal equations (fast; exact for cond(A) up to ~1e7, a
-        minimum-norm truncation beyond). "svd": batched SVD of the augmented system,
-        as accurate as ``np.linalg.lstsq`` but slower. The two agree whenever
-        λ > 0 makes the system well conditioned.
+        :func:`resolve_solver`. "normal": batched normal equations (fast; exact for
+        cond(A) up to ~1e7, a minimum-norm truncation beyond). "svd": batched SVD, as
+        accurate as ``np.linalg.lstsq`` but slower.
 
     Returns
     -------
@@ -464,10 +415,6 @@ def rms_error(pred, target, mask=None) -> float:
     pred, target : ndarray, same shape (..., H, W, C)
     mask : ndarray of shape (H, W), bool, optional
         Only pixels where the mask is True count.
-
-    Returns
-    -------
-    float
     """
     pred = np.asarray(pred, dtype=np.float64)
     target = np.asarray(target, dtype=np.float64)

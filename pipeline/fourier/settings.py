@@ -14,14 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
-from pipeline.core.settings import (
-    Integer,
-    OneOf,
-    Real,
-    check_fields,
-    check_settings,
-    setting,
-)
+from pipeline.core.settings import Integer, OneOf, Real, check_fields, check_settings, setting
 
 SOLVERS = ("auto", "normal", "svd")  # pipeline.fourier.series.SOLVER_NAMES
 COLOUR_SPACES = ("rgb", "chromaticity")  # what pipeline.fourier.segmentation segments in

@@ -1,7 +1,19 @@
-"""Method C's light stack: the ``stack_data`` stage (a light-stack folder, the built-in
-pot, or one view folder of a BTF), its split into training, validation and test lights,
-and the crop and downsampling every array goes through (see ``pipeline/fourier/runner.py``
-for the whole chain)."""
+"""Method C's light stack: the ``stack_data`` stage, the split of its lights and the crop
+and downsampling every array goes through (the chain: :mod:`pipeline.fourier.runner`).
+
+The stack is a light-stack folder's ``.lp`` stack, read with the real reader.
+``dataset=synthetic_stack`` (``root: null``) first writes the built-in pot under
+``${paths.data}``; its held-out lights are the stack's own ``heldout/`` set and, since
+``scene.json`` is there, the reference images are the generator's noise-free renders (the
+8-bit PNGs differ from them by quantization only). ``dataset=light_stack`` holds out every
+``holdout_every``-th light of the folder; its reference images are the measured ones. A
+dataset with ``format: ubo2003|utia`` (``dataset=btf_view``, or ``dataset=ubo2003|utia``
+with one ``dataset.views`` entry) reads that one view folder of a BTF (81 lights) in the
+material's frame, with the folder's view direction in eq. 4 (the view is (0, 0, 1)
+otherwise). The held-out lights are split in turn into validation and test lights
+(:func:`validation_mask`). The key holds the folder's fingerprint, so editing the folder
+in place re-reads it.
+"""
 
 from __future__ import annotations
 
@@ -58,16 +70,10 @@ def shrink(array: np.ndarray, crop, factor: int, labels: bool = False) -> np.nda
             raise ConfigError(
                 f"dataset.downsample={factor} leaves no pixel of {array.shape[-3:-1]}"
             )
-        array = array[..., :height, :width, :]
-        shape = (
-            *array.shape[:-3],
-            height // factor,
-            factor,
-            width // factor,
-            factor,
-            array.shape[-1],
+        blocks = array[..., :height, :width, :].reshape(
+            *array.shape[:-3], height // factor, factor, width // factor, factor, array.shape[-1]
         )
-        array = array.reshape(shape).mean(axis=(-4, -2), dtype=np.float64).astype(np.float32)
+        array = blocks.mean(axis=(-4, -2), dtype=np.float64).astype(np.float32)
     return np.ascontiguousarray(array)
 
 
@@ -75,7 +81,14 @@ def unit_normals(normals: np.ndarray) -> np.ndarray:
     return (normals / np.linalg.norm(normals, axis=-1, keepdims=True)).astype(np.float32)
 
 
-# --------------------------------------------------------------------------- data
+def file_settings(value: str, error: str) -> dict:
+    """A settings file as ``{"path", "fingerprint"}`` (a key changes when the file does);
+    ConfigError ``error`` when ``value`` is not a file."""
+    path = Path(value).expanduser().resolve()
+    if not path.is_file():
+        raise ConfigError(error)
+    stat = path.stat()
+    return {"path": str(path), "fingerprint": {"bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns}}
 
 
 def btf_view(ds) -> tuple[int, int] | None:
@@ -146,13 +159,8 @@ def _split(cfg, root: Path):
     if isinstance(every, bool) or int(every) != every or not 2 <= every <= n:
         raise ConfigError(f"dataset.holdout_every={every!r} must be an integer in [2, {n}]")
     held = np.arange(n) % int(every) == int(every) - 1
-    return (
-        stack.images[~held],
-        stack.light_dirs[~held],
-        stack.images[held],
-        stack.light_dirs[held],
-        stack.view_dir,
-    )
+    images, dirs = stack.images, stack.light_dirs
+    return images[~held], dirs[~held], images[held], dirs[held], stack.view_dir
 
 
 def validation_mask(n_heldout: int, every) -> np.ndarray:

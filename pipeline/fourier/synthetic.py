@@ -10,9 +10,8 @@ The scene (PAPERS.md C, DESIGN.md "Built-in synthetic data"):
   1 ground (matte brown, Lambertian), 2 streaks (glossy red: Lambertian plus a Phong
   lobe in the angle θs between the mirrored light and the view, after Bizen *hidasuki*);
   albedo, lobe strength and exponent vary smoothly inside each region (texture);
-- training lights on the paper's grid: ``n_elevations`` heights times ``n_azimuths``
-  lateral positions ``azimuth_step_deg`` apart (paper: 6 x 55 at 3°), and a separate
-  set of random held-out lights in the same range.
+- training lights on the paper's grid (:func:`grid_light_dirs`, 6 x 55 at 3°) and
+  random held-out lights in the same range (:func:`heldout_light_dirs`).
 
 Ground truth is :meth:`SyntheticScene.render`, usable at any light.
 
@@ -40,29 +39,17 @@ import json
 import os
 import shutil
 import uuid
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from pipeline.core.errors import ConfigError, DataError
-from pipeline.data.images import quantize_8bit, srgb_oetf
+from pipeline.data.images import srgb_oetf, write_image_8bit
 from pipeline.data.light_stack import write_lp
 
-__all__ = [
-    "SyntheticStackConfig",
-    "SyntheticScene",
-    "make_synthetic_scene",
-    "grid_light_dirs",
-    "heldout_light_dirs",
-    "write_synthetic_stack",
-    "load_synthetic_scene",
-    "REGION_NAMES",
-]
-
 REGION_NAMES = ("backdrop", "ground", "streak")
-_VIEW = np.array([0.0, 0.0, 1.0])
 
 
 @dataclass
@@ -130,13 +117,8 @@ class SyntheticStackConfig:
             )
         if self.image_format not in ("png", "exr"):
             raise ConfigError(f"image_format must be 'png' or 'exr', got {self.image_format!r}")
-        return SyntheticStackConfig(
-            **{
-                **asdict(self),
-                "size": (int(size[0]), int(size[1])),
-                "elevation_range_deg": (float(low), float(high)),
-            }
-        )
+        size, elevations = (int(size[0]), int(size[1])), (float(low), float(high))
+        return replace(self, size=size, elevation_range_deg=elevations)
 
 
 @dataclass
@@ -192,9 +174,6 @@ class SyntheticScene:
         return out[0] if single else out
 
 
-# --------------------------------------------------------------------------- lights
-
-
 def _direction(azimuth_deg, elevation_deg) -> np.ndarray:
     """Unit vectors for lateral angle α about the vertical axis and elevation β."""
     alpha, beta = np.radians(azimuth_deg), np.radians(elevation_deg)
@@ -224,9 +203,6 @@ def heldout_light_dirs(config: SyntheticStackConfig, rng: np.random.Generator) -
         rng.uniform(-half_span, half_span, config.n_heldout),
         rng.uniform(low, high, config.n_heldout),
     )
-
-
-# --------------------------------------------------------------------------- scene
 
 
 def _pot_radius(y: np.ndarray) -> np.ndarray:
@@ -267,11 +243,9 @@ def make_synthetic_scene(config: SyntheticStackConfig | None = None) -> Syntheti
     for _ in range(config.n_streaks):
         centre = rng.uniform(-0.6, 0.6)
         slope = rng.uniform(-0.45, 0.45)
-        amplitude, frequency, phase = (
-            rng.uniform(0.05, 0.15),
-            rng.uniform(1, 3),
-            rng.uniform(0, 6.3),
-        )
+        amplitude = rng.uniform(0.05, 0.15)
+        frequency = rng.uniform(1, 3)
+        phase = rng.uniform(0, 6.3)
         half_width = rng.uniform(0.10, 0.16) * (1 + 0.3 * np.sin(2.1 * u + phase))
         centre_line = centre + slope * u + amplitude * np.sin(frequency * u + phase)
         streak |= np.abs(yy - centre_line) < half_width
@@ -303,9 +277,6 @@ def make_synthetic_scene(config: SyntheticStackConfig | None = None) -> Syntheti
     )
 
 
-# --------------------------------------------------------------------------- writing
-
-
 def _write_image(path: Path, linear_rgb: np.ndarray) -> None:
     if path.suffix == ".exr":
         import OpenEXR
@@ -316,11 +287,8 @@ def _write_image(path: Path, linear_rgb: np.ndarray) -> None:
             for i, c in enumerate("RGB")
         }
         OpenEXR.File(header, channels).write(str(path))
-    else:
-        from PIL import Image
-
-        encoded = quantize_8bit(srgb_oetf(linear_rgb))
-        Image.fromarray(encoded, mode="RGB").save(path)
+    else:  # unsynced: the staging folder is published as a whole
+        write_image_8bit(path, srgb_oetf(linear_rgb), sync=False)
 
 
 def _write_images(
@@ -379,13 +347,8 @@ def write_synthetic_stack(
     try:
         _write_images(staging, "lights.lp", train, train_dirs, config.image_format)
         del train
-        _write_images(
-            staging / "heldout",
-            "heldout.lp",
-            scene.render(heldout_dirs),
-            heldout_dirs,
-            config.image_format,
-        )
+        heldout = scene.render(heldout_dirs)
+        _write_images(staging / "heldout", "heldout.lp", heldout, heldout_dirs, config.image_format)
         np.save(staging / "normals.npy", scene.normals)
         np.save(staging / "regions.npy", scene.regions)
         (staging / "scene.json").write_text(json.dumps(asdict(config), indent=2) + "\n")

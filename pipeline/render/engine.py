@@ -10,16 +10,13 @@ Conventions
 Tangent frame and directions
     At a hit, the vertex normals and tangents are interpolated with the barycentrics and
     re-orthonormalised: n (shading normal), t (tangent, along +u), b = n x t (bitangent,
-    along +v). A direction w in that frame has local coordinates (w.t, w.b, w.n); its
-    theta = arccos(w.n) is measured from the normal and its phi = atan2(w.b, w.t), in
-    [0, 2 pi), from the tangent towards the bitangent. The material is queried with
-    (theta_light, phi_light, theta_view, phi_view) in radians, light and view both
-    pointing away from the surface.
+    along +v). The material is queried with (theta_light, phi_light, theta_view, phi_view)
+    in radians in that frame (:func:`~pipeline.render.materials.spherical`), light and
+    view both pointing away from the surface.
 uv to texel
-    With the material's ``crop_size = (rows, cols)``, the crop repeats every unit of u and
-    v: ``col = floor(frac(u) * cols)``, ``row = floor(frac(v) * rows)``, texel index
-    ``row * cols + col``; uv (0, 0) is the corner of texel (row 0, col 0). No filtering:
-    each ray takes the texel it hits, and the jittered samples average over a pixel.
+    :func:`~pipeline.render.materials.texels_of_uv`: the crop repeats every unit of u and
+    v. No filtering: each ray takes the texel it hits, and the jittered samples average
+    over a pixel.
 Units
     A material value is a BTF value, as in BTF images: radiance reflected towards the view
     per unit irradiance *on a surface perpendicular to the light*, so the cosine
@@ -42,14 +39,11 @@ Batching
 Randomness
     Sub-pixel positions come from ``numpy.random.default_rng(seed)``, drawn chunk by chunk
     in sample order, so the image depends on ``seed`` and not on ``batch_rays``. The
-    samples of a pixel are stratified on a grid of a x b strata, a x b = spp with b the
-    largest divisor of spp not above its square root (4 x 4 at 16 spp, 16 x 8 at 128, 1 x 1
-    at 1): sample s is jittered inside stratum (s mod a, s div a).
+    samples of a pixel are stratified (:func:`strata`, :func:`subpixel_offsets`).
 Coverage
-    :class:`RenderStats` also gives, per pixel, the fraction of its camera samples that
-    landed on front-facing cloth seen by at least one light (``lit_cloth``): 1 where the
-    pixel is wholly on lit cloth, below 1 at silhouettes, shadow edges and the floor. It
-    depends on the scene, spp and seed only, not on the material.
+    ``RenderStats.lit_cloth``: per pixel, the fraction of its camera samples that landed
+    on front-facing cloth seen by at least one light (1 wholly on lit cloth, below 1 at
+    silhouettes, shadow edges and the floor); it does not depend on the material.
 
 What this module relies on in ``embreex`` (checked with embreex 4.4.0.post1):
 ``EmbreeScene()``; ``TriangleMesh(scene, vertices (V, 3) float32, triangles (F, 3))``;
@@ -69,7 +63,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.render.scene import CLOTH, FLOOR, PointLight, Scene
+from pipeline.render.materials import spherical, texels_of_uv
+from pipeline.render.scene import CLOTH, FLOOR, PointLight, Scene, unit_vectors
 
 DEFAULT_BATCH_RAYS = 1 << 18
 # Shadow rays towards a point light stop this fraction short of it.
@@ -208,13 +203,15 @@ def render_with_stats(
 
 
 def strata(spp: int) -> tuple[int, int]:
-    """(a, b), a x b = spp strata across x and y, b the largest divisor <= sqrt(spp)."""
+    """(a, b), a x b = spp strata across x and y, b the largest divisor <= sqrt(spp)
+    (4 x 4 at 16 spp, 16 x 8 at 128, 1 x 1 at 1)."""
     b = next(d for d in range(math.isqrt(spp), 0, -1) if spp % d == 0)
     return spp // b, b
 
 
 def subpixel_offsets(sample_index: np.ndarray, spp: int, uniform: np.ndarray) -> np.ndarray:
-    """Offsets (n, 2) in [0, 1) of samples ``sample_index`` (n,) from uniforms (n, 2)."""
+    """Offsets (n, 2) in [0, 1) of samples ``sample_index`` (n,) from uniforms (n, 2):
+    sample s is jittered inside stratum (s mod a, s div a) of :func:`strata`."""
     a, b = strata(spp)
     stratum = np.column_stack([sample_index % a, sample_index // a])
     return (stratum + uniform) / np.array([a, b])
@@ -225,7 +222,7 @@ class _CountingMaterial:
 
     def __init__(self, material):
         self.material = material
-        self.rows, self.cols = (int(v) for v in material.crop_size)
+        self.crop_size = tuple(int(v) for v in material.crop_size)
         self.calls = 0
         self.queries = 0
 
@@ -265,8 +262,7 @@ class _Tracer:
     def unoccluded(
         self, origins: np.ndarray, directions: np.ndarray, tfar: float | np.ndarray
     ) -> np.ndarray:
-        dists = np.empty(len(origins), dtype=np.float32)
-        dists[:] = tfar
+        dists = np.full(len(origins), tfar, dtype=np.float32)
         return self.embree.run(_f32(origins), _f32(directions), dists=dists, query="OCCLUDED") == -1
 
 
@@ -274,19 +270,8 @@ def _f32(array: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(array, dtype=np.float32)
 
 
-def _unit(vectors: np.ndarray) -> np.ndarray:
-    return vectors / np.linalg.norm(vectors, axis=-1, keepdims=True)
-
-
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", a, b)
-
-
-def _spherical(local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(theta, phi) of unit local directions (n, 3); phi in [0, 2 pi)."""
-    theta = np.arccos(np.clip(local[:, 2], -1.0, 1.0))
-    phi = np.mod(np.arctan2(local[:, 1], local[:, 0]), 2.0 * np.pi)
-    return theta, phi
 
 
 def _shade(
@@ -312,9 +297,9 @@ def _shade(
         return np.einsum("kj,kjd->kd", bary, per_vertex[corners])
 
     position = interpolate(tracer.vertices)
-    normal = _unit(interpolate(mesh.normals))
+    normal = unit_vectors(interpolate(mesh.normals))
     tangent = interpolate(mesh.tangents)
-    tangent = _unit(tangent - _dot(tangent, normal)[:, None] * normal)
+    tangent = unit_vectors(tangent - _dot(tangent, normal)[:, None] * normal)
     bitangent = np.cross(normal, tangent)
     geometric = tracer.face_normals[triangle]
     view = -directions[hit]
@@ -330,16 +315,13 @@ def _shade(
             distance2 = _dot(to_light, to_light)
             to_light = to_light / np.sqrt(distance2)[:, None]
             irradiance = light.intensity / distance2[:, None]
+            shadow_dirs, tfar = light.position - shadow_origin, _SHADOW_STOP
         else:
             to_light = np.broadcast_to(light.direction, position.shape)
             irradiance = np.broadcast_to(light.irradiance, position.shape)
+            shadow_dirs, tfar = to_light, np.inf
         ok = np.flatnonzero(front & (_dot(to_light, normal) > 0) & (_dot(to_light, geometric) > 0))
-        if isinstance(light, PointLight):
-            visible = tracer.unoccluded(
-                shadow_origin[ok], light.position - shadow_origin[ok], _SHADOW_STOP
-            )
-        else:
-            visible = tracer.unoccluded(shadow_origin[ok], to_light[ok], np.inf)
+        visible = tracer.unoccluded(shadow_origin[ok], shadow_dirs[ok], tfar)
         shadow_rays += len(ok)
         ok = ok[visible]
         lit_hits.append(ok)
@@ -348,29 +330,19 @@ def _shade(
     pair_hit = np.concatenate(lit_hits)
     light_dir = np.concatenate(lit_dirs)
     frame = np.stack([tangent[pair_hit], bitangent[pair_hit], normal[pair_hit]], axis=1)
-    theta_l, phi_l = _spherical(np.einsum("kij,kj->ki", frame, light_dir))
-    theta_v, phi_v = _spherical(np.einsum("kij,kj->ki", frame, view[pair_hit]))
+    theta_l, phi_l = spherical(np.einsum("kij,kj->ki", frame, light_dir))
+    theta_v, phi_v = spherical(np.einsum("kij,kj->ki", frame, view[pair_hit]))
 
     value = np.zeros((len(pair_hit), 3), dtype=np.float64)
     material_id = mesh.material_ids[triangle[pair_hit]]
     cloth = np.flatnonzero(material_id == CLOTH)
     if len(cloth):
-        uv = interpolate(mesh.uv)[pair_hit[cloth]]
-        col = np.minimum(
-            (np.mod(uv[:, 0], 1.0) * material.cols).astype(np.int64), material.cols - 1
-        )
-        row = np.minimum(
-            (np.mod(uv[:, 1], 1.0) * material.rows).astype(np.int64), material.rows - 1
-        )
+        texels = texels_of_uv(interpolate(mesh.uv)[pair_hit[cloth]], material.crop_size)
         directions4 = np.column_stack([theta_l[cloth], phi_l[cloth], theta_v[cloth], phi_v[cloth]])
-        value[cloth] = material.evaluate(row * material.cols + col, directions4)
+        value[cloth] = material.evaluate(texels, directions4)
     floor = np.flatnonzero(material_id == FLOOR)
     value[floor] = scene.floor_albedo / np.pi * np.cos(theta_l[floor])[:, None]
     contribution = np.maximum(value, 0.0) * np.concatenate(lit_irradiance)
-    start = 0
-    for hits_of_light in lit_hits:  # each hit at most once per light: plain indexing adds
-        stop = start + len(hits_of_light)
-        radiance[hit[hits_of_light]] += contribution[start:stop]
-        start = stop
+    np.add.at(radiance, hit[pair_hit], contribution)  # in light order, as the pairs are
     on_lit_cloth = np.unique(hit[pair_hit[cloth]])
     return radiance, on_lit_cloth, shadow_rays

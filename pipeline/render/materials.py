@@ -10,6 +10,8 @@ perpendicular to the light, i.e. it already contains the cosine foreshortening
 
 - :class:`Material`: the interface, with the checks of every query.
 - :class:`LambertianTexture`: ``albedo / pi * cos(theta_light)``, a closed form for tests.
+- :func:`texels_of_uv` and :func:`spherical`: the queries of a shading point, shared by
+  the renderer and the Mitsuba plugin.
 
 A method's own materials subclass :class:`Material` in the method's package (method A's
 measured, PCA, compressed and analytic BTFs: :mod:`pipeline.btf.render.surfaces`); this
@@ -20,6 +22,8 @@ Examples
 >>> albedo = np.full((2, 2, 3), 0.5)
 >>> LambertianTexture(albedo).evaluate(np.array([3]), np.zeros((1, 4))).round(4)
 array([[0.1592, 0.1592, 0.1592]], dtype=float32)
+>>> texels_of_uv(np.array([[0.3, 0.6], [1.99, 0.1]]), crop_size=(2, 4))  # (row, col) (1, 1), (0, 3)
+array([5, 3])
 """
 
 from __future__ import annotations
@@ -112,3 +116,24 @@ class LambertianTexture(Material):
     def _evaluate(self, texels, directions):
         cosine = np.maximum(np.cos(directions[:, 0]), 0.0)
         return (self.albedo[texels] * (cosine / np.pi)[:, None]).astype(np.float32)
+
+
+def texels_of_uv(uv: np.ndarray, crop_size) -> np.ndarray:
+    """Texel indices (n,) of uv coordinates (n, 2), the crop repeating every unit.
+
+    ``col = floor(frac(u) * cols)``, ``row = floor(frac(v) * rows)``, texel ``row * cols +
+    col``: uv (0, 0) is the corner of texel (row 0, col 0).
+    """
+    rows, cols = check_crop_size(crop_size)
+    uv = np.asarray(uv, dtype=np.float64)
+    col = np.minimum((np.mod(uv[:, 0], 1.0) * cols).astype(np.int64), cols - 1)
+    row = np.minimum((np.mod(uv[:, 1], 1.0) * rows).astype(np.int64), rows - 1)
+    return row * cols + col
+
+
+def spherical(local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(theta, phi) of unit local directions (n, 3) = (w.t, w.b, w.n): theta from +z (the
+    normal), phi in [0, 2 pi) from +x (the tangent) towards +y (the bitangent)."""
+    theta = np.arccos(np.clip(local[:, 2], -1.0, 1.0))
+    phi = np.mod(np.arctan2(local[:, 1], local[:, 0]), 2.0 * np.pi)
+    return theta, phi

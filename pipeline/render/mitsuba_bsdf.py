@@ -12,25 +12,20 @@ changes no Mitsuba state. After ``register()`` a scene file naming it loads::
 A material object already in memory is bound with :func:`material_bsdf` (an instance to put
 in ``mi.load_dict``). After changing the variant, call :func:`register` again.
 
-Conventions (those of :mod:`pipeline.render.engine`, reproduced here)
----------------------------------------------------------------------
+Conventions: those of :mod:`pipeline.render.engine`, with these Mitsuba specifics.
+
 Tangent frame
     Mitsuba's shading frame has n = the interpolated vertex normal and s = dP/du of the
-    *triangle* (from its uv), made orthogonal to n; t = n x s. The project's renderer uses
-    the *interpolated vertex tangent* instead (also along +u, bitangent n x t along +v:
-    the same handedness). The two differ by a rotation about n, on the folded sheet by up
-    to 10 degrees at 96 quads per side (27 at 24). So where the shape carries a vertex
-    attribute ``vertex_tangent`` (a PLY file with ``tangent_x, tangent_y, tangent_z``
-    vertex properties, as :mod:`pipeline.btf.render.mitsuba_scene` writes), the tangent is
-    that attribute, interpolated and made orthogonal to n, as the project's renderer does;
-    elsewhere (Mitsuba's own shapes, a user's mesh) it is Mitsuba's s.
+    *triangle* (from its uv), made orthogonal to n; t = n x s. The project's renderer's
+    interpolated vertex tangent differs from s by a rotation about n (on the folded sheet
+    up to 10 degrees at 96 quads per side, 27 at 24). So where the shape carries the
+    vertex attribute ``vertex_tangent`` (PLY properties ``tangent_x, tangent_y,
+    tangent_z``, as :mod:`pipeline.btf.render.mitsuba_scene` writes), the tangent is that
+    attribute, as in the project's renderer; elsewhere it is Mitsuba's s.
 Directions
-    Local coordinates (w.t, w.b, w.n) in that frame; theta = arccos(w.n), phi =
-    atan2(w.b, w.t) in [0, 2 pi). In radiance transport (Mitsuba's default, every camera
-    integrator) the light is ``wo`` and the view ``si.wi``.
+    In radiance transport (Mitsuba's default, every camera integrator) the light is ``wo``
+    and the view ``si.wi``.
 uv to texel
-    ``col = floor(frac(u) * cols)``, ``row = floor(frac(v) * rows)``, texel ``row * cols +
-    col``: the crop repeats every unit of uv and uv (0, 0) is the corner of texel (0, 0).
     Mitsuba 3.9 keeps a PLY file's v as written (``flip_tex_coords`` defaults to false for
     PLY) but flips an OBJ file's (v -> 1 - v, ``flip_tex_coords`` true): write PLY, or
     OBJ with ``flip_tex_coords`` false.
@@ -41,25 +36,19 @@ Cosine
     In importance transport (adjoint, ``TransportMode.Importance``) the light is ``wi``,
     so the value is multiplied by cos theta_o / cos theta_i.
 Visibility and sign
-    Zero unless view and light are both above the shading normal and above the geometric
-    normal (``si.n``), as in the project's renderer (a back face is black); negative
-    values (a neural decoder may produce them) are clamped at 0.
+    As in the project's renderer, with the geometric normal ``si.n``.
 Sampling
     Cosine-weighted hemisphere about the shading normal, pdf ``cos theta_o / pi`` (zero
     for a view below the surface); ``sample`` returns ``eval / pdf`` as its weight.
-
 Batches
     ``eval`` converts Mitsuba's arrays to numpy and asks the material once per call: in
     the ``llvm_*`` variants, with Dr.Jit's symbolic calls off
-    (``dr.JitFlag.SymbolicCalls``, formerly ``VCallRecord``; :func:`evaluated_calls`),
-    one call holds every lane of the wavefront that reaches this BSDF; in ``scalar_rgb``
-    it holds one sample. Under a symbolic call the arrays hold no values and ``eval``
-    raises a RuntimeError saying so.
+    (``dr.JitFlag.SymbolicCalls``; :func:`evaluated_calls`), one call holds every lane of
+    the wavefront that reaches this BSDF; in ``scalar_rgb`` it holds one sample. Under a
+    symbolic call the arrays hold no values and ``eval`` raises a RuntimeError saying so.
 
 Examples
 --------
->>> texels_of_uv(np.array([[0.3, 0.6], [1.99, 0.1]]), crop_size=(2, 4))  # (row, col) (1, 1), (0, 3)
-array([5, 3])
 >>> import mitsuba as mi  # doctest: +SKIP
 >>> from pipeline.render.materials import LambertianTexture  # doctest: +SKIP
 >>> bsdf = material_bsdf(LambertianTexture(np.full((2, 2, 3), 0.5)))  # doctest: +SKIP
@@ -74,7 +63,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from pipeline.render.materials import check_crop_size
+from pipeline.render.materials import check_crop_size, spherical, texels_of_uv
 
 try:
     import drjit as dr
@@ -176,24 +165,6 @@ def load_material(loader: str, path: str):
     except (ImportError, AttributeError) as error:
         raise ValueError(f"loader={loader!r} cannot be imported: {error}") from None
     return function(path)
-
-
-def texels_of_uv(uv: np.ndarray, crop_size) -> np.ndarray:
-    """Texel indices (n,) of uv coordinates (n, 2), the crop repeating every unit (the
-    project renderer's rule: ``row * cols + col``, col from u, row from v)."""
-    rows, cols = check_crop_size(crop_size)
-    uv = np.asarray(uv, dtype=np.float64)
-    col = np.minimum((np.mod(uv[:, 0], 1.0) * cols).astype(np.int64), cols - 1)
-    row = np.minimum((np.mod(uv[:, 1], 1.0) * rows).astype(np.int64), rows - 1)
-    return row * cols + col
-
-
-def spherical(local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(theta, phi) of unit local directions (n, 3): theta from +z, phi in [0, 2 pi) from
-    +x towards +y."""
-    theta = np.arccos(np.clip(local[:, 2], -1.0, 1.0))
-    phi = np.mod(np.arctan2(local[:, 1], local[:, 0]), 2.0 * np.pi)
-    return theta, phi
 
 
 def btf_query(material, uv, wi, wo, geometric, tangent_angle=None, importance=False):

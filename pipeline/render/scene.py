@@ -37,11 +37,9 @@ def _vector3(value, name: str) -> np.ndarray:
     return array
 
 
-def _normalize(vectors: np.ndarray) -> np.ndarray:
+def unit_vectors(vectors: np.ndarray) -> np.ndarray:
+    """``vectors`` (..., 3) divided by their lengths."""
     return vectors / np.linalg.norm(vectors, axis=-1, keepdims=True)
-
-
-# ----------------------------------------------------------------------------- meshes
 
 
 @dataclass(frozen=True)
@@ -79,14 +77,14 @@ class Mesh:
             raise ValueError(f"triangles must be integers, got {triangles.dtype}")
         if triangles.min() < 0 or triangles.max() >= n_vertices:
             raise ValueError(f"triangles index vertices outside [0, {n_vertices})")
-        arrays = {}
+        set_ = object.__setattr__  # frozen: store the checked, converted arrays
         for name, width in (("uv", 2), ("normals", 3), ("tangents", 3)):
             array = np.asarray(getattr(self, name), dtype=np.float64)
             if array.shape != (n_vertices, width):
                 raise ValueError(
                     f"{name} must have shape ({n_vertices}, {width}), got {array.shape}"
                 )
-            arrays[name] = array
+            set_(self, name, array)
         material_ids = np.asarray(self.material_ids)
         if material_ids.shape != (len(triangles),):
             raise ValueError(
@@ -95,11 +93,8 @@ class Mesh:
         if not np.isin(material_ids, MATERIAL_IDS).all():
             bad = material_ids[~np.isin(material_ids, MATERIAL_IDS)][0]
             raise ValueError(f"material id {bad} is not one of {list(MATERIAL_IDS)}")
-        set_ = object.__setattr__  # frozen: store the checked, converted arrays
         set_(self, "vertices", vertices)
         set_(self, "triangles", np.ascontiguousarray(triangles, dtype=np.int32))
-        for name, array in arrays.items():
-            set_(self, name, array)
         set_(self, "material_ids", material_ids.astype(np.int32))
 
     @property
@@ -110,7 +105,7 @@ class Mesh:
     def face_normals(self) -> np.ndarray:
         """Unit geometric normals ``(v1 - v0) x (v2 - v0)``, ndarray of shape (F, 3)."""
         corners = self.vertices.astype(np.float64)[self.triangles]
-        return _normalize(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
+        return unit_vectors(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
 
 
 def merge_meshes(*meshes: Mesh) -> Mesh:
@@ -118,16 +113,10 @@ def merge_meshes(*meshes: Mesh) -> Mesh:
     if not meshes:
         raise ValueError("merge_meshes needs at least one mesh")
     offsets = np.cumsum([0] + [len(mesh.vertices) for mesh in meshes[:-1]])
-    return Mesh(
-        vertices=np.concatenate([mesh.vertices for mesh in meshes]),
-        triangles=np.concatenate(
-            [mesh.triangles + o for mesh, o in zip(meshes, offsets, strict=True)]
-        ),
-        uv=np.concatenate([mesh.uv for mesh in meshes]),
-        normals=np.concatenate([mesh.normals for mesh in meshes]),
-        tangents=np.concatenate([mesh.tangents for mesh in meshes]),
-        material_ids=np.concatenate([mesh.material_ids for mesh in meshes]),
-    )
+    triangles = [mesh.triangles + o for mesh, o in zip(meshes, offsets, strict=True)]
+    names = ("vertices", "uv", "normals", "tangents", "material_ids")
+    merged = {name: np.concatenate([getattr(mesh, name) for mesh in meshes]) for name in names}
+    return Mesh(triangles=np.concatenate(triangles), **merged)
 
 
 def quad(corner, edge_u, edge_v, *, tiles: float = 1.0, material_id: int = CLOTH) -> Mesh:
@@ -237,8 +226,8 @@ def folded_sheet(
     # dP/du ~ (1, dh/dX, 0) and dP/dv ~ (0, -dh/dZ, -1) (X, Z in the same units as h / half).
     d_du = np.stack([np.full_like(dh_dx, half), dh_dx, np.zeros_like(dh_dx)], axis=-1)
     d_dv = np.stack([np.zeros_like(dh_dz), -dh_dz, np.full_like(dh_dz, -half)], axis=-1)
-    normals = _normalize(np.cross(d_du, d_dv))
-    tangents = _normalize(d_du)  # orthogonal to the normal already
+    normals = unit_vectors(np.cross(d_du, d_dv))
+    tangents = unit_vectors(d_du)  # orthogonal to the normal already
 
     n = resolution + 1
     index = np.arange(n * n).reshape(n, n)
@@ -253,9 +242,6 @@ def folded_sheet(
         tangents=tangents.reshape(-1, 3),
         material_ids=np.full(len(triangles), CLOTH),
     )
-
-
-# ---------------------------------------------------------------------- camera, lights
 
 
 @dataclass(frozen=True)
@@ -293,8 +279,8 @@ class Camera:
 
     def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unit (right, up, forward) vectors of the camera, each of shape (3,)."""
-        forward = _normalize(self.look_at - self.position)
-        right = _normalize(np.cross(forward, self.up))
+        forward = unit_vectors(self.look_at - self.position)
+        right = unit_vectors(np.cross(forward, self.up))
         return right, np.cross(right, forward), forward
 
     def rays(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -314,7 +300,7 @@ class Camera:
         half_width = half_height * self.width / self.height
         sx = (2.0 * np.asarray(x, dtype=np.float64) / self.width - 1.0) * half_width
         sy = (1.0 - 2.0 * np.asarray(y, dtype=np.float64) / self.height) * half_height
-        directions = _normalize(forward + sx[:, None] * right + sy[:, None] * up)
+        directions = unit_vectors(forward + sx[:, None] * right + sy[:, None] * up)
         return np.broadcast_to(self.position, directions.shape).copy(), directions
 
 

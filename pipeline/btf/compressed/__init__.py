@@ -1,16 +1,13 @@
 """The compressed BTF of method A as one file: ``btf.safetensors``.
 
 What each model of method A stores after compression, in a `safetensors
-<https://huggingface.co/docs/safetensors>`_ file, with everything needed to evaluate it in
-the file's metadata: Neural BTF and its clustered variant (PAPERS.md A: decoder weights,
-the latents, the list; the per-texel scale of the graininess fix when used) and the PCA
-baseline (mean, basis, coefficients; :mod:`pipeline.btf.linear`).
-:func:`write_compressed` (Neural BTF, clustered) and :func:`write_compressed_pca` write
-one, :func:`load_compressed` reads either back as an object that answers RGB queries
-(:class:`CompressedBTF`: numpy, safetensors and torch only; :class:`CompressedPCA`: numpy,
-safetensors and scipy; a renderer needs neither MLflow nor Hydra); :mod:`pipeline.btf.export`
-writes the file of a run into the stage cache and logs it to MLflow, with an MLflow pyfunc
-model around it.
+<https://huggingface.co/docs/safetensors>`_ file whose metadata hold everything needed to
+evaluate it: Neural BTF and its clustered variant (PAPERS.md A) and the PCA baseline
+(:mod:`pipeline.btf.linear`). :func:`write_compressed` and :func:`write_compressed_pca`
+write one; :func:`load_compressed` reads either back as an object that answers RGB queries
+without MLflow or Hydra (:class:`CompressedBTF`: numpy, safetensors and torch;
+:class:`CompressedPCA`: numpy, safetensors and scipy); :mod:`pipeline.btf.export` writes
+the file of a run into the stage cache and logs it to MLflow as a pyfunc model.
 
 Layout (format version 1)
 -------------------------

@@ -1,8 +1,5 @@
-"""The compressed BTF file's constants and its safetensors container
-(:mod:`pipeline.btf.compressed`, whose docstring is the format's specification): the
-format's names and allowed values, the file's bytes from tensors and metadata
-(:func:`safetensors_bytes`), and its header read back and counted (:func:`read_header`,
-:func:`payload_bytes`, :func:`support_bytes`, :func:`header_bytes`, :func:`stored_parts`).
+"""The compressed BTF file's names and allowed values, its bytes from tensors and metadata,
+and its header read back and counted (the format: :mod:`pipeline.btf.compressed`).
 """
 
 from __future__ import annotations
@@ -164,22 +161,15 @@ def stored_parts(path: str | os.PathLike) -> dict[str, dict]:
     """Each of Table 1's parts as the file stores it, read from its header:
     ``{"decoder": {"dtype": "float32", "bytes": 97532}, ...}`` (parts it lacks left out; a
     part whose tensors differ in type lists them, e.g. ``"float16+float32"``)."""
-    _, header = read_header(path)
-    parts: dict[str, dict] = {}
-    for name, info in header.items():
-        if name == "__metadata__":
-            continue
-        part = _table1_part(name)
-        if part is None:
-            continue
-        found = parts.setdefault(part, {"dtypes": set(), "bytes": 0})
-        found["dtypes"].add(SAFETENSORS_DTYPES.get(info["dtype"], info["dtype"]))
-        start, stop = info["data_offsets"]
-        found["bytes"] += stop - start
-    return {
-        part: {"dtype": "+".join(sorted(found["dtypes"])), "bytes": found["bytes"]}
-        for part, found in parts.items()
-    }
+    dtypes: dict[str, set[str]] = {}
+    sizes: dict[str, int] = {}
+    for name, info in read_header(path)[1].items():
+        part = _table1_part(name)  # None for "__metadata__" too
+        if part is not None:
+            dtypes.setdefault(part, set()).add(SAFETENSORS_DTYPES.get(info["dtype"], info["dtype"]))
+            start, stop = info["data_offsets"]
+            sizes[part] = sizes.get(part, 0) + stop - start
+    return {part: {"dtype": "+".join(sorted(dtypes[part])), "bytes": sizes[part]} for part in sizes}
 
 
 def _table1_part(name: str) -> str | None:

@@ -1,7 +1,6 @@
-"""Reading a compressed BTF file back (:mod:`pipeline.btf.compressed`, whose docstring is
-the layout): :func:`load_compressed` gives a :class:`CompressedBTF` (Neural BTF, latent
-texture, clustered) or a :class:`CompressedPCA` (the PCA baseline), each answering RGB
-queries with numpy, safetensors and torch or scipy only.
+"""Reading a compressed BTF file back (the format: :mod:`pipeline.btf.compressed`):
+:func:`load_compressed` gives a :class:`CompressedBTF` (Neural BTF, latent texture,
+clustered) or a :class:`CompressedPCA` (the PCA baseline).
 """
 
 from __future__ import annotations
@@ -33,14 +32,25 @@ if TYPE_CHECKING:
 _ROWS_PER_BATCH = 1 << 16
 
 
+@dataclass(kw_only=True)
 class _CompressedFile:
-    """What every model read back from a file answers (:class:`CompressedBTF`,
-    :class:`CompressedPCA`): its crop, its texels, and every texel at every direction.
-    Subclasses have ``path``, ``crop_size``, ``metadata`` and ``query``."""
+    """What every model read back from a file has (:class:`CompressedBTF`,
+    :class:`CompressedPCA`) and answers: its crop, its texels, and every texel at every
+    direction (subclasses define ``query``).
+
+    Attributes
+    ----------
+    path : the file it was read from.
+    alpha : the model's normalised output x alpha = linear RGB in the data's units.
+    crop_size, crop_offset : (rows, cols) and (row, col) of the crop; M = rows x cols.
+    metadata : every metadata string of the file, as stored.
+    """
 
     path: Path
+    alpha: float
     crop_size: tuple[int, int]
-    metadata: dict[str, str]
+    crop_offset: tuple[int, int]
+    metadata: dict[str, str] = field(default_factory=dict)
 
     @property
     def n_texels(self) -> int:
@@ -63,6 +73,7 @@ class _CompressedFile:
         return self.query(np.arange(self.n_texels), directions)
 
     def _texels(self, texels) -> np.ndarray:
+        """``texels`` checked: a 1-D array of ints in [0, M), as int64."""
         texels = np.asarray(texels)
         if texels.ndim != 1 or not (texels.size == 0 or np.issubdtype(texels.dtype, np.integer)):
             raise ValueError(
@@ -83,32 +94,31 @@ class _CompressedFile:
             )
         return directions
 
+    def _pairs(self, texels, directions) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_texels` and :meth:`_directions`, of one length n (``query_pairs``)."""
+        texels, directions = self._texels(texels), self._directions(directions)
+        if len(directions) != len(texels):
+            raise ValueError(f"{len(texels)} texels but {len(directions)} direction pairs")
+        return texels, directions
 
-@dataclass
+
+@dataclass(kw_only=True)
 class CompressedBTF(_CompressedFile):
     """A compressed BTF read back from its file (:func:`load_compressed`).
 
     Attributes
     ----------
-    path : the file it was read from.
     decoder : :class:`pipeline.btf.model.Decoder` in float32 (weights as stored, widened).
     latents : ndarray of shape (R, latent), in the stored dtype.
     latent_of_texel : ndarray of shape (M,), in the stored dtype; None = the identity.
     texel_scale : ndarray of shape (M,), in the stored dtype; None when not used.
-    alpha : normalised output x alpha = linear RGB in the data's units.
-    crop_size, crop_offset : (rows, cols) and (row, col) of the crop; M = rows x cols.
-    metadata : every metadata string of the file, as stored.
+    path, alpha, crop_size, crop_offset, metadata : as every file's (``_CompressedFile``).
     """
 
-    path: Path
     decoder: Decoder
     latents: np.ndarray
     latent_of_texel: np.ndarray | None
     texel_scale: np.ndarray | None
-    alpha: float
-    crop_size: tuple[int, int]
-    crop_offset: tuple[int, int]
-    metadata: dict[str, str] = field(default_factory=dict)
 
     @property
     def k(self) -> int | None:
@@ -147,10 +157,7 @@ class CompressedBTF(_CompressedFile):
         """
         import torch
 
-        texels = self._texels(texels)
-        directions = self._directions(directions)
-        if len(directions) != len(texels):
-            raise ValueError(f"{len(texels)} texels but {len(directions)} direction pairs")
+        texels, directions = self._pairs(texels, directions)
         ids = texels if self.latent_of_texel is None else self.latent_of_texel[texels]
         latents = np.asarray(self.latents, dtype=np.float32)
         features = direction_features(directions)
@@ -180,7 +187,7 @@ class CompressedBTF(_CompressedFile):
         return out
 
 
-@dataclass
+@dataclass(kw_only=True)
 class CompressedPCA(_CompressedFile):
     """The PCA baseline read back from its file (:func:`load_compressed`, method ``pca``):
     the same queries as :class:`CompressedBTF`, evaluated as the renderer evaluates the
@@ -188,24 +195,16 @@ class CompressedPCA(_CompressedFile):
 
     Attributes
     ----------
-    path : the file it was read from.
     mean : ndarray of shape (3N,); basis : ndarray of shape (c, 3N); coefficients :
         ndarray of shape (M, c): normalised units, in the stored dtype.
     measured_directions : ndarray of shape (N, 4), float64 radians.
-    alpha : normalised value x alpha = linear RGB in the data's units.
-    crop_size, crop_offset : (rows, cols) and (row, col) of the crop; M = rows x cols.
-    metadata : every metadata string of the file, as stored.
+    path, alpha, crop_size, crop_offset, metadata : as every file's (``_CompressedFile``).
     """
 
-    path: Path
     mean: np.ndarray
     basis: np.ndarray
     coefficients: np.ndarray
     measured_directions: np.ndarray
-    alpha: float
-    crop_size: tuple[int, int]
-    crop_offset: tuple[int, int]
-    metadata: dict[str, str] = field(default_factory=dict)
 
     @property
     def k(self) -> None:
@@ -221,7 +220,12 @@ class CompressedPCA(_CompressedFile):
         """The renderer's PCA material over these arrays
         (:class:`pipeline.btf.render.surfaces.LinearMaterial`), built on first use."""
         return pca_material(
-            self._tensors(self.mean, self.basis, self.coefficients), self.alpha, self.crop_size
+            self.mean,
+            self.basis,
+            self.coefficients,
+            self.measured_directions,
+            self.alpha,
+            self.crop_size,
         )
 
     def query_pairs(self, texels, directions) -> np.ndarray:
@@ -231,28 +235,17 @@ class CompressedPCA(_CompressedFile):
         texels : array_like of ints of shape (n,); directions : array_like of shape (n, 4)
         in radians -> ndarray of shape (n, 3), float32.
         """
-        texels = self._texels(texels)
-        directions = self._directions(directions)
-        if len(directions) != len(texels):
-            raise ValueError(f"{len(texels)} texels but {len(directions)} direction pairs")
+        texels, directions = self._pairs(texels, directions)
         return self.material.evaluate(texels, directions)
 
     def query(self, texels, directions) -> np.ndarray:
-        """Linear RGB of every given texel at every given direction pair.
+        """Linear RGB of every given texel at every given direction pair, as
+        :meth:`CompressedBTF.query`: (T,) ints, (D, 4) radians -> (T, D, 3) float32.
 
         The model is linear in its coefficients, so the mean and the c basis vectors are
         interpolated once per direction pair and combined with each texel's coefficients:
         (c + 1) D interpolations, not T D. Equal to :meth:`query_pairs` up to float32
         rounding (the sums run in another order).
-
-        Parameters
-        ----------
-        texels : array_like of ints of shape (T,), indices in [0, M).
-        directions : array_like of shape (D, 4), radians.
-
-        Returns
-        -------
-        ndarray of shape (T, D, 3), float32.
         """
         texels = self._texels(texels)
         directions = self._directions(directions)
@@ -274,18 +267,11 @@ class CompressedPCA(_CompressedFile):
     def _basis_material(self):
         """A material whose pseudo-texel 0 is the mean and i + 1 basis vector i, scaled."""
         stacked = np.concatenate([self.mean[None], self.basis]).astype(np.float32)
-        tensors = self._tensors(
-            np.zeros_like(stacked[0]), stacked, np.eye(len(stacked), dtype=np.float32)
+        identity = np.eye(len(stacked), dtype=np.float32)
+        zero = np.zeros_like(stacked[0])
+        return pca_material(
+            zero, stacked, identity, self.measured_directions, self.alpha, (1, len(stacked))
         )
-        return pca_material(tensors, self.alpha, (1, len(stacked)))
-
-    def _tensors(self, mean, basis, coefficients) -> dict[str, np.ndarray]:
-        return {
-            "mean": mean,
-            "basis": basis,
-            "coefficients": coefficients,
-            "measured_directions": self.measured_directions,
-        }
 
 
 def load_compressed(path: str | os.PathLike) -> CompressedBTF | CompressedPCA:
@@ -328,9 +314,7 @@ def load_compressed(path: str | os.PathLike) -> CompressedBTF | CompressedPCA:
         latent, hidden, layers = (
             int(meta[f"decoder_{key}"]) for key in ("latent", "hidden", "layers")
         )
-        alpha = float(meta["alpha"])
-        crop_size = tuple(int(v) for v in json.loads(meta["crop_size"]))
-        crop_offset = tuple(int(v) for v in json.loads(meta["crop_offset"]))
+        common = _common(meta)
         decoder = Decoder(latent=latent, hidden=hidden, layers=layers)
         state = {
             f"net.{2 * i}.{part}": torch.from_numpy(
@@ -351,19 +335,16 @@ def load_compressed(path: str | os.PathLike) -> CompressedBTF | CompressedPCA:
         latents=latents,
         latent_of_texel=tensors.get("latent_of_texel"),
         texel_scale=tensors.get("texel_scale"),
-        alpha=alpha,
-        crop_size=crop_size,
-        crop_offset=crop_offset,
+        **common,
         metadata=meta,
     )
     m = btf.n_texels
-    expected = m if btf.latent_of_texel is None else None
     if (
-        (expected is not None and latents.shape[0] != expected)
+        (btf.latent_of_texel is None and latents.shape[0] != m)
         or (btf.latent_of_texel is not None and btf.latent_of_texel.shape != (m,))
         or (btf.texel_scale is not None and btf.texel_scale.shape != (m,))
     ):
-        raise DataError(f"{path}: the tensors do not fit a crop of {crop_size} texels")
+        raise DataError(f"{path}: the tensors do not fit a crop of {btf.crop_size} texels")
     return btf
 
 
@@ -381,9 +362,7 @@ def _load_pca(path: Path, tensors: dict[str, np.ndarray], meta: dict[str, str]) 
             basis=tensors["basis"],
             coefficients=tensors["coefficients"],
             measured_directions=tensors["measured_directions"],
-            alpha=float(meta["alpha"]),
-            crop_size=tuple(int(v) for v in json.loads(meta["crop_size"])),
-            crop_offset=tuple(int(v) for v in json.loads(meta["crop_offset"])),
+            **_common(meta),
             metadata=meta,
         )
         pca.material  # noqa: B018 (built now: arrays that do not fit are refused here)
@@ -394,17 +373,19 @@ def _load_pca(path: Path, tensors: dict[str, np.ndarray], meta: dict[str, str]) 
     return pca
 
 
-def pca_material(tensors: dict[str, np.ndarray], alpha: float, crop_size):
+def _common(meta: dict[str, str]) -> dict:
+    """``alpha``, ``crop_size`` and ``crop_offset`` of a file's metadata."""
+    alpha = float(meta["alpha"])
+    size, offset = (
+        tuple(int(v) for v in json.loads(meta[k])) for k in ("crop_size", "crop_offset")
+    )
+    return {"alpha": alpha, "crop_size": size, "crop_offset": offset}
+
+
+def pca_material(mean, basis, coefficients, measured_directions, alpha: float, crop_size):
     """The renderer's PCA material (:class:`pipeline.btf.render.surfaces.LinearMaterial`)
     of a PCA file's tensors: the one evaluation of the format's interpolation (the reader's
     and, before it writes a file, :func:`pipeline.btf.compressed.write_compressed_pca`'s)."""
     from pipeline.btf.render.surfaces import LinearMaterial
 
-    return LinearMaterial(
-        tensors["mean"],
-        tensors["basis"],
-        tensors["coefficients"],
-        tuple(crop_size),
-        alpha,
-        tensors["measured_directions"],
-    )
+    return LinearMaterial(mean, basis, coefficients, tuple(crop_size), alpha, measured_directions)

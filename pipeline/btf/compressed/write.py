@@ -1,7 +1,5 @@
-"""Writing a compressed BTF file (:mod:`pipeline.btf.compressed`, whose docstring is the
-layout): :func:`write_compressed` (Neural BTF, latent texture, clustered) and
-:func:`write_compressed_pca` (the PCA baseline), each atomically and with the same bytes
-for the same model.
+"""Writing a compressed BTF file (the format: :mod:`pipeline.btf.compressed`), atomically and
+with the same bytes for the same model.
 """
 
 from __future__ import annotations
@@ -78,44 +76,6 @@ def write_compressed(
     DataError
         Naming ``path`` and the space left, when the disk is full.
     """
-    tensors, meta = _contents(
-        decoder,
-        latents,
-        alpha,
-        crop_size,
-        crop_offset,
-        method,
-        k,
-        dataset,
-        latent_of_texel,
-        texel_scale,
-        texel_scale_mode,
-        weight_dtype,
-        list_dtype,
-        extra_dtype,
-    )
-    path = Path(path)
-    write_atomic(path, safetensors_bytes(tensors, meta))
-    return path
-
-
-def _contents(
-    decoder,
-    latents,
-    alpha,
-    crop_size,
-    crop_offset,
-    method,
-    k,
-    dataset,
-    latent_of_texel,
-    texel_scale,
-    texel_scale_mode,
-    weight_dtype,
-    list_dtype,
-    extra_dtype,
-) -> tuple[dict[str, np.ndarray], dict[str, str]]:
-    """The tensors and metadata of a file, after checking that they fit together."""
     for name, value, allowed in (
         ("method", method, METHODS),
         ("texel_scale_mode", texel_scale_mode, TEXEL_SCALES),
@@ -192,7 +152,9 @@ def _contents(
         "k": json.dumps(k),
         "texel_scale": texel_scale_mode,
     }
-    return tensors, meta
+    path = Path(path)
+    write_atomic(path, safetensors_bytes(tensors, meta))
+    return path
 
 
 def _common_metadata(method, alpha, crop_size, crop_offset, weight_dtype, dataset) -> dict:
@@ -270,7 +232,7 @@ def write_compressed_pca(
         "measured_directions": np.ascontiguousarray(measured),
     }
     # Built as the reader builds it: a file that is written can be queried.
-    pca_material(tensors, float(alpha), json.loads(meta["crop_size"]))
+    pca_material(**tensors, alpha=float(alpha), crop_size=json.loads(meta["crop_size"]))
     meta.update(
         n_components=str(basis.shape[0]),
         n_directions=str(n),

@@ -1,3 +1,3 @@
 """The fast training path of method A: the decoder step written out by hand (``fused``),
 its C++ kernels (``kernels``), opt-in machine tuning (``tuning``) and the benchmark that
-measures them (``bench``, ``python -m pipeline.bench``)."""
+measures them (``python -m benchmarks.train``)."""

@@ -1,28 +1,26 @@
 """The encoder's training forward and backward by hand: block by block, a few ABRDFs at a time.
 
 Why not autograd over the whole batch (``Encoder.forward_layers``): at
-``experiment=paper_cpu``'s batch of 32 ABRDFs x 6561 directions each block's convolution
-output is many MB (13 MB for the first block), far past a core's L2 cache, and autograd
-makes separate passes over it for the max-pool, its indices, the ReLU, batch-norm and each
-of their gradients, most of them into freshly allocated memory that the kernel faults in
-page by page. The convolutions themselves are a minority of that step's time
-(docs/performance.md). Here, for each block (conv -> max-pool -> ReLU -> batch-norm):
+``experiment=paper_cpu``'s 32 ABRDFs x 6561 directions, each block's convolution output
+(13 MB for the first) is far past a core's L2 cache, and autograd makes separate passes
+over it for the max-pool, its indices, the ReLU, batch-norm and each of their gradients,
+mostly into fresh memory that the kernel faults in page by page; the convolutions are a
+minority of that step's time (docs/performance.md). Here, for each block (conv ->
+max-pool -> ReLU -> batch-norm):
 
 - forward, one chunk of ABRDFs at a time (about :data:`CHUNK_BYTES` of convolution output):
   the convolution (oneDNN, channels-last), torch's max-pool with its indices and the ReLU,
   then the chunk's batch-norm statistics, merged across chunks (Chan, Golub and LeVeque's
-  pairwise update). What is kept is the pooled output ``r`` (B, L/3, C) and the indices;
-  the normalized output is recomputed from ``r`` (one multiply-add) by the next block, chunk
-  by chunk, in forward and backward;
+  pairwise update). Only the pooled output ``r`` (B, L/3, C) and the indices are kept; the
+  next block recomputes the normalized output from ``r`` (one multiply-add) chunk by chunk;
 - backward, one chunk at a time: batch-norm's gradient from its two per-channel sums (summed
   while the block above produced the chunk's gradient), the ReLU's, the max-pool's (torch's
   kernel, from the kept indices) and the convolution's (oneDNN).
 
-Batch-norm uses the whole batch's statistics as ``nn.BatchNorm1d`` in training mode does,
-and updates the running statistics the same way. The result is the function of
-``Encoder.reference`` with its gradients, up to rounding (``tests/test_encoder_speed.py``):
-the same max-pool kernel (the first maximum of a triple gets the gradient), other summation
-orders for batch-norm's statistics.
+Batch-norm uses, and updates the running statistics with, the whole batch's statistics as
+``nn.BatchNorm1d`` in training mode does. The result is ``Encoder.reference``'s with its
+gradients up to rounding (``tests/test_encoder_speed.py``): the same max-pool kernel (the
+first maximum of a triple gets the gradient), other summation orders for the statistics.
 
 Layouts: a block's input and output are (B, L, C) tensors, channel fastest: the memory of a
 channels-last (B, C, 1, L) tensor, which oneDNN's convolution and torch's max-pool take as
@@ -32,6 +30,7 @@ weight's columns permuted to match (the plain layout's flatten is channel-major)
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -44,6 +43,10 @@ from torch.autograd.function import once_differentiable
 # output and indices should stay in a core's L2 cache between the ops that read them.
 CHUNK_BYTES = 2 << 20
 _CL = torch.channels_last
+# The (B, C, 1, L) max-pool's kernel, stride, padding, dilation and ceil_mode: 3 along L.
+_POOL = ([1, 3], [1, 3], [0, 0], [1, 1], False)
+# The convolution's stride, padding, dilation, transposed, output padding and groups.
+_CONV = ([1, 1], [0, 1], [1, 1], False, [0, 0], 1)
 
 
 def encode_for_training(
@@ -143,16 +146,9 @@ class _EncoderFunction(torch.autograd.Function):
         blocks: list[_Block] = []
         for i, norm in enumerate(norms):
             length = x.shape[1] if i == 0 else blocks[-1].r.shape[1]
-            block = _forward_block(
-                lambda s, e, i=i: _block_input(x, blocks, i, s, e),
-                params[4 * i],
-                params[4 * i + 1],
-                norm.eps,
-                length,
-                batch,
-                chunk_bytes,
-            )
-            gamma, beta = params[4 * i + 2 : 4 * i + 4]
+            weight, bias, gamma, beta = params[4 * i : 4 * i + 4]
+            input_of = functools.partial(_block_input, x, blocks, i)
+            block = _forward_block(input_of, weight, bias, norm.eps, length, batch, chunk_bytes)
             block.scale = gamma * block.invstd
             block.shift = beta - block.mean * block.scale
             _update_running_stats(norm, block)
@@ -207,14 +203,7 @@ def _forward_block(input_of, weight, bias, eps, length, batch, chunk_bytes) -> _
         y = F.conv2d(_channels_last(input_of(s, e)), kernel, bias, padding=(0, 1))
         # Straight into r and the indices (both channels-last slices): no copies.
         torch.ops.aten.max_pool2d_with_indices.out(
-            y,
-            [1, 3],
-            [1, 3],
-            [0, 0],
-            [1, 1],
-            False,
-            out=_channels_last(r[s:e]),
-            indices=indices[s:e],
+            y, *_POOL, out=_channels_last(r[s:e]), indices=indices[s:e]
         )
         rows = r[s:e].clamp_min_(0).view(-1, channels)
         # Chan, Golub and LeVeque's update of (count, mean, squares) by this chunk's.
@@ -272,28 +261,11 @@ def _backward_block(
         g_pooled = torch.ops.aten.threshold_backward(g_r, r, 0)  # the ReLU
         template = torch.empty((e - s, channels, 1, block.length), memory_format=_CL, **options)
         g_y = torch.ops.aten.max_pool2d_with_indices_backward(
-            _channels_last(g_pooled),
-            template,
-            [1, 3],
-            [1, 3],
-            [0, 0],
-            [1, 1],
-            False,
-            block.indices[s:e],
+            _channels_last(g_pooled), template, *_POOL, block.indices[s:e]
         )
-        h = _block_input(x, blocks, i, s, e)
+        h = _channels_last(_block_input(x, blocks, i, s, e)).contiguous(memory_format=_CL)
         g_h, g_w, g_b = torch.ops.aten.convolution_backward(
-            g_y,
-            _channels_last(h).contiguous(memory_format=_CL),
-            kernel,
-            [channels],
-            [1, 1],
-            [0, 1],
-            [1, 1],
-            False,
-            [0, 0],
-            1,
-            [need_input, True, True],
+            g_y, h, kernel, [channels], *_CONV, [need_input, True, True]
         )
         g_weight += g_w
         g_bias += g_b

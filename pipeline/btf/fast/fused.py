@@ -3,44 +3,43 @@
 Why not autograd: on a paper-size step (5 ABRDFs x 6561 directions = 32,805 queries)
 autograd keeps every activation of the whole batch (14 MB a layer, far past a core's L2
 cache), makes separate passes for bias, ReLU and their gradients, and runs the thin
-106-wide products on one intra-op thread pool that barely scales past one core
-(``python -m pipeline.bench`` compares the two; figures in docs/performance.md). Here
+106-wide products on an intra-op thread pool that barely scales past one core
+(``python -m benchmarks.train`` compares the two; figures in docs/performance.md). Here
 
 - each chunk of queries goes forward and straight back while its activations are in cache;
 - biases are fused into the products; where the C++ kernels of :mod:`pipeline.btf.fast.kernels`
   build (:func:`_chunks_fused`), the last layer's forward, residual, loss and backward into
-  the last hidden layer are one pass over that layer's activations (seven torch calls
-  otherwise), and each ReLU's gradient is one pass with its bias gradient or the first
-  layer's weight gradient (two calls otherwise): fewer passes over activations that do
-  not fit a core's L2 cache together;
-- no (latent, direction) input row is ever built: the first layer's latent part is
-  computed once per ABRDF and enters as a weight column picked by a one-hot input (see
-  :meth:`DecoderStep.__call__`), so that a chunk may span ABRDFs and its size is free of
-  the batch's shape (chunks that stopped at each ABRDF's end were small, and slow, at
-  ``experiment=paper_cpu``'s 256 queries per ABRDF). The one-hot input adds B
+  the last hidden layer are one pass over its activations (seven torch calls otherwise),
+  and each ReLU's gradient is one pass with its bias gradient or the first layer's weight
+  gradient (two calls otherwise);
+- no (latent, direction) input row is built: the first layer's latent part is computed
+  once per ABRDF and enters as a weight column picked by a one-hot input
+  (:meth:`DecoderStep.__call__`), so a chunk may span ABRDFs and its size is free of the
+  batch's shape (chunks that ended with each ABRDF were small, and slow, at
+  ``experiment=paper_cpu``'s 256 queries per ABRDF). The one-hot input costs B
   multiply-adds per hidden unit and query, few at the batches used (5, 32);
 - chunks run on ``workers`` threads, each op single-threaded, with private gradient buffers
   summed in a fixed order at the end (deterministic for a given number of workers);
 - each worker's chunk loop is a TorchScript function, whose interpreter does not hold
-  Python's GIL; in eager mode every one of a chunk's ~36 torch calls hands the GIL between
-  the workers, so that two eager workers were no faster than one in bfloat16. The
-  gradients are bit for bit those of the eager loops.
+  Python's GIL: in eager mode each of a chunk's ~36 torch calls hands the GIL between the
+  workers, and two eager workers were no faster than one in bfloat16. The gradients are
+  bit for bit those of the eager loops.
 
 The result equals autograd's gradient of the mean squared error (``tests/test_fused.py``).
 
 ``precision="bfloat16"`` (``train.precision``) runs the products in bfloat16 with float32
-master weights, what ``torch.autocast(dtype=torch.bfloat16)`` would do to the decoder:
-weights, biases, directions and activations are rounded to bfloat16, each product sums in
-float32 and rounds its output to bfloat16; the residual, the loss and the accumulated
-gradients stay float32. Where the CPU supports bfloat16, each hidden layer and its ReLU
-is one oneDNN call (plain products elsewhere). It pays on a CPU with AMX or AVX512-BF16;
-without them the products take slower code paths (check with ``python -m pipeline.bench``;
-docs/performance.md). The gradient differs from float32's by bfloat16's rounding
+master weights, as ``torch.autocast(dtype=torch.bfloat16)`` would: weights, biases,
+directions and activations are rounded to bfloat16, each product sums in float32 and
+rounds its output to bfloat16; the residual, the loss and the accumulated gradients stay
+float32. Where the CPU supports bfloat16, each hidden layer and its ReLU is one oneDNN
+call. It pays on a CPU with AMX or AVX512-BF16, elsewhere the products take slower paths
+(docs/performance.md). The gradient differs from float32's by bfloat16's rounding
 (``tests/test_fused.py`` bounds it).
 """
 
 from __future__ import annotations
 
+import functools
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -85,14 +84,10 @@ def _layers(decoder: Decoder) -> list[torch.nn.Linear]:
     return layers
 
 
-_SCRIPTED: dict = {}
-
-
+@functools.cache
 def _script(function):
     """``torch.jit.script(function)``, compiled once per process."""
-    if function not in _SCRIPTED:
-        _SCRIPTED[function] = torch.jit.script(function)
-    return _SCRIPTED[function]
+    return torch.jit.script(function)
 
 
 class DecoderStep:
@@ -137,10 +132,11 @@ class DecoderStep:
             self._pool.shutdown()
 
     def __call__(self, batch: Batch) -> Gradients:
-        weights, biases = self._parameters()
+        layers = _layers(self.decoder)
+        weights = [layer.weight.detach() for layer in layers]
+        biases = [layer.bias.detach() for layer in layers]
         n_latent, n_direction = self.decoder.latent, self.features.shape[1]
         z = batch.latents.detach()
-        b, q = batch.directions.shape
         dtype = self.features.dtype
         # The first layer, W1 [z; d] + b1 = W1d d + (W1z z + b1), as one product over input
         # rows [d, e_i]: a query's direction features, then the one-hot e_i of its ABRDF i,
@@ -152,7 +148,7 @@ class DecoderStep:
         inputs = self._rows(batch.directions)
         low = [first.to(dtype)] + [w.to(dtype) for w in weights[1:]]
         low_biases = [bias.to(dtype) for bias in biases[1:]]
-        rows = b * q
+        rows = batch.directions.numel()
         targets = batch.targets.reshape(rows, -1).contiguous()
         # oneDNN's fused bfloat16 layer has no primitive on CPUs without bfloat16 support
         # (AVX-512 BF16 or AMX; an AVX2-only CPU refuses it): plain products there.
@@ -162,16 +158,9 @@ class DecoderStep:
             and torch.backends.mkldnn.is_available()
             and torch.ops.mkldnn._is_mkldnn_bf16_supported()
         )
-        parts = self._run(
-            split_rows(rows, self.workers, self.chunk),
-            inputs,
-            targets,
-            low,
-            low_biases,
-            2.0 / targets.numel(),
-            onednn,
-        )
-        g_w, g_b, loss = _sum(parts)
+        items = split_rows(rows, self.workers, self.chunk)
+        scale = 2.0 / targets.numel()  # d(mean squared error)/d(residual) = scale x residual
+        g_w, g_b, loss = _sum(self._run(items, inputs, targets, low, low_biases, scale, onednn))
         # The one-hot columns' gradient is dL/d(W1z z_i + b1) per ABRDF i; W1z's, b1's and
         # z's gradients follow from it.
         hidden = g_w[0][:, n_direction:].T  # (B, 106)
@@ -190,22 +179,12 @@ class DecoderStep:
         one-hot part is built once per batch shape and kept."""
         b, q = directions.shape
         n = self.features.shape[1]
+        options = {"dtype": self.features.dtype, "device": self.features.device}
         if self._inputs.shape != (b * q, n + b):
-            self._inputs = torch.zeros(
-                b * q, n + b, dtype=self.features.dtype, device=self.features.device
-            )
-            self._inputs.view(b, q, n + b)[:, :, n:] = torch.eye(
-                b, dtype=self.features.dtype, device=self.features.device
-            )[:, None, :]
+            self._inputs = torch.zeros(b * q, n + b, **options)
+            self._inputs.view(b, q, n + b)[:, :, n:] = torch.eye(b, **options)[:, None, :]
         self._inputs[:, :n] = self.features.index_select(0, directions.reshape(-1))
         return self._inputs
-
-    def _parameters(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-        layers = _layers(self.decoder)
-        return (
-            [layer.weight.detach() for layer in layers],
-            [layer.bias.detach() for layer in layers],
-        )
 
     def _run(self, items_of_worker: list[list], *shared) -> list[tuple]:
         """Worker 0's chunks on the calling thread, each other worker's on a pool thread."""
@@ -288,11 +267,9 @@ def _chunks_fused(
     scale: float,
     onednn: bool,
 ):
-    """:func:`_chunks` with the fused kernels of :mod:`pipeline.btf.fast.kernels`: the last
-    layer's forward and backward with the residual and loss in one pass, and each ReLU's
-    gradient with its bias gradient (layer 2) or the first layer's weight gradient (layer
-    1). In bfloat16 the first and last layers' weight gradients and all bias gradients sum
-    in ``targets``' type with no rounding to bfloat16 in between (``_chunks`` rounds each
+    """:func:`_chunks` with the fused kernels of :mod:`pipeline.btf.fast.kernels`. In
+    bfloat16 the first and last layers' weight gradients and all bias gradients sum in
+    ``targets``' type with no rounding to bfloat16 in between (``_chunks`` rounds each
     chunk's product and column sum); layers 2-3's weight gradients are ``_accumulate``'s,
     as there. The first layer's weight gradient is returned as a transposed view. Runs as
     TorchScript."""

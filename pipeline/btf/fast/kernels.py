@@ -1,34 +1,29 @@
 """The decoder step's fused C++ kernels (``kernels.cpp``), built on first use.
 
-Each kernel does in one pass over a chunk's (rows x 106) activations what torch does in
-several (``pipeline.btf.fast.fused`` uses them when :func:`available`):
+Each of the two ops, ``torch.ops.neural_btf.output_layer`` and ``relu_backward_`` (the
+top of kernels.cpp says what they compute), does in one pass over a chunk's (rows x 106)
+activations what torch does in several; :mod:`pipeline.btf.fast.fused` uses them when
+:func:`available`.
 
-- ``torch.ops.neural_btf.output_layer``: the last layer's forward, the residual and loss,
-  and the backward into the last hidden layer (its weight and bias gradients, the gradient
-  through its ReLU and that gradient's column sums), which took seven torch calls;
-- ``torch.ops.neural_btf.relu_backward_``: a ReLU's gradient in place, with its column
-  sums (a bias gradient) or the first layer's weight gradient from its input rows.
-
-They are compiled with ``torch.utils.cpp_extension`` (g++ and ninja, which the project
-installs) for this machine's CPU, once per machine and checkout (its duration:
-docs/performance.md): the build lands under ``TORCH_EXTENSIONS_DIR`` (default
-``~/.cache/torch_extensions``), in a folder named by :func:`extension_name`. The build runs
-in a child process under a lock of our own (:func:`load`), so that a build that is killed
-leaves nothing to wait on, and a build that takes longer than
+``torch.utils.cpp_extension`` (g++ and ninja, which the project installs) compiles them
+for this machine's CPU once per machine and checkout (how long: docs/performance.md), under
+``TORCH_EXTENSIONS_DIR`` (default ``~/.cache/torch_extensions``) in a folder named by
+:func:`extension_name`. The build runs in a child process under a lock of our own
+(:func:`load`), so that a killed build leaves nothing to wait on, and is given up after
 ``PIPELINE_KERNELS_BUILD_TIMEOUT`` seconds (default :data:`BUILD_TIMEOUT_S`), waiting for
-another process's build included, is given up.
-Where the build fails (no compiler) or times out, ``train.backend=auto`` trains with the
-autograd backend instead (:mod:`pipeline.btf.backends`) and the fused step, where asked
-for, falls back to plain torch ops; a warning says so once. On a CPU with AVX-512 the
-kernels run on 16-lane vectors (bfloat16 ones also need its bfloat16 instructions);
-elsewhere on what the compiler makes of plain loops (``tests/test_kernels.py`` compares
-the two).
+another process's build included. Where it fails (no compiler) or times out,
+``train.backend=auto`` trains with autograd (:mod:`pipeline.btf.backends`) and the fused
+step, where asked for, falls back to plain torch ops; a warning says so once. On a CPU with
+AVX-512 the kernels run on 16-lane vectors (bfloat16 ones also need its bfloat16
+instructions), elsewhere on what the compiler makes of plain loops
+(``tests/test_kernels.py`` compares the two).
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import hashlib
 import logging
 import math
@@ -57,7 +52,6 @@ TIMEOUT_VARIABLE = "PIPELINE_KERNELS_BUILD_TIMEOUT"
 # its holder, "pid@host", while held.
 OWNER_FILE = "pipeline_build.lock"
 _POLL_S = 0.2
-_state: dict = {}
 
 # The /proc/cpuinfo lines that tell CPUs apart (x86: model name, flags; ARM: CPU part,
 # Features).
@@ -128,15 +122,13 @@ def build_timeout() -> float:
     return seconds
 
 
+@functools.cache
 def available() -> bool:
     """Whether the kernels are loaded, building them on the first call in a process."""
-    if "ok" not in _state:
-        if os.environ.get("PIPELINE_KERNELS") == "0":
-            log.info("PIPELINE_KERNELS=0: the decoder step uses plain torch ops")
-            _state["ok"] = False
-        else:
-            _state["ok"] = load() and hasattr(torch.ops.neural_btf, "output_layer")
-    return _state["ok"]
+    if os.environ.get("PIPELINE_KERNELS") == "0":
+        log.info("PIPELINE_KERNELS=0: the decoder step uses plain torch ops")
+        return False
+    return load() and hasattr(torch.ops.neural_btf, "output_layer")
 
 
 def load(prefix: str = PREFIX, flags: Sequence[str] = FLAGS) -> bool:
@@ -287,17 +279,10 @@ def _build_in_child(
         build_dir,
     )
     start = time.monotonic()
+    seconds = str(math.ceil(left) + 1)  # the child's own limit (its SIGALRM)
+    command = [sys.executable, "-c", _BUILD_SCRIPT, seconds, name, str(build_dir), str(SOURCE)]
     child = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            _BUILD_SCRIPT,
-            str(math.ceil(left) + 1),
-            name,
-            str(build_dir),
-            str(SOURCE),
-            *flags,
-        ],
+        [*command, *flags],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
@@ -325,9 +310,7 @@ def _first_error(output: str, otherwise: str) -> str:
     """The compiler's first error in ``output``, else its last line (ninja's own lines and
     a traceback's come last), else ``otherwise``."""
     lines = [line.strip() for line in output.strip().splitlines() if line.strip()]
-    if not lines:
-        return otherwise
-    return next((line for line in lines if "error:" in line), lines[-1])
+    return next((line for line in lines if "error:" in line), lines[-1] if lines else otherwise)
 
 
 def _tell(message: str, *args) -> None:

@@ -8,12 +8,10 @@
   thread would hold the interpreter's lock the training threads need.
 - :func:`set_omp_spin_count`: ``GOMP_SPINCOUNT``, how long OpenMP's idle threads spin
   before they sleep (libgomp's default, 300,000, keeps them on the cores the decoder's
-  workers need). libgomp reads it once, when torch loads, so it is set at the start of a
-  job, before torch is imported, and cannot change afterwards.
-- :func:`reuse_freed_memory`: glibc keeps freed buffers for reuse while training instead
-  of handing each activation back to the kernel and faulting it in again.
+  workers need); set at the start of a job, before torch loads libgomp, which reads it once.
+- :func:`reuse_freed_memory`: glibc keeps freed buffers for reuse while training.
 
-What each buys is measured by ``python -m pipeline.bench`` (``docs/performance.md``).
+What each buys is measured by ``python -m benchmarks.train`` (``docs/performance.md``).
 """
 
 from __future__ import annotations
@@ -99,18 +97,12 @@ def keep_cpus_awake(threads: int):
     a CPU quota is set (:func:`cpu_quota_set`).
     The block starts once they spin (their start-up would compete with the first steps);
     they end with the block, or on their own within milliseconds if this process dies."""
-    spinners: list[subprocess.Popen] = []
     cpus = sorted(os.sched_getaffinity(0)) if can_keep_awake() else []
-    if threads >= max(2, len(cpus)):
-        for cpu in cpus:
-            spinners.append(
-                subprocess.Popen(
-                    [sys.executable, "-S", "-c", _SPINNER, str(os.getpid()), str(cpu)],
-                    stdin=subprocess.DEVNULL,
-                    stdout=subprocess.PIPE,
-                    stderr=subprocess.DEVNULL,
-                )
-            )
+    if threads < max(2, len(cpus)):
+        cpus = []
+    command = [sys.executable, "-S", "-c", _SPINNER, str(os.getpid())]
+    pipes = {"stdin": subprocess.DEVNULL, "stdout": subprocess.PIPE, "stderr": subprocess.DEVNULL}
+    spinners = [subprocess.Popen([*command, str(cpu)], **pipes) for cpu in cpus]
     try:
         for spinner in spinners:
             spinner.stdout.read()  # "spinning", then end of file
@@ -130,6 +122,7 @@ _MMAP_THRESHOLD_MAX = 32 << 20
 
 
 def glibc():
+    """The C library as a ``ctypes.CDLL`` where it is glibc (it has ``mallopt``), else None."""
     if not sys.platform.startswith("linux"):
         return None
     try:
@@ -145,11 +138,12 @@ def glibc():
 def reuse_freed_memory(trim_threshold: int = 256 << 20):
     """Within the block, glibc's malloc keeps freed buffers of up to 32 MiB for reuse instead
     of returning them to the kernel; on exit, what is free goes back (``malloc_trim``).
+    No-op where glibc is not the C library.
 
     Why: a training step allocates and frees its ~1 MB activations dozens of times, and by
     default glibc returns each one to the kernel, so every step touches fresh pages.
     PyTorch has no caching allocator on the CPU; Intel's tuning guide preloads jemalloc or
-    tcmalloc instead, which a pip install cannot do. No-op where glibc is not the C library.
+    tcmalloc instead, which a pip install cannot do.
     """
     libc = glibc()
     if libc is None:

@@ -6,8 +6,8 @@ renderer :mod:`pipeline.render`.
   material's generator) and the rule for directions beyond the measured grid.
 - :mod:`~pipeline.btf.render.stage`: the cached render stages and their scores.
 - :mod:`~pipeline.btf.render.report`: Fig. 8 and Tables 3-4 from the MLflow runs.
-- :mod:`~pipeline.btf.render.bench`: ``python -m pipeline.btf.render.bench``, the cost of
-  a frame per material.
+
+``python -m benchmarks.render`` measures the cost of a frame per material.
 
 Nothing is imported here, so importing a submodule does not load Embree or torch.
 """

@@ -23,16 +23,14 @@ with Mitsuba and with the project's renderer (:func:`pipeline.render.engine.rend
 prints the seconds of each frame.
 
 What matches the project's renderer, so that both render the same image up to noise
-(``tests/test_mitsuba.py`` checks it): the mesh is written as it is (PLY keeps uv as
-written; the vertex tangents go in as the attribute ``vertex_tangent``, which the BSDF
-uses for its frame); the camera has the same position, look-at, up and vertical field of
-view (``fov_axis`` y); a point light of the same radiant intensity (``intensity``, W/sr:
-irradiance intensity / distance², as :class:`~pipeline.render.scene.PointLight`); the
-floor is Mitsuba's ``diffuse`` of the same albedo; the integrator is ``direct`` (direct
-light only, hard shadows, as the project's renderer), with one light sample and no BSDF
-sample (the lights are points: a BSDF sample cannot reach one); pixels are box-filtered
-(``rfilter`` box: a sample counts in the pixel it falls in, as in the project's renderer).
-Both return linear radiance; neither applies exposure or sRGB, which only the PNG gets.
+(``tests/test_mitsuba.py`` checks it): the mesh as it is (PLY keeps uv as written; the
+vertex tangents, which the BSDF uses for its frame, go in as ``vertex_tangent``); the
+camera's position, look-at, up and vertical field of view; a point light of the same
+radiant intensity (W/sr, as :class:`~pipeline.render.scene.PointLight`); a ``diffuse``
+floor of the same albedo; the ``direct`` integrator (direct light only, hard shadows) with
+one light sample and no BSDF sample (a BSDF sample cannot reach a point light); a box
+pixel filter (a sample counts in the pixel it falls in). Both return linear radiance;
+only the PNG gets exposure and sRGB.
 
 Settings are ``key=value`` (:data:`KEYS`; ``--help`` lists them), read before Mitsuba and
 torch are imported.
@@ -126,9 +124,6 @@ def parse(argv: list[str]) -> MitsubaSceneSettings:
     return settings
 
 
-# ------------------------------------------------------------------------------ materials
-
-
 class QueryMaterial(Material):
     """A compressed model that answers ``query(texels (T,), directions (D, 4)) -> (T, D,
     3)`` (every texel at every direction) as a :class:`Material` (one texel per query):
@@ -177,27 +172,15 @@ def material_from_file(path: str | os.PathLike) -> Material:
     return as_material(load_compressed(path))
 
 
-# --------------------------------------------------------------------------------- scenes
-
-
 def sphere_mesh(
     resolution: int = 48, tiles: float = 4.0, radius: float = 0.8, center=(0.0, -0.35, 0.0)
 ) -> Mesh:
-    """A UV sphere of :data:`CLOTH` triangles, the crop repeating ``tiles`` times from pole
-    to pole and twice as often around.
+    """A UV sphere of :data:`CLOTH` triangles, the crop repeating ``tiles`` (> 0) times from
+    pole to pole and twice as often around; ``resolution`` rings (>= 2) from pole to pole
+    and twice as many segments around, of ``radius`` (> 0) about ``center`` (3,).
 
-    Parameters
-    ----------
-    resolution : int
-        Rings from pole to pole (>= 2); twice as many segments around.
-    tiles, radius : float, > 0
-    center : array_like of shape (3,)
-
-    Returns
-    -------
-    Mesh
-        Tangents along +u (eastwards, around +y), bitangents n x t along +v (northwards),
-        normals outwards; one triangle per quad at the poles (no degenerate triangles).
+    Tangents run along +u (eastwards, around +y), bitangents n x t along +v (northwards),
+    normals outwards; one triangle per quad at the poles (no degenerate triangles).
     """
     if int(resolution) != resolution or resolution < 2:
         raise ValueError(f"resolution={resolution!r} must be an integer >= 2")
@@ -345,17 +328,9 @@ def scene_description(scene: Scene, folder: str | os.PathLike, bsdf, spp: int = 
         },
     }
     ids = scene.mesh.material_ids
-    for name, material_id, shape_bsdf in (
-        ("cloth", CLOTH, bsdf),
-        (
-            "floor",
-            FLOOR,
-            {
-                "type": "diffuse",
-                "reflectance": {"type": "rgb", "value": [float(v) for v in scene.floor_albedo]},
-            },
-        ),
-    ):
+    albedo = {"type": "rgb", "value": [float(v) for v in scene.floor_albedo]}
+    floor = {"type": "diffuse", "reflectance": albedo}
+    for name, material_id, shape_bsdf in (("cloth", CLOTH, bsdf), ("floor", FLOOR, floor)):
         if np.any(ids == material_id):
             path = write_ply(folder / f"{name}.ply", scene.mesh, np.flatnonzero(ids == material_id))
             description[name] = {

@@ -5,13 +5,9 @@ std over seeds, at the largest samples per pixel; the graininess table follows b
 through every spp, with the ratio of high-frequency energy to the target's (above 1: the
 model adds grain); the cloth table gives the RMSE over every lit-cloth pixel at every spp.
 
-What a row is scored against is read from the runs' metrics (:func:`scored_runs`): the
-analytic truth (``render_truth_*``: the built-in material's generator rendered with the same
-samples) where a dataset's runs have it, with the measured reference render as one more
-column (``render_reference_truth_*``, its own distance from the truth: how far scoring
-against the reference is itself off); else the measured reference (``render_*``). Each
-table says which in its caption and a ``scored against`` column, and gives the share of
-samples beyond the measured grid (``render_beyond_grid_share*``).
+Rows are scored against the analytic truth where a dataset's runs have it, else against the
+measured reference (:func:`scored_runs`); each table says which in its caption and a
+``scored against`` column, and gives the share of samples beyond the measured grid.
 
 Fig. 8 is the grid of renders (truth when there is one, reference, Neural BTF, each k, PCA)
 of one seed with both crops marked, and the crops enlarged below. Images are what the runs
@@ -47,6 +43,8 @@ COLOURS = {"dark": "tab:cyan", "bright": "tab:orange"}
 TRUTH, REFERENCE = "analytic truth", "measured reference"
 SCORED_AGAINST = "scored against"
 BEYOND_GRID = "beyond grid"
+# The metrics (render_<name>) that the tables score, by the start of their names.
+_SCORED = ("rmse_", "hf_ratio_", "hf_rmse_", "flip", "ssim", "psnr_db")
 # One reference render (and its distance from the truth) per pair of these cache keys.
 _REFERENCE_KEYS = ("tags.cache.render_reference", "tags.cache.render_truth")
 
@@ -88,20 +86,8 @@ def scored_runs(runs: pd.DataFrame) -> pd.DataFrame:
     """
     runs = runs.copy()
     runs[SCORED_AGAINST] = against = scored_against(runs)
-    names = [
-        c[len("metrics.render_") :]
-        for c in runs.columns
-        if c.startswith(
-            (
-                "metrics.render_rmse_",
-                "metrics.render_hf_ratio_",
-                "metrics.render_hf_rmse_",
-                "metrics.render_flip",
-                "metrics.render_ssim",
-                "metrics.render_psnr_db",
-            )
-        )
-    ]
+    scored = tuple(f"metrics.render_{name}" for name in _SCORED)
+    names = [c[len("metrics.render_") :] for c in runs.columns if c.startswith(scored)]
     nothing = pd.Series(np.nan, index=runs.index)
     for name in names:
         truth = runs.get(f"metrics.render_truth_{name}", nothing)
@@ -111,8 +97,7 @@ def scored_runs(runs: pd.DataFrame) -> pd.DataFrame:
     keyed = runs[against == TRUTH]
     if keyed.empty:
         return runs
-    keys = [k for k in _REFERENCE_KEYS if k in keyed] or ["run_id"]
-    references = keyed.drop_duplicates(["dataset", *keys]).copy()
+    references = _reference_renders(keyed).copy()
     for name in names:
         references[f"metrics.scored_{name}"] = references.get(
             f"metrics.render_reference_truth_{name}", np.nan
@@ -130,16 +115,10 @@ def _render_differences(references: pd.DataFrame) -> pd.Series:
     for _, group in references.groupby("dataset"):
         differ = [c for c in settings if group[c].astype(str).nunique() > 1]
         if differ:
-            suffix[group.index] = (
-                group[differ]
-                .astype(str)
-                .apply(
-                    lambda row: (
-                        " [" + ", ".join(f"{c[len('params.') :]}={v}" for c, v in row.items()) + "]"
-                    ),
-                    axis=1,
-                )
-            )
+            suffix[group.index] = [
+                " [" + ", ".join(f"{c[len('params.') :]}={v}" for c, v in row.items()) + "]"
+                for _, row in group[differ].astype(str).iterrows()
+            ]
     return suffix
 
 
@@ -157,9 +136,13 @@ def beyond_grid_column(runs: pd.DataFrame, metric: str) -> pd.Series:
     column = f"metrics.{metric}"
     if column not in runs:
         return pd.Series("–", index=sorted(runs["dataset"].unique()), name=BEYOND_GRID)
+    return _reference_renders(runs).groupby("dataset")[column].agg(describe).rename(BEYOND_GRID)
+
+
+def _reference_renders(runs: pd.DataFrame) -> pd.DataFrame:
+    """One run per reference render of each dataset (per pair of :data:`_REFERENCE_KEYS`)."""
     keys = [k for k in _REFERENCE_KEYS if k in runs] or ["run_id"]
-    renders = runs.drop_duplicates(["dataset", *keys])
-    return renders.groupby("dataset")[column].agg(describe).rename(BEYOND_GRID)
+    return runs.drop_duplicates(["dataset", *keys])
 
 
 def _against(runs: pd.DataFrame) -> pd.Series:
@@ -246,7 +229,7 @@ def table_graininess(runs: pd.DataFrame) -> pd.DataFrame:
                     continue
                 row[f"{region}: RMSE"] = tables.mean_std(rmse)
                 row[f"{region}: HF energy / {word}"] = tables.mean_std(hf)
-                if hf_rmse is not None and hf_rmse.notna().any():  # renders of version 6 on
+                if hf_rmse is not None and hf_rmse.notna().any():  # not logged by every render
                     row[f"{region}: HF RMSE"] = tables.mean_std(hf_rmse)
             rows.append(row)
     if not rows:
@@ -295,70 +278,65 @@ def sections(runs: pd.DataFrame, out: Path, settings=None) -> list[str]:
     scored = scored_runs(runs)
     bases = set(scored[SCORED_AGAINST])
     against = _target_words(bases)
-    found = []
     note = (
         "RMSE of linear radiance (the key light gives irradiance 1 at the sheet's centre, "
         "so values are in the BTF's units); mean ± std over seeds (n), at "
         f"{spp_levels(runs)[-1]} samples per pixel. The crops (marked in Fig. 8) are "
         f"chosen on the render they are scored against. {scoring_note(bases)}"
     )
-    for number, region in ((3, "dark"), (4, "bright")):
-        found.append(
-            write_table(
-                table_crop(scored, region),
-                out,
-                f"table{number}_render_{region}",
-                f"Table {number}: RMSE of the rendered {region} crop against {against}",
-                note,
-            )
+    found = [
+        write_table(
+            table_crop(scored, region),
+            out,
+            f"table{number}_render_{region}",
+            f"Table {number}: RMSE of the rendered {region} crop against {against}",
+            note,
         )
-    cloth = table_cloth(scored)
-    if not cloth.empty:
-        found.append(
-            write_table(
-                cloth,
-                out,
-                "render_cloth",
-                f"RMSE of the render over the whole lit cloth against {against}",
-                "As Tables 3-4, over every pixel whose camera samples all land on cloth that a "
-                "light sees (no silhouette, shadow or floor pixels), at each samples-per-pixel "
-                f"level. {scoring_note(bases)}",
-            )
-        )
-    for metric, title in (
-        ("flip", "LDR-FLIP (mean; 0 is identical, lower is better)"),
-        ("ssim", "SSIM (1 is identical)"),
-    ):
-        frame = table_cloth(scored, metric)
-        if not frame.empty:
-            found.append(
-                write_table(
-                    frame,
-                    out,
-                    f"render_{metric}",
-                    f"{title} of the whole frame against {against}",
-                    "The frame as displayed (exposure, gamma 2.2, clipped to [0, 1]: the PNG's "
-                    "values), compared with the render it is scored against by "
-                    "pipeline.core.image_metrics (FLIP: NVIDIA's flip-evaluator at 67 pixels per "
-                    "degree; SSIM: Gaussian window, sigma 1.5). LPIPS needs network weights from "
-                    f"a hub that cannot be fetched here and is not reported. {scoring_note(bases)}",
-                )
-            )
-    grain = table_graininess(scored)
-    if not grain.empty:
-        found.append(
-            write_table(
-                grain,
-                out,
-                "render_graininess",
-                f"Does the graininess survive rendering? Scored against {against}",
-                "Each crop at every samples-per-pixel level: RMSE and the high-frequency energy "
-                "(image minus its Gaussian blur, sigma 1 pixel) of the crop over the target's "
-                "(the render it is scored against): above 1 the model adds grain, near 1 it has "
-                "the target's texture, below 1 it is smoother. Pixel samples are shared with the "
-                f"target, so what differs is the BTF alone. {scoring_note(bases)}",
-            )
-        )
+        for number, region in ((3, "dark"), (4, "bright"))
+    ]
+    frame_note = (
+        "The frame as displayed (exposure, gamma 2.2, clipped to [0, 1]: the PNG's "
+        "values), compared with the render it is scored against by "
+        "pipeline.core.image_metrics (FLIP: NVIDIA's flip-evaluator at 67 pixels per "
+        "degree; SSIM: Gaussian window, sigma 1.5). LPIPS needs network weights from "
+        f"a hub that cannot be fetched here and is not reported. {scoring_note(bases)}"
+    )
+    optional = [
+        (
+            "render_cloth",
+            table_cloth(scored),
+            f"RMSE of the render over the whole lit cloth against {against}",
+            "As Tables 3-4, over every pixel whose camera samples all land on cloth that a "
+            "light sees (no silhouette, shadow or floor pixels), at each samples-per-pixel "
+            f"level. {scoring_note(bases)}",
+        ),
+        (
+            "render_flip",
+            table_cloth(scored, "flip"),
+            "LDR-FLIP (mean; 0 is identical, lower is better) of the whole frame against "
+            f"{against}",
+            frame_note,
+        ),
+        (
+            "render_ssim",
+            table_cloth(scored, "ssim"),
+            f"SSIM (1 is identical) of the whole frame against {against}",
+            frame_note,
+        ),
+        (
+            "render_graininess",
+            table_graininess(scored),
+            f"Does the graininess survive rendering? Scored against {against}",
+            "Each crop at every samples-per-pixel level: RMSE and the high-frequency energy "
+            "(image minus its Gaussian blur, sigma 1 pixel) of the crop over the target's "
+            "(the render it is scored against): above 1 the model adds grain, near 1 it has "
+            "the target's texture, below 1 it is smoother. Pixel samples are shared with the "
+            f"target, so what differs is the BTF alone. {scoring_note(bases)}",
+        ),
+    ]
+    for stem, table, title, text in optional:
+        if not table.empty:
+            found.append(write_table(table, out, stem, title, text))
     files = draw_fig8(runs, out)
     if files:
         found.append(
@@ -393,10 +371,9 @@ def draw_fig8(runs: pd.DataFrame, out: Path, data_of=logged_renders) -> list[Pat
             log.warning("Fig. 8 of %s: none of its runs logged its renders", dataset)
             continue
         first = logged[0][1]
-        names = [("truth", "truth")] if "truth_image" in first else []
-        names.append(("reference", "reference"))
         # (label, the data holding it, its name there): the truth and reference once.
-        entries = [(label, first, name) for label, name in names]
+        own = ["truth", "reference"] if "truth_image" in first else ["reference"]
+        entries = [(name, first, name) for name in own]
         entries += [(model, data, "model") for model, data in logged]
         levels = [int(s) for s in first["spp"]]
         crops = {
@@ -412,19 +389,10 @@ def draw_fig8(runs: pd.DataFrame, out: Path, data_of=logged_renders) -> list[Pat
         stem = "fig8_" + safe_stem(dataset)
         exposure = float(group["params.btf.render.exposure"].iloc[0])
         seed = int(group["seed"].min())
-        written.append(
-            _grid(
-                panels,
-                crops,
-                size,
-                exposure,
-                f"{dataset}, {spp} spp, seed {seed}",
-                out / f"{stem}.png",
-            )
-        )
-        written.append(
-            _crops_per_spp(by_spp, f"{dataset}, seed {seed}", out / f"{stem}_crops_per_spp.png")
-        )
+        title = f"{dataset}, {spp} spp, seed {seed}"
+        written.append(_grid(panels, crops, size, exposure, title, out / f"{stem}.png"))
+        crops_path = out / f"{stem}_crops_per_spp.png"
+        written.append(_crops_per_spp(by_spp, f"{dataset}, seed {seed}", crops_path))
         for name, image in panels:
             path = out / f"{stem}_{safe_stem(name)}.exr"
             write_exr(path, image)
@@ -443,16 +411,9 @@ def _grid(panels, crops: dict, size: int, exposure: float, title: str, path: Pat
         axes[0, column].set_title(name, fontsize=9)
         for row, region in enumerate(REGIONS, start=1):
             r, c = crops[region]
-            axes[0, column].add_patch(
-                Rectangle(
-                    (c - 0.5, r - 0.5),
-                    size,
-                    size,
-                    fill=False,
-                    edgecolor=COLOURS[region],
-                    linewidth=1.2,
-                )
-            )
+            corner = (c - 0.5, r - 0.5)
+            outline = Rectangle(corner, size, size, fill=False, edgecolor=COLOURS[region], lw=1.2)
+            axes[0, column].add_patch(outline)
             axes[row, column].imshow(shown[r : r + size, c : c + size], interpolation="nearest")
             axes[row, column].set_ylabel(
                 region if column == 0 else "", fontsize=8, color=COLOURS[region]

@@ -11,42 +11,32 @@ Each renders :func:`pipeline.render.scene.default_scene` with the crop tiled ove
 once per entry of ``btf.render.spp`` (say 1, 16 and 128 samples per pixel), so that the
 graininess of a reconstruction can be followed as the samples average over each pixel.
 
-Scoring. Two crops of the rendered frame, a dark and a bright region, and every pixel
-wholly on lit cloth are compared at every spp (Tables 3 and 4 at the largest): the RMSE
-of linear radiance, and the ratio of high-frequency energy (the image minus its Gaussian
-blur, sigma 1 pixel) of the model's crop to the target's, above 1 where the model adds
-grain. The metrics (:func:`scores`; ``<name>`` is ``rmse_dark``, ``rmse_bright``,
-``rmse_cloth``, ``hf_ratio_dark`` or ``hf_ratio_bright``, or over the whole frame as
-displayed, ``flip`` (LDR-FLIP), ``ssim`` or ``psnr_db``, each also per spp with
-``_spp<N>``):
+Scoring (:func:`scores`). A dark and a bright crop of the frame and every pixel wholly on
+lit cloth are compared at every spp (Tables 3 and 4 at the largest): the RMSE of linear
+radiance, and the ratio of high-frequency energy (the image minus its Gaussian blur, sigma
+1 pixel) of the model's crop to the target's, above 1 where the model adds grain. The
+metrics, each also per spp with ``_spp<N>`` (``<name>``: ``rmse_dark``, ``rmse_bright``,
+``rmse_cloth``, ``hf_ratio_dark``, ``hf_ratio_bright``, or over the frame as displayed
+``flip``, ``ssim``, ``psnr_db``):
 
 - ``render_<name>``: the model against the measured reference render;
 - ``render_truth_<name>``: the model against the truth render (built-in material only);
-- ``render_reference_truth_<name>``: the reference itself against the truth, logged on
-  every run: how far scoring against the reference is itself off;
+- ``render_reference_truth_<name>``: the reference itself against the truth: how far
+  scoring against the reference is itself off;
 - ``render_beyond_grid_share`` and ``render_beyond_grid_share_{dark,bright}``: the share
   of the (camera sample, light) pairs on the lit cloth and in each crop whose light or
-  view direction lies beyond the measured grid (weighted by the light's irradiance;
-  :class:`pipeline.btf.render.surfaces.BeyondGridIndicator`), at the largest spp.
+  view lies beyond the measured grid, at the largest spp (:func:`beyond_grid_shares`).
 
-Unless given (``btf.render.crops``), the crops are chosen on the truth when there is one,
-else on the reference, at the largest spp: of the windows wholly on lit cloth (every camera
-sample of every pixel on cloth that a light sees: no background, floor, shadow or
-silhouette), the darkest and the brightest by mean luminance. The same crops score every
-comparison of a run.
+Unless given (``btf.render.crops``), the crops are chosen (:func:`choose_crops`) on the
+truth when there is one, else on the reference, at the largest spp; the same crops score
+every comparison of a run.
 
-Directions beyond the grid (beyond the polygon of the outermost measured directions, for
-UBO2003 the 75-degree ring; the light and the view set each have their own). Without a
-truth (measured data), every model is queried through
-:class:`pipeline.btf.render.surfaces.GridClamped`: grazing light and view are clamped onto
-that edge for every material alike, as the measured reference and the PCA baseline do by
-construction, so that a render differs from
-the reference by its reconstruction of the measured domain only; a neural decoder's
-extrapolation, which no measurement can check, is not scored. Samples beyond the grid
-stay in the crops and the cloth RMSE (leaving them out would move the dark crop, which
-is dark because its light grazes): their share is reported instead. With a truth, each
-model is queried as it is (a neural decoder extrapolates) and the truth, unclamped,
-scores it.
+Directions beyond the grid (:mod:`pipeline.btf.render.surfaces` says why): without a truth,
+every model is queried through :class:`~pipeline.btf.render.surfaces.GridClamped`, so that
+a render differs from the reference by its reconstruction of the measured domain only;
+samples beyond the grid stay in the crops and the cloth RMSE (leaving them out would move
+the dark crop, which is dark because its light grazes) and their share is reported. With a
+truth, each model is queried as it is and the truth, unclamped, scores it.
 
 The stages' code versions (``version=`` below) cover the general renderer
 (:mod:`pipeline.render.scene`, ``engine``, ``materials``) and method A's materials
@@ -138,13 +128,8 @@ def _render_every_spp(scene, material, settings: dict, folder: Path, what: str) 
             "rays": cost.rays,
             "material_queries": cost.material_queries,
         }
-        log.info(
-            "rendered %s at %d spp in %.1f s (%.2f M rays/s)",
-            what,
-            spp,
-            cost.seconds,
-            cost.rays_per_second / 1e6,
-        )
+        rate = cost.rays_per_second / 1e6
+        log.info("rendered %s at %d spp in %.1f s (%.2f M rays/s)", what, spp, cost.seconds, rate)
     return stats
 
 
@@ -226,23 +211,19 @@ def compare(
     exposure: float = 1.0,
 ) -> dict:
     """RMSE, high-frequency energy ratio and RMSE of the high-pass parts (the detail in
-    place, :func:`high_pass`) of ``model`` against ``target`` (both (H, W, 3)) in each crop, and the RMSE over every pixel wholly on lit cloth
-    (``lit_cloth`` (H, W) is 1); over the whole frame as displayed (``exposure``, gamma
-    2.2, clipped to [0, 1], the PNG's values), the field's image metrics: LDR-FLIP (mean),
-    SSIM and PSNR (:mod:`pipeline.core.image_metrics`)."""
+    place, :func:`high_pass`) of ``model`` against ``target`` (both (H, W, 3)) in each crop,
+    and the RMSE over every pixel wholly on lit cloth (``lit_cloth`` (H, W) is 1); over the
+    whole frame as displayed (``exposure``, gamma 2.2, clipped to [0, 1], the PNG's values),
+    LDR-FLIP (mean), SSIM and PSNR (:mod:`pipeline.core.image_metrics`)."""
     from pipeline.core.image_metrics import flip, psnr, ssim
     from pipeline.data.images import gamma_encode
 
-    found = {}
     shown = [
-        np.clip(gamma_encode(np.asarray(image, np.float32) * np.float32(exposure)), 0, 1).astype(
-            np.float64
-        )
+        np.clip(gamma_encode(np.asarray(image, np.float32) * np.float32(exposure)), 0, 1)
         for image in (target, model)
     ]
-    found["flip"] = flip(*shown)
-    found["ssim"] = ssim(*shown)
-    found["psnr_db"] = psnr(*shown)
+    shown = [image.astype(np.float64) for image in shown]
+    found = {"flip": flip(*shown), "ssim": ssim(*shown), "psnr_db": psnr(*shown)}
     for region in REGIONS:
         r, c = crops[region]
         a, b = model[r : r + size, c : c + size], target[r : r + size, c : c + size]
@@ -273,25 +254,22 @@ def scores(
     """:func:`compare` of a model's render (H, W, 3) with the reference's (``render_*``) and,
     given the truth's, with it (``render_truth_*``), and of the reference with the truth
     (``render_reference_truth_*``); same crops and lit cloth for all."""
-    found = {
-        f"render_{name}": v
-        for name, v in compare(model, reference, lit_cloth, crops, size, exposure).items()
-    }
+    pairs = [("render_", model, reference)]
     if truth is not None:
-        for prefix, image in (("render_truth_", model), ("render_reference_truth_", reference)):
-            found.update(
-                {
-                    f"{prefix}{name}": v
-                    for name, v in compare(image, truth, lit_cloth, crops, size, exposure).items()
-                }
-            )
-    return found
+        pairs += [("render_truth_", model, truth), ("render_reference_truth_", reference, truth)]
+    return {
+        f"{prefix}{name}": value
+        for prefix, image, target in pairs
+        for name, value in compare(image, target, lit_cloth, crops, size, exposure).items()
+    }
 
 
 def beyond_grid_shares(
     indicator: np.ndarray, lit_cloth: np.ndarray, crops: dict, size: int
 ) -> dict:
-    """Share of the samples beyond the measured grid, over the lit cloth and in each crop.
+    """Share of the samples beyond the measured grid, over the lit cloth and in each crop:
+    ``beyond_grid_share`` (lit cloth), ``beyond_grid_share_dark`` and ``_bright``, in [0, 1];
+    NaN where no pixel counts.
 
     Parameters
     ----------
@@ -301,13 +279,7 @@ def beyond_grid_shares(
         all pairs, each weighted by the light's irradiance.
     lit_cloth : ndarray of shape (H, W)
         The render's coverage: the pixels where it is 1 count (those of the cloth RMSE).
-    crops : dict
-        ``{"dark": [row, col], "bright": [row, col]}``, windows of ``size`` pixels.
-
-    Returns
-    -------
-    dict: ``beyond_grid_share`` (lit cloth), ``beyond_grid_share_dark`` and ``_bright``,
-    in [0, 1]; NaN where no pixel counts.
+    crops : ``{"dark": [row, col], "bright": [row, col]}``, windows of ``size`` pixels.
     """
     lit = lit_cloth >= 1
 
@@ -434,12 +406,10 @@ def model_stage(
     def compute(folder: Path) -> dict:
         from pipeline.btf.render.surfaces import GridClamped
 
-        material_ = (
-            material()
-            if truth is not None
-            else GridClamped(material(), cropped.array("directions", mmap=False))
-        )
-        stats = _render_every_spp(_scene(settings), material_, settings, folder, "model")
+        queried = material()
+        if truth is None:
+            queried = GridClamped(queried, cropped.array("directions", mmap=False))
+        stats = _render_every_spp(_scene(settings), queried, settings, folder, "model")
         top = settings["spp"][-1]
         target = truth if truth is not None else reference
         crops = choose_crops(
@@ -525,12 +495,8 @@ def run(ctx: Context) -> dict[str, float]:
         for name, entry in shown
         for suffix in (".png", ".exr")
     }
-    named.update(
-        {
-            f"model_{path.stem[len('image_') :]}.png": path
-            for path in rendered.path.glob("image_spp*.png")
-        }
-    )
+    for path in rendered.path.glob("image_spp*.png"):
+        named[f"model_{path.stem[len('image_') :]}.png"] = path
     ctx.log.files(named, "render")
     ctx.log.json(rendered.json("crops"), "render/crops.json")
     if ctx.log.on:  # reads every spp's image: only for a run to keep
@@ -551,15 +517,9 @@ def fig8_data(shown: list[tuple[str, Entry]], crops: dict, cfg) -> dict[str, np.
     data = {"spp": np.array(levels, dtype=np.int64), "crops": corners}
     for name, entry in shown:
         data[f"{name}_image"] = entry.array(f"image_spp{levels[-1]}", mmap=False)
-        data[f"{name}_crops"] = np.stack(
-            [
-                np.stack(
-                    [
-                        entry.array(f"image_spp{spp}", mmap=False)[r : r + size, c : c + size]
-                        for r, c in corners
-                    ]
-                )
-                for spp in levels
-            ]
-        ).astype(np.float32)
+        per_spp = []
+        for spp in levels:
+            image = entry.array(f"image_spp{spp}", mmap=False)
+            per_spp.append(np.stack([image[r : r + size, c : c + size] for r, c in corners]))
+        data[f"{name}_crops"] = np.stack(per_spp).astype(np.float32)
     return data

@@ -1,17 +1,11 @@
-"""Method A's materials for the renderer (:mod:`pipeline.render`): the measured BTF, the
-PCA baseline, a compressed BTF file and the built-in material's generator.
-
-Each is a :class:`pipeline.render.materials.Material`: batched queries
-``evaluate(texels, directions)`` (the conventions are in that module).
-
-- :class:`MeasuredMaterial`: the measured directions, interpolated (the reference).
-- :class:`LinearMaterial`: the PCA baseline's reconstruction, interpolated the same way.
-- :class:`CompressedMaterial`: a compressed BTF file (``pipeline.btf.compressed``).
-- :class:`AnalyticMaterial`: the built-in material's generator (``pipeline.btf.synthetic``),
-  the truth at every direction.
-- :class:`GridClamped`: any material queried at directions clamped onto the measured grid.
-- :class:`BeyondGridIndicator`: 1 where a query lies beyond the grid, to measure how much of a
-  render the grid does not cover.
+"""Method A's materials for the renderer (:mod:`pipeline.render`), each a
+:class:`pipeline.render.materials.Material` (batched ``evaluate(texels, directions)``): the
+measured BTF (:class:`MeasuredMaterial`, the reference) and the PCA baseline
+(:class:`LinearMaterial`) interpolated between the measured directions, a compressed BTF
+file (:class:`CompressedMaterial`), the built-in material's generator
+(:class:`AnalyticMaterial`, the truth at every direction), any material at directions
+clamped onto the grid (:class:`GridClamped`), and :class:`BeyondGridIndicator`, 1 where a
+query lies beyond the grid, to measure how much of a render the grid does not cover.
 
 The "grid" is whatever light and view directions the data holds: the UBO2003 81 x 81, a
 UBO2014 file's 151 x 151, or any other product of a light and a view set; each class takes
@@ -19,18 +13,17 @@ the data's direction pairs (N, 4), and None means the UBO2003 grid.
 
 Directions beyond the grid
 --------------------------
-The measured directions end at the outermost ones of each set (for UBO2003, the theta = 75
-degree ring). A query beyond the polygon they span in stereographic coordinates
-(:class:`pipeline.btf.interpolation.DirectionHull`; for UBO2003 the polygon of the ring's 24
-directions; :func:`beyond_grid`) has no measured neighbours: the measured BTF and the PCA
-baseline, which store values at the measured directions only, answer it with their value
-clamped onto that polygon (:func:`clamp_to_grid`: theta lowered, phi kept), while a neural
-decoder would extrapolate. Where a render has no truth (measured data), every material is
-queried through the same clamp (:class:`GridClamped`), so that renders differ by their
-reconstruction of the measured domain only, never by an extrapolation that nothing can
-check; the share of samples beyond the grid is reported with each render. Where the
-generator is at hand (the built-in material), the truth is evaluated unclamped and each
-model as it is. Light and view are clamped each onto its own set's polygon.
+A query beyond the polygon that the outermost measured directions of a set span in
+stereographic coordinates (:class:`pipeline.btf.interpolation.DirectionHull`; for UBO2003
+the 24 directions of the theta = 75 degree ring) has no measured neighbours: the measured
+BTF and the PCA baseline answer it with their value clamped onto that polygon
+(:func:`clamp_to_grid`: theta lowered, phi kept), while a neural decoder would extrapolate.
+Where a render has no truth (measured data), every material is queried through the same
+clamp (:class:`GridClamped`), so that renders differ by their reconstruction of the
+measured domain only, never by an extrapolation that nothing can check; the share of
+samples beyond the grid is reported with each render. Where the generator is at hand (the
+built-in material), the truth is evaluated unclamped and each model as it is. Light and
+view are clamped each onto its own set's polygon.
 """
 
 from __future__ import annotations
@@ -49,6 +42,15 @@ _MEASURED_CHUNK = 1 << 16
 _SNAP = 1e-7
 
 
+def _in_chunks(evaluate, texels: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """``evaluate(texels, directions)`` over :data:`_MEASURED_CHUNK` queries at a time: (n, 3)."""
+    out = np.empty((len(texels), 3), dtype=np.float32)
+    for start in range(0, len(texels), _MEASURED_CHUNK):
+        stop = start + _MEASURED_CHUNK
+        out[start:stop] = evaluate(texels[start:stop], directions[start:stop])
+    return out
+
+
 class CompressedMaterial(Material):
     """A compressed BTF (:func:`pipeline.btf.compressed.load_compressed`), queried as is.
 
@@ -56,12 +58,7 @@ class CompressedMaterial(Material):
     ----------
     compressed : :class:`pipeline.btf.compressed.CompressedBTF`, or anything with
         ``crop_size`` (rows, cols) and ``query_pairs(texels (n,), directions (n, 4)) ->
-        (n, 3)``.
-
-    Notes
-    -----
-    The decoder's output is not clamped here (it may be slightly negative); the renderer
-    clamps radiance at 0.
+        (n, 3)``. Its output may be slightly negative: the renderer clamps radiance at 0.
     """
 
     def __init__(self, compressed):
@@ -78,13 +75,12 @@ class AnalyticMaterial(Material):
     """The built-in material's analytic generator over the run's crop: the truth.
 
     The value of crop texel (row, col) at a direction pair is
-    ``fabric.evaluate(directions)[:, offset[0] + row, offset[1] + col]``
-    (:meth:`pipeline.btf.synthetic.SyntheticBTF.evaluate`) at any direction: no grid, no
-    clamp. Units and directions are those of the measured crop (:class:`MeasuredMaterial`):
-    the generator's values are the linear RGB that the built-in dataset encodes and the
-    reader decodes again, and its phi runs from +x (texture columns, the tangent +u) to +y
-    (rows, the bitangent +v), as the renderer's does. At grid directions it therefore
-    equals the measured material up to the data's 8-bit (JPEG) rounding.
+    ``fabric.evaluate(directions)[:, offset[0] + row, offset[1] + col]`` at any direction,
+    evaluated per pair (``SyntheticBTF.evaluate_pairs``, which the tests check equals
+    ``evaluate``): no grid, no clamp. Its values are the linear RGB that the built-in
+    dataset encodes and the reader decodes again, its phi runs from +x (texture columns, the
+    tangent +u) to +y (rows, the bitangent +v) as the renderer's does, so at grid directions
+    it equals the measured material up to the data's 8-bit (JPEG) rounding.
 
     Parameters
     ----------
@@ -93,12 +89,6 @@ class AnalyticMaterial(Material):
         Top-left texel of the crop in the fabric's ``size x size`` texture
         (``btf.crop.offset``).
     crop_size : (rows, cols)
-
-    Notes
-    -----
-    The generator evaluates every texel of its texture at each direction; a render asks
-    for one texel per direction pair, so this class evaluates the generator's shading
-    per pair (``SyntheticBTF.evaluate_pairs``), which the tests check equals ``evaluate``.
     """
 
     def __init__(self, fabric, offset, crop_size):
@@ -130,28 +120,13 @@ class AnalyticMaterial(Material):
         return cls(fabric, [int(v) for v in cfg.btf.crop.offset], (size, size))
 
     def _evaluate(self, texels, directions):
-        out = np.empty((len(texels), 3), dtype=np.float32)
-        for start in range(0, len(texels), _MEASURED_CHUNK):
-            stop = start + _MEASURED_CHUNK
-            out[start:stop] = self.fabric.evaluate_pairs(
-                self._pixel[texels[start:stop]], directions[start:stop]
-            )
-        return out
+        return _in_chunks(self.fabric.evaluate_pairs, self._pixel[texels], directions)
 
 
 def direction_hulls(directions: np.ndarray | None = None) -> tuple[DirectionHull, DirectionHull]:
-    """The polygons covered by the light and by the view directions of measured pairs.
-
-    Parameters
-    ----------
-    directions : ndarray of shape (N, 4), radians, or None
-        The data's direction pairs; None: the UBO2003 grid (both polygons the 75-degree
-        ring's).
-
-    Returns
-    -------
-    (light hull, view hull) : two :class:`~pipeline.btf.interpolation.DirectionHull`
-    """
+    """The polygons (light hull, view hull) covered by the light and by the view directions
+    of the measured pairs ``directions`` (N, 4), radians; None: the UBO2003 grid (both
+    polygons the 75-degree ring's)."""
     if directions is None:
         return _ubo2003_hulls()
     sets = direction_sets(directions)
@@ -177,11 +152,9 @@ def _clamped(hull: DirectionHull | None, angles: np.ndarray) -> np.ndarray:
 
 
 class GridClamped(Material):
-    """``material`` queried at directions clamped onto the measured grid
-    (:func:`clamp_to_grid`; the light onto the light set's polygon, the view onto the view
-    set's): the rule for directions beyond the grid where a render has no truth (module
-    docstring). The measured and PCA materials clamp already, so for them this changes
-    nothing.
+    """``material`` queried at directions clamped onto the measured grid, the light onto
+    the light set's polygon and the view onto the view set's: the rule where a render has no
+    truth (module docstring). The measured and PCA materials clamp already.
 
     Parameters
     ----------
@@ -235,16 +208,11 @@ class MeasuredMaterial(Material):
     """The measured BTF, interpolated piecewise-linearly between its measured directions.
 
     The interpolant is the "linear" one of :class:`pipeline.btf.interpolation.
-    ProductInterpolator` (whose table of columns and :class:`~pipeline.btf.interpolation.
-    Barycentric` weights it uses): barycentric weights in a Delaunay triangulation of the
-    data's L light directions (stereographic coordinates) times those of its V view
-    directions, 9 measured values per query. At a measured direction pair it returns the
-    measured value exactly (weights within ``1e-7`` of a corner are snapped onto it).
-
-    Directions beyond the outermost measured ones are clamped onto the edge of the
-    triangulation (:class:`~pipeline.btf.interpolation.DirectionHull`): theta is lowered,
-    phi kept. For the UBO2003 grid that edge is the polygon of the 24 directions of the
-    75-degree ring, so grazing light and view are rendered as if they came from that ring.
+    ProductInterpolator`: barycentric weights in a Delaunay triangulation of the data's L
+    light directions (stereographic coordinates) times those of its V view directions, 9
+    measured values per query. At a measured direction pair it returns the measured value
+    exactly (weights within ``1e-7`` of a corner are snapped onto it). Directions beyond the
+    grid are clamped onto it (module docstring).
 
     Parameters
     ----------
@@ -265,8 +233,7 @@ class MeasuredMaterial(Material):
     ------
     ValueError
         For arrays of the wrong shapes; :class:`~pipeline.core.errors.DataError` (a
-        ValueError) for directions that are not a full product, or whose polygon does not
-        surround the normal.
+        ValueError) for directions that are not a full product or do not surround the normal.
     """
 
     def __init__(self, values: np.ndarray, crop_size, directions: np.ndarray | None = None):
@@ -300,11 +267,7 @@ class MeasuredMaterial(Material):
         return np.asarray(self.values[texels, columns], dtype=np.float32)
 
     def _evaluate(self, texels, directions):
-        out = np.empty((len(texels), 3), dtype=np.float32)
-        for start in range(0, len(texels), _MEASURED_CHUNK):
-            stop = start + _MEASURED_CHUNK
-            out[start:stop] = self._interpolate(texels[start:stop], directions[start:stop])
-        return out
+        return _in_chunks(self._interpolate, texels, directions)
 
     def _interpolate(self, texels: np.ndarray, directions: np.ndarray) -> np.ndarray:
         interp = self._interpolator
@@ -338,7 +301,7 @@ class LinearMaterial(MeasuredMaterial):
     reconstruction between them exactly as :class:`MeasuredMaterial` does the measurement;
     each of the 9 values a query needs is reconstructed on the fly,
     ``scale * (mean + coefficients[texel] @ basis)`` at that direction pair (the 3N x M
-    matrix is never formed).
+    matrix is never formed). A value may be slightly negative: the renderer clamps at 0.
 
     Parameters
     ----------
@@ -350,10 +313,6 @@ class LinearMaterial(MeasuredMaterial):
     scale : float
         Back to linear RGB: the normalization's ``alpha``.
     directions : ndarray of shape (N, 4), radians, or None (:func:`btf_directions`)
-
-    Notes
-    -----
-    A PCA value may be slightly negative; the renderer clamps radiance at 0.
     """
 
     def __init__(
@@ -394,39 +353,18 @@ class LinearMaterial(MeasuredMaterial):
         )
 
 
-def beyond_grid(angles: np.ndarray, hull: DirectionHull | None = None) -> np.ndarray:
-    """Whether each direction lies beyond a measured set's polygon.
+def beyond_grid(angles: np.ndarray) -> np.ndarray:
+    """Whether each direction (n, 2), (theta, phi) in radians, lies beyond the UBO2003 grid's
+    polygon: True where :func:`clamp_to_grid` moves it by more than a rounding error, i.e.
+    where no measured value surrounds it. Shape (n,), bool.
 
-    Parameters
-    ----------
-    angles : ndarray of shape (n, 2), (theta, phi) in radians.
-    hull : :class:`~pipeline.btf.interpolation.DirectionHull` or None
-        The set's polygon (:func:`direction_hulls`); None: the UBO2003 grid's.
-
-    Returns
-    -------
-    ndarray of shape (n,), bool: True where :func:`clamp_to_grid` moves the direction (by
-    more than a rounding error), i.e. where no measured value surrounds it.
-
-    Examples
-    --------
     >>> beyond_grid(np.radians([[75.0, 0.0], [75.0, 7.5], [74.0, 7.5], [80.0, 30.0]]))
     array([False,  True, False,  True])
     """
-    return (_ubo2003_hulls()[0] if hull is None else hull).beyond(angles)
+    return _ubo2003_hulls()[0].beyond(angles)
 
 
-def clamp_to_grid(angles: np.ndarray, hull: DirectionHull | None = None) -> np.ndarray:
-    """Lower theta onto a measured set's polygon where a direction lies beyond it.
-
-    Parameters
-    ----------
-    angles : ndarray of shape (n, 2), (theta, phi) in radians.
-    hull : :class:`~pipeline.btf.interpolation.DirectionHull` or None
-        The set's polygon (:func:`direction_hulls`); None: the UBO2003 grid's.
-
-    Returns
-    -------
-    ndarray of shape (n, 2): theta clamped to the polygon (slightly inside it), phi kept.
-    """
-    return (_ubo2003_hulls()[0] if hull is None else hull).clamp(angles)
+def clamp_to_grid(angles: np.ndarray) -> np.ndarray:
+    """Directions (n, 2), (theta, phi) in radians, with theta lowered onto the UBO2003 grid's
+    polygon (slightly inside it) where they lie beyond it; phi kept. Shape (n, 2)."""
+    return _ubo2003_hulls()[0].clamp(angles)

@@ -1,7 +1,7 @@
 """Where a training step's time goes at ``experiment=paper_cpu``'s size, before and after.
 
-    python -m pipeline.btf.fast.profile_step [threads=[1,2]] [steps=30] [rounds=3]
-                                             [setups=before,encoder,after]
+    python -m benchmarks.profile_step [threads=[1,2]] [steps=30] [rounds=3]
+                                      [setups=before,encoder,after]
 
 times the parts of one training step (N = 6561 directions, the paper's encoder, Adam),
 laid out as ``pipeline.btf.train`` runs them: the batch's data (gather and normalize with
@@ -24,7 +24,9 @@ recipe with the encoder's hand-written training step (``Encoder.forward``,
 ``reuse_freed_memory``).
 
 Settings are ``key=value`` (:data:`KEYS`; ``--help`` lists them), read before torch is
-imported, so that a bad one is answered at once.
+imported, so that a bad one is answered at once. The children find this module from any
+working directory: their ``PYTHONPATH`` starts with the checkout
+(:func:`benchmarks.child_env`).
 """
 
 from __future__ import annotations
@@ -35,15 +37,15 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 
-from pipeline.btf.fast.bench_settings import DECODER_MACS
+from benchmarks import child_env
+from benchmarks.train_settings import DECODER_MACS
 from pipeline.core import cli
+from pipeline.core.methods import CONF_DIR, register_schemas
 from pipeline.core.settings import Integer, OneOf
 
-CONF = Path(__file__).resolve().parents[2] / "conf"  # pipeline/btf/fast/ -> pipeline/conf
 N_PAPER = 6561
 PARTS = ("data", "encoder_forward", "decoder", "encoder_backward", "optimizer")
 # The recipe of conf/train/cpu.yaml before the faster step (the ``before`` setup).
@@ -62,10 +64,8 @@ def cpu_recipe() -> dict:
     :data:`BEFORE_RECIPE` has."""
     from hydra import compose, initialize_config_dir
 
-    from pipeline.core.methods import register_schemas
-
     register_schemas()
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         train = compose(config_name="config", overrides=["experiment=paper_cpu"]).train
     return {key: train[key] for key in BEFORE_RECIPE}
 
@@ -77,7 +77,7 @@ SETUPS = {
 }
 
 
-PROG = "python -m pipeline.btf.fast.profile_step"
+PROG = "python -m benchmarks.profile_step"
 
 
 @dataclass(frozen=True)
@@ -171,11 +171,12 @@ def decoder_flops(batch: int, queries: int) -> float:
 
 
 def matmul_peak() -> float:
-    """GFLOP/s of a 2048 x 2048 float32 matrix product (:func:`pipeline.btf.fast.bench.matmul_peak`,
-    imported here so that this module's top level stays free of torch)."""
-    from pipeline.btf.fast import bench
+    """GFLOP/s of a 2048 x 2048 float32 matrix product
+    (:func:`benchmarks.train_figures.matmul_peak`, imported here so that this module's top
+    level stays free of torch)."""
+    from benchmarks import train_figures
 
-    return bench.matmul_peak()
+    return train_figures.matmul_peak()
 
 
 def time_steps(
@@ -258,8 +259,8 @@ def time_steps(
 def _child(spec: dict) -> dict:
     """One setup's timing in a fresh process (``--child SPEC``: not a setting, the word
     between this process and its children)."""
-    command = [sys.executable, "-m", "pipeline.btf.fast.profile_step", "--child", json.dumps(spec)]
-    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    command = [sys.executable, "-m", "benchmarks.profile_step", "--child", json.dumps(spec)]
+    done = subprocess.run(command, env=child_env(), capture_output=True, text=True, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"the profile of {spec['setup']} failed:\n{done.stderr[-2000:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])

@@ -1,4 +1,4 @@
-"""The loops of ``python -m pipeline.bench`` that are timed in a child process of their own.
+"""The loops of ``python -m benchmarks.train`` that are timed in a child process of their own.
 
 libgomp reads ``GOMP_SPINCOUNT`` once, when torch loads, so the default training path
 (libgomp's defaults) and the opt-in tuned one (:data:`TUNED`) can only be compared in
@@ -8,7 +8,8 @@ Each child starts without the parent's OpenMP spin settings (``GOMP_SPINCOUNT``,
 it imports torch (:func:`pipeline.btf.fast.tuning.set_omp_spin_count`, as a training job
 does), then builds its loop and times it each time the parent writes ``run`` on its stdin,
 answering ``seconds S`` on its stdout. No torch at this module's top: the child imports it
-only after the spin count is set.
+only after the spin count is set. The child finds this module from any working directory:
+its ``PYTHONPATH`` starts with the checkout (:func:`benchmarks.child_env`).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ import argparse
 import os
 import subprocess
 import sys
+
+from benchmarks import child_env
 
 # The opt-in tuning the bench quotes against the defaults (train.* in conf/train/default.yaml).
 TUNED = {"keep_awake": True, "omp_spin_count": 30_000, "reuse_freed_memory": True}
@@ -45,7 +48,7 @@ class Isolated:
         command = [
             sys.executable,
             "-m",
-            "pipeline.btf.fast.bench_child",
+            "benchmarks.train_child",
             loop,
             "--steps",
             str(steps),
@@ -59,7 +62,7 @@ class Isolated:
         if tuned:
             command.append("--tuned")
         self.process = subprocess.Popen(
-            command, env=env, text=True, stdin=subprocess.PIPE, stdout=subprocess.PIPE
+            command, env=child_env(env), text=True, stdin=subprocess.PIPE, stdout=subprocess.PIPE
         )
 
     def __call__(self) -> float:
@@ -77,7 +80,7 @@ class Isolated:
 
 def main(argv=None) -> None:
     """The child's side of :class:`Isolated`."""
-    parser = argparse.ArgumentParser(description="a loop of python -m pipeline.bench")
+    parser = argparse.ArgumentParser(description="a loop of python -m benchmarks.train")
     parser.add_argument("loop", choices=LOOPS)
     parser.add_argument("--steps", type=int, required=True)
     parser.add_argument("--threads", type=int, required=True)
@@ -93,7 +96,7 @@ def main(argv=None) -> None:
         set_omp_spin_count(TUNED["omp_spin_count"])
     import torch
 
-    from pipeline.btf.fast import bench_loops as loops
+    from benchmarks import train_loops as loops
 
     torch.set_num_threads(args.threads)
     if args.loop == "naive":

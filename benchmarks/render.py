@@ -1,5 +1,4 @@
-"""``python -m pipeline.btf.render.bench``: how long a Fig. 8 frame takes, and where the time
-goes.
+"""``python -m benchmarks.render``: how long a Fig. 8 frame takes, and where the time goes.
 
 Renders the default scene (:func:`pipeline.render.scene.default_scene`) once with each
 material, at one size and spp, and prints seconds, rays per second and material queries per
@@ -16,7 +15,7 @@ second:
 The differences to ``lambertian`` are the materials' own cost. Figures are measured in the
 one run, so compare them as ratios; on a shared machine absolute times move.
 
-    python -m pipeline.btf.render.bench size=256 spp=128 crop=100 threads=2
+    python -m benchmarks.render size=256 spp=128 crop=100 threads=2
 
 Settings are ``key=value`` (:data:`KEYS`; ``--help`` lists them), read before torch and
 Embree are imported, so that a bad one is answered at once.
@@ -33,7 +32,7 @@ import numpy as np
 from pipeline.core import cli
 from pipeline.core.settings import Integer
 
-PROG = "python -m pipeline.btf.render.bench"
+PROG = "python -m benchmarks.render"
 
 
 @dataclass(frozen=True)

@@ -1,12 +1,11 @@
-"""The training loops ``python -m pipeline.bench`` times at the paper's batch (5 ABRDFs x all
-6561 directions), in its own process or in a child's (:mod:`pipeline.btf.fast.bench_child`).
+"""The training loops ``python -m benchmarks.train`` times at the paper's batch (5 ABRDFs x
+all 6561 directions), in its own process or in a child's (:mod:`benchmarks.train_child`).
 Each function builds a loop and returns a callable that runs ``steps`` steps and returns
 their seconds."""
 
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -14,7 +13,6 @@ import torch
 from pipeline.btf.model import Decoder, Encoder
 
 N_PAPER = 6561
-CONF = Path(__file__).resolve().parents[2] / "conf"  # pipeline/btf/fast/ -> pipeline/conf
 
 
 def paper_channels() -> tuple[int, ...]:
@@ -115,7 +113,7 @@ def pipeline_training(
     default the fused decoder step) and optimizer (by default the paper's plain SGD, as in
     the naive loop), as in a real run on ``device``, with the opt-in machine tuning
     ``tuning`` asks for (``TrainSettings`` fields; ``omp_spin_count`` takes effect only
-    where it was set before torch loaded: :mod:`pipeline.btf.fast.bench_child`).
+    where it was set before torch loaded: :mod:`benchmarks.train_child`).
     Returns a callable that runs ``steps`` steps and returns their training seconds."""
     from pipeline.btf.preprocess import fit_normalization
     from pipeline.btf.train import train

@@ -1,16 +1,15 @@
-"""``python -m pipeline.data.ubo2014_bench info file=PATH`` and ``... bench [file=PATH]``.
+"""``python -m benchmarks.ubo2014_load [file=PATH]``: the peak memory of loading a UBO2014 crop.
 
-``info`` prints a DFMF file's header facts and its view and light directions with the
-indices ``dataset.views`` / ``dataset.lights`` accept. ``bench`` loads a crop the way the
-load stage does (into a ``.npy`` memory map) and prints its peak memory: the heap peak
-(tracemalloc: what numpy allocated) and the peak resident set (which also counts the
-pages of the memory-mapped file and output that were touched). Without ``file`` it writes
-a file of the UBO2014 shape first: 151 views × 151 lights, 400 × 400 texels, random
-float16 factors of ``components`` components::
+Loads a crop the way the load stage does (into a ``.npy`` memory map) and prints its peak
+memory: the heap peak (tracemalloc: what numpy allocated) and the peak resident set (which
+also counts the pages of the memory-mapped file and output that were touched). Without
+``file`` it writes a file of the UBO2014 shape first: 151 views × 151 lights, 400 × 400
+texels, random float16 factors of ``components`` components::
 
-    python -m pipeline.data.ubo2014_bench bench 'crop=[0,0,100,100]' components=64
+    python -m benchmarks.ubo2014_load 'crop=[0,0,100,100]' components=64
 
-Settings are ``key=value`` after the command (:data:`KEYS`; ``--help`` lists them).
+Settings are ``key=value`` (:data:`KEYS`; ``--help`` lists them). A file's header, views and
+lights: ``python -m pipeline.data.ubo2014_info file=PATH``.
 """
 
 from __future__ import annotations
@@ -29,22 +28,17 @@ from pipeline.core.files import human, reserved_memmap
 from pipeline.core.memory import stage_peak
 from pipeline.core.settings import Integer, ListOf, OneOf
 from pipeline.data.ubo2014 import count_ubo2014_images, load_ubo2014
-from pipeline.data.ubo2014_header import describe, read_dfmf
+from pipeline.data.ubo2014_header import read_dfmf
+from pipeline.data.ubo2014_info import hemisphere_angles
 from pipeline.data.ubo2014_write import write_dfmf
 
-PAPER_SHAPE = {"n_views": 151, "n_lights": 151, "size": 400}
-PROG = "python -m pipeline.data.ubo2014_bench"
-COMMANDS = {
-    "info": "header facts, views and lights of the .btf file (file= required)",
-    "bench": "peak memory of loading a crop (of file=, or of a file it writes)",
-}
+PROG = "python -m benchmarks.ubo2014_load"
 
 
 @dataclass(frozen=True)
-class UBO2014BenchSettings:
-    """The command and its settings; :data:`KEYS` describes each."""
+class UBO2014LoadSettings:
+    """The file and the crop to load; :data:`KEYS` describes each."""
 
-    command: str = "bench"
     file: str | None = None
     crop: tuple[int, ...] = (0, 0, 100, 100)
     components: int = 16
@@ -73,41 +67,26 @@ KEYS = {
 COMMAND = cli.Command(
     PROG,
     KEYS,
-    UBO2014BenchSettings,
-    "\n".join(f"  {name:<6} {text}" for name, text in COMMANDS.items())
-    + "\n\nSettings and their defaults:",
-    synopsis=f"{{{','.join(COMMANDS)}}} [key=value ...]",
+    UBO2014LoadSettings,
+    "Peak memory of loading a crop (of file=, or of a file it writes). "
+    "Settings and their defaults:",
+    what="the bench command",
 )
 
 
-def parse(argv: list[str]) -> UBO2014BenchSettings:
-    """:class:`UBO2014BenchSettings` from the command and its ``key=value`` arguments;
-    raises :class:`ConfigError` naming a bad one."""
-    command, rest = cli.command_of(argv, list(COMMANDS))
-    given = cli.read(rest, KEYS, f"the {command} command")
+def parse(argv: list[str]) -> UBO2014LoadSettings:
+    """:class:`UBO2014LoadSettings` from ``key=value`` arguments; raises
+    :class:`ConfigError` naming a bad one."""
+    given = cli.read(argv, KEYS, COMMAND.what)
     written = sorted({"components", "dtype"} & set(given))  # settings of the file bench writes
-    if command == "info":
-        if given.get("file") is None:
-            raise ConfigError("info needs file=PATH, the .btf file to describe")
-        if others := sorted(set(given) - {"file"}):
-            raise ConfigError(f"{', '.join(others)}: settings of bench, not of info")
-    elif given.get("file") is not None and written:
+    if given.get("file") is not None and written:
         raise ConfigError(
             f"{', '.join(written)}: settings of the file bench writes, but "
             f"file= names one to read: give one or the other"
         )
     if "crop" in given:
         given["crop"] = tuple(given["crop"])
-    return UBO2014BenchSettings(command, **given)
-
-
-def hemisphere_angles(count: int, max_theta_deg: float = 75.0) -> np.ndarray:
-    """``count`` (θ, φ) radians spread over the cap θ <= max_theta (a Fibonacci spiral),
-    shape (count, 2)."""
-    index = np.arange(count) + 0.5
-    cos_theta = 1.0 - index / count * (1.0 - np.cos(np.radians(max_theta_deg)))
-    phi = np.mod(index * np.pi * (3.0 - np.sqrt(5.0)), 2 * np.pi)
-    return np.stack([np.arccos(cos_theta), phi], axis=1)
+    return UBO2014LoadSettings(**given)
 
 
 def write_paper_shaped(
@@ -179,19 +158,10 @@ def bench_crop_load(
     }
 
 
-def _info(path: Path) -> None:
-    dfmf = read_dfmf(path)
-    for key, value in describe(dfmf).items():
-        print(f"{key:>18}: {value}")
-    print("views (index: theta, phi in degrees):")
-    for index, (theta, phi) in enumerate(np.degrees(dfmf.view_angles)):
-        print(f"  {index:4d}: {theta:7.2f} {phi:7.2f}")
-    print("lights of view 0 (index: theta, phi in degrees):")
-    for index, (theta, phi) in enumerate(np.degrees(dfmf.light_angles[0])):
-        print(f"  {index:4d}: {theta:7.2f} {phi:7.2f}")
-
-
-def _bench(args: UBO2014BenchSettings) -> None:
+def main(argv: list[str] | None = None) -> None:
+    """Load the crop (of ``file``, or of a file of the UBO2014 shape written first) and
+    print the file's size and the load's peaks."""
+    args = COMMAND.parse_args(argv, parse)
     with tempfile.TemporaryDirectory(dir=args.workdir) as workdir:
         path = None if args.file is None else Path(args.file)
         if path is None:
@@ -204,14 +174,6 @@ def _bench(args: UBO2014BenchSettings) -> None:
         f"heap peak {human(result['heap_peak_bytes'])}, "
         f"RSS peak {result['rss_peak_mb']:.0f} MiB, {result['seconds']:.1f} s"
     )
-
-
-def main(argv: list[str] | None = None) -> None:
-    args = COMMAND.parse_args(argv, parse)
-    if args.command == "info":
-        _info(Path(args.file))
-    else:
-        _bench(args)
 
 
 if __name__ == "__main__":

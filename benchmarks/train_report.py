@@ -1,12 +1,12 @@
-"""What ``python -m pipeline.bench`` prints: the training loops' figures as a table of
+"""What ``python -m benchmarks.train`` prints: the training loops' figures as a table of
 steps, queries and shares of the machine's peak, the ratios between loops, and the GPU's
-figures (:mod:`pipeline.btf.fast.bench` measures them)."""
+figures (:mod:`benchmarks.train_figures` measures them)."""
 
 from __future__ import annotations
 
 import os
 
-from pipeline.btf.fast.bench_child import OPENMP_SPIN_VARIABLES
+from benchmarks.train_child import OPENMP_SPIN_VARIABLES
 
 
 def _print_training(name: str, row: dict, peak: float, peak_bf16: float | None = None) -> None:

@@ -1,4 +1,4 @@
-"""The settings of ``python -m pipeline.bench``, given as ``key=value`` arguments like every
+"""The settings of ``python -m benchmarks.train``, given as ``key=value`` arguments like every
 other command's (``paths.runs=...``), read without torch so that a bad argument is
 answered at once, before the seconds torch takes to load.
 
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pipeline.core import cli
 from pipeline.core.settings import Integer, OneOf
 
-PROG = "python -m pipeline.bench"
+PROG = "python -m benchmarks.train"
 DECODER_MACS = 12 * 106 + 2 * 106 * 106 + 106 * 3  # per query: the paper decoder's products
 
 
@@ -70,7 +70,7 @@ COMMAND = cli.Command(
     PROG,
     KEYS,
     BenchSettings,
-    "Method A's training benchmark (pipeline/btf/fast/bench.py). Settings and their defaults:",
+    "Method A's training benchmark (benchmarks/train_figures.py). Settings and their defaults:",
     what="the bench",
     notes="Timings are medians of interleaved rounds: compare them as ratios within one run.",
 )

@@ -1,4 +1,4 @@
-"""``python -m pipeline.bench``: speed and memory figures of method A at the paper's sizes.
+"""``python -m benchmarks.train``: speed and memory figures of method A at the paper's sizes.
 
 Prints, in one run on one machine:
 
@@ -9,7 +9,7 @@ Prints, in one run on one machine:
   tuning (``train.keep_awake``, ``train.omp_spin_count``, ``train.reuse_freed_memory``:
   :mod:`pipeline.btf.fast.tuning`), and with ``train.backend=autograd`` (the plain
   PyTorch step, :mod:`pipeline.btf.backends`), each in a child process of its own
-  (:mod:`pipeline.btf.fast.bench_child`; the loops: :mod:`pipeline.btf.fast.bench_loops`),
+  (:mod:`benchmarks.train_child`; the loops: :mod:`benchmarks.train_loops`),
   in queries/s, GFLOP/s, steps/s and as a share of the peak, and the two backends' ratio;
   the default path at the recipe ``experiment=paper_cpu`` uses (``conf/train/cpu.yaml``:
   32 ABRDFs x 256 directions); the decoder alone (autograd against the fused step, no
@@ -55,11 +55,11 @@ across runs on a shared machine. A measurement tool, not a test. Its keys:
   ``paper_run`` and ``load_size``; ``device``, ``threads``, ``machine``, ``torch``,
   ``decoder_parameters``, ``encoder_channels``.
 
-    python -m pipeline.bench [threads=2] [steps=30] [device=cuda] [paper_run=200]
-                             [load_size=256] [paths.runs=runs] [mlflow=false]
+    python -m benchmarks.train [threads=2] [steps=30] [device=cuda] [paper_run=200]
+                               [load_size=256] [paths.runs=runs] [mlflow=false]
 
-Its settings (``python -m pipeline.bench --help``) are read without torch:
-:mod:`pipeline.btf.fast.bench_settings`.
+Its settings (``python -m benchmarks.train --help``) are read without torch:
+:mod:`benchmarks.train_settings`.
 """
 
 from __future__ import annotations
@@ -76,18 +76,13 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
+from benchmarks.train_child import TUNED, Isolated
+from benchmarks.train_loops import N_PAPER, decoder_training, paper_channels, pipeline_training
+from benchmarks.train_report import print_cuda, print_training
+from benchmarks.train_settings import DECODER_MACS, PROG, BenchSettings
 from pipeline.btf.fast import kernels
-from pipeline.btf.fast.bench_child import TUNED, Isolated
-from pipeline.btf.fast.bench_loops import (
-    CONF,
-    N_PAPER,
-    decoder_training,
-    paper_channels,
-    pipeline_training,
-)
-from pipeline.btf.fast.bench_report import print_cuda, print_training
-from pipeline.btf.fast.bench_settings import DECODER_MACS, PROG, BenchSettings, parse_args
 from pipeline.btf.model import Decoder, Encoder, parameter_count
+from pipeline.core.methods import CONF_DIR
 
 M_PAPER = 10_000
 TRAIN_FLOPS_PER_QUERY = 3 * 2 * DECODER_MACS  # forward + backward ~ 3x forward
@@ -253,7 +248,7 @@ def load_times(runs: str, size: int) -> dict:
     from pipeline.core.stage import Context
 
     root = write_synthetic_btf(Path(runs) / "data" / f"bench_ubo2003_{size}", size=size, seed=0)
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose(
             "config",
             overrides=[
@@ -300,7 +295,7 @@ def bfloat16_skip_reason() -> str | None:
 
 
 def tuning_in_effect(threads: int) -> dict:
-    """What :data:`~pipeline.btf.fast.bench_child.TUNED` does on this machine at ``threads``
+    """What :data:`~benchmarks.train_child.TUNED` does on this machine at ``threads``
     threads: the spinning processes ``keep_awake`` starts (none under a CPU quota, or with
     fewer threads than cores: :func:`pipeline.btf.fast.tuning.keep_cpus_awake`), the spin
     count, and whether glibc's malloc is there to keep freed memory."""
@@ -317,7 +312,7 @@ def tuning_in_effect(threads: int) -> dict:
 def training_figures(steps: int, threads: int, channels, recipe, bf16: bool) -> dict:
     """Every training loop's figures, timed in turn (:func:`interleaved`). The naive loops
     and the pipeline's loop at the paper's batch, default and tuned, run in child processes
-    (:class:`~pipeline.btf.fast.bench_child.Isolated`); the recipe's loop and the fused
+    (:class:`~benchmarks.train_child.Isolated`); the recipe's loop and the fused
     decoder step in this one."""
     paper = {
         "train_naive": Isolated("naive", steps, threads),
@@ -382,11 +377,6 @@ def cuda_figures(steps: int, channels, recipe) -> dict:
     return interleaved(loops, queries, steps, bf16=True, device="cuda")
 
 
-def main(argv: list[str] | None = None) -> dict:
-    """``python -m pipeline.bench key=value ...`` (:mod:`pipeline.btf.fast.bench_settings`)."""
-    return run(parse_args(argv))
-
-
 def run(settings: BenchSettings) -> dict:
     """Measure, print and record the figures (the module's docstring); returns them."""
     if settings.threads:
@@ -407,7 +397,7 @@ def run(settings: BenchSettings) -> dict:
         "decoder_parameters": parameter_count(Decoder()),
         "encoder_channels": list(channels),
     }
-    recipe = OmegaConf.load(CONF / "train" / "cpu.yaml")
+    recipe = OmegaConf.load(CONF_DIR / "train" / "cpu.yaml")
     if on_cuda:
         figures |= cuda_figures(settings.steps, channels, recipe)
         print_cuda(figures, recipe)
@@ -494,7 +484,3 @@ def _record(runs: str, figures: dict) -> None:
     with mlflow.start_run(experiment_id=experiment_id, tags=environment_tags()):
         mlflow.log_metrics(_flatten(figures))
         mlflow.log_params({k: figures[k] for k in ("threads", "machine", "device", "torch")})
-
-
-if __name__ == "__main__":
-    main()
