@@ -8,6 +8,7 @@ They live beside the package, not in it (pyproject.toml installs ``pipeline`` an
 - ``python -m benchmarks.profile_step``: where a training step's time goes;
 - ``python -m benchmarks.render``: the cost of a Fig. 8 frame per material;
 - ``python -m benchmarks.ubo2014_load``: the peak memory of loading a UBO2014 crop.
+- ``python -m benchmarks.ubo2014_chain``: method A's chain on a UBO2014-shaped file, per stage.
 
 The ones that time loops in child interpreters pass :data:`ROOT` on their ``PYTHONPATH``
 (:func:`child_env`), so that the children find this folder from any working directory.

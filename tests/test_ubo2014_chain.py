@@ -12,13 +12,13 @@ import pytest
 import torch
 from helpers import compose_config
 
+from benchmarks.ubo2014_chain import direction_pairs
 from pipeline.btf import stages
 from pipeline.btf.batches import HostBatches, Sampling
 from pipeline.btf.evaluate import reconstruction_error
 from pipeline.btf.model import Decoder
 from pipeline.btf.stereographic import direction_features
 from pipeline.btf.synthetic import SyntheticBTF
-from pipeline.btf.ubo2014_chain import direction_pairs
 from pipeline.core.stage import Context
 from pipeline.data.ubo2014_info import hemisphere_angles
 from pipeline.data.ubo2014_write import write_dfmf

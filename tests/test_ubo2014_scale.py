@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from helpers import pipeline_command
 
-from pipeline.btf.ubo2014_chain import run_chain, write_structured
+from benchmarks.ubo2014_chain import run_chain, write_structured
 from pipeline.data.ubo2014 import load_ubo2014
 from pipeline.data.ubo2014_header import read_dfmf
 

@@ -1,4 +1,4 @@
-"""Method A's chain at UBO2014 scale, measured: ``python -m pipeline.btf.ubo2014_chain``.
+"""Method A's chain at UBO2014 scale, measured: ``python -m benchmarks.ubo2014_chain``.
 
 Writes a file of the UBO2014 shape with *structured* values (:func:`write_structured`: a
 built-in material at every one of the 151 x 151 directions, exactly of rank
@@ -7,8 +7,8 @@ crop of it (one ``python -m pipeline`` job each, into ``workdir/runs``; PCA at t
 own rank) and prints per model and stage the time, the peak resident set and the cache
 bytes written::
 
-    python -m pipeline.btf.ubo2014_chain size=100 workdir=/work/ubo_chain
-    python -m pipeline.btf.ubo2014_chain size=400 models=[pca,clustered] workdir=/work/ubo_chain
+    python -m benchmarks.ubo2014_chain size=100 workdir=/work/ubo_chain
+    python -m benchmarks.ubo2014_chain size=400 models=[pca,clustered] workdir=/work/ubo_chain
 
 Settings are ``key=value`` (:data:`KEYS`; ``--help`` lists them). Stages are cached in the
 work folder, so a cut run resumes.
@@ -31,7 +31,7 @@ from pipeline.data.ubo2014_header import read_dfmf
 from pipeline.data.ubo2014_info import hemisphere_angles
 from pipeline.data.ubo2014_write import factorize, write_dfmf
 
-PROG = "python -m pipeline.btf.ubo2014_chain"
+PROG = "python -m benchmarks.ubo2014_chain"
 EXPERIMENT = "ubo2014_chain"  # the MLflow experiment the jobs log to
 
 
