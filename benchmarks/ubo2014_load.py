@@ -51,15 +51,15 @@ KEYS = {
     "file": (
         "file",
         cli.Text(optional=True),
-        "a .btf (DFMF) file; bench without it writes one of the UBO2014 shape",
+        "a .btf (DFMF) file; without it one of the UBO2014 shape",
     ),
-    "crop": ("crop", ListOf(Integer(0), 4), "[row, col, height, width] texels loaded (bench)"),
-    "components": ("components", Integer(1), "components per channel of the written file (bench)"),
-    "dtype": ("dtype", OneOf("float16", "float32"), "factors of the written file (bench)"),
+    "crop": ("crop", ListOf(Integer(0), 4), "[row, col, height, width] texels loaded"),
+    "components": ("components", Integer(1), "components per channel of the written file"),
+    "dtype": ("dtype", OneOf("float16", "float32"), "factors of the written file"),
     "workdir": (
         "workdir",
         cli.Text(optional=True),
-        "where the written file and the decoded crop go (null: the temp dir; bench)",
+        "where the written file and the decoded crop go (null: the temp dir)",
     ),
 }
 
@@ -70,7 +70,7 @@ COMMAND = cli.Command(
     UBO2014LoadSettings,
     "Peak memory of loading a crop (of file=, or of a file it writes). "
     "Settings and their defaults:",
-    what="the bench command",
+    what="the load benchmark",
 )
 
 
@@ -78,10 +78,10 @@ def parse(argv: list[str]) -> UBO2014LoadSettings:
     """:class:`UBO2014LoadSettings` from ``key=value`` arguments; raises
     :class:`ConfigError` naming a bad one."""
     given = cli.read(argv, KEYS, COMMAND.what)
-    written = sorted({"components", "dtype"} & set(given))  # settings of the file bench writes
+    written = sorted({"components", "dtype"} & set(given))  # of the file the benchmark writes
     if given.get("file") is not None and written:
         raise ConfigError(
-            f"{', '.join(written)}: settings of the file bench writes, but "
+            f"{', '.join(written)}: settings of the file the benchmark writes, but "
             f"file= names one to read: give one or the other"
         )
     if "crop" in given:

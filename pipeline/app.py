@@ -45,7 +45,12 @@ def run_job(cfg: DictConfig) -> float | None:
     name = method.name_run(cfg)
     with (
         stopping.job_scope(leftovers_in=[f for f in leftovers if f]),
-        job_run(cfg, name, method.description, method.left_out(cfg)) as run,
+        job_run(
+            cfg,
+            run_name=name,
+            description=method.description,
+            unused=method.left_out(cfg),
+        ) as run,
     ):
         ctx = Context.from_config(cfg, log=RunLog(on=True))
         try:

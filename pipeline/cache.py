@@ -13,8 +13,9 @@ refused, naming the closest real one; the command line is read before MLflow, Hy
 pandas is imported.
 
 ``gc`` keeps every entry whose key a FINISHED run records (its tags ``cache.<stage>``), the
-entries those were computed from, and anything used since the oldest RUNNING run started
-(:class:`~pipeline.core.cache.StageCache` marks each hit on the manifest's mtime). It removes
+entries those were computed from, and anything used since the oldest RUNNING run started (a
+job records its keys when it ends; :class:`~pipeline.core.cache.StageCache` marks each hit
+on the manifest's mtime). Keys are matched whatever the stage. It removes
 nothing when the store cannot be read or knows none of the entries (the wrong
 ``paths.runs``). A RUNNING run whose process is gone from this machine is marked FAILED
 first (``ls`` and ``dry_run`` only leave it out).

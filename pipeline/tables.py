@@ -140,7 +140,7 @@ def write_index(tables: Path, uri: str) -> None:
 
 def replace_folder(old: Path, new: Path) -> None:
     """Put the complete folder ``new`` in the place of ``old`` (two renames: a reader sees
-    the old set or the new one, never a mix)."""
+    the old set or the new one, never a mix; a crash between them leaves ``old`` absent)."""
     trash = old.with_name(f".{old.name}.old-{os.getpid()}")
     if old.exists():
         old.rename(trash)

@@ -131,8 +131,8 @@ def test_the_ubo2014_commands_take_key_value_settings():
         ConfigError, match=r"'crop=\[0,0,1,1\]' is not a setting of the info command"
     ):
         ubo2014_info.parse(["file=a.btf", "crop=[0,0,1,1]"])
-    # components and dtype describe the file bench writes: with file= they would be ignored
-    with pytest.raises(ConfigError, match="components, dtype: settings of the file bench"):
+    # components and dtype describe the file the benchmark writes: with file= they are ignored
+    with pytest.raises(ConfigError, match="components, dtype: settings of the file the benchmark"):
         ubo2014_load.parse(["file=a.btf", "dtype=float32", "components=4"])
     assert ubo2014_load.parse(["file=a.btf", "crop=[0,0,1,1]"]).file == "a.btf"
 

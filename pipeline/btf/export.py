@@ -67,7 +67,9 @@ def export_stage(
             latent_of_texel=trained.array("latent_of_texel", mmap=False) if clustered else None,
             texel_scale=evaluated.array("texel_scale", mmap=False) if has_scale else None,
             texel_scale_mode=evaluated.manifest["settings"]["texel_scale"],
-            **plain_settings(cfg.btf.sizes),  # weight_dtype, list_dtype, extra_dtype
+            weight_dtype=settings["sizes"]["weight_dtype"],
+            list_dtype=settings["sizes"]["list_dtype"],
+            extra_dtype=settings["sizes"]["extra_dtype"],
         )
         return _checked_against_table1(path, evaluated.json("metrics"))
 

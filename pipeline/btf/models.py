@@ -124,8 +124,8 @@ class Model:
     stage: str | None
     size: tuple[str, str]
     column: Callable[[Mapping], str] = field(repr=False)
-    trains: bool = False
-    clusters: bool = False
+    trains: bool
+    clusters: bool
     rank: int = 0
     stored_types: Callable[[Mapping], str] = field(repr=False, default=lambda run: "")
 
@@ -183,6 +183,7 @@ MODELS: dict[str, Model] = {
             "Neural BTF",
             TRAIN,
             trains=True,
+            clusters=False,
             size=("params.btf.network.latent", "latent "),
             column=lambda run: "Neural BTF",
             stored_types=_weight_type,
@@ -204,6 +205,8 @@ MODELS: dict[str, Model] = {
             PCAConfig,
             "PCA",
             None,
+            trains=False,
+            clusters=False,
             size=("metrics.n_components", "c = "),
             column=_pca_column,
             rank=3,
@@ -214,6 +217,8 @@ MODELS: dict[str, Model] = {
             LatentTextureConfig,
             "latent texture",
             "pipeline.btf.latent_stage:train_stage",
+            trains=False,
+            clusters=False,
             size=("params.btf.network.latent", "latent "),
             column=lambda run: "latent texture",
             rank=1,

@@ -34,8 +34,9 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
         return ["No Neural BTF run with a recipe tag found (method A): `python -m pipeline`.\n"]
     found = []
 
-    def add(table: pd.DataFrame, stem: str, title: str, note: str, floatfmt: str = "g") -> None:
-        if not table.empty:
+    def add(table, stem: str, title: str, note: str, floatfmt="g", always=False) -> None:
+        """Write ``table`` unless it is empty (Tables 2 are written ``always``)."""
+        if always or not table.empty:
             found.append(write_table(table, out, stem, title, note, floatfmt))
 
     add(
@@ -58,6 +59,7 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
         f"Learning rates: {tables.learning_rates(runs) or 'not logged'}. A column is one "
         "recipe; a label names what tells it apart from the other columns of its model (all the "
         "settings in which they differ: table2_columns.csv).",
+        always=True,
     )
     write_file(out / "table2_columns.csv", tables.column_recipes(runs).to_csv(index=False))
     add(
@@ -73,6 +75,7 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
         f"clustering penalty {100 * paper.largest_clustering_penalty():+.1f} % "
         "(fabric02, k = 500 over the Neural BTF).",
         floatfmt=".4f",  # as published: 0.0200, not 0.02
+        always=True,
     )
     add(
         tables.table_graininess(runs),

@@ -191,10 +191,16 @@ def evaluate_stage(ctx: Context, cropped: Entry, prep: Entry, trained: Entry) ->
             scale_dtype=sizes_settings.extra_dtype,
         )
         m, n, _ = abrdf.shape
-        dtypes = plain_settings(sizes_settings)  # no extra part without a texel scale
-        dtypes["extra_dtype"] = dtypes["extra_dtype"] if texel_scale != "none" else None
         sizes = evaluate.storage_sizes(
-            decoder, latents.shape[0], m, n, clustered, **dtypes, latent_dim=latents.shape[1]
+            decoder,
+            n_latents=latents.shape[0],
+            n_texels=m,
+            n_directions=n,
+            clustered=clustered,
+            weight_dtype=sizes_settings.weight_dtype,
+            list_dtype=sizes_settings.list_dtype,
+            extra_dtype=sizes_settings.extra_dtype if texel_scale != "none" else None,
+            latent_dim=latents.shape[1],
         )
         metrics = {
             "rmse": recon.rmse,
@@ -356,10 +362,16 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
     if pca.get("match_clustered_k"):
         # What clustered k stores with this run's network and storage settings.
         latent, sizes = int(ctx.cfg.btf.network.latent), ctx.cfg.btf.sizes
-        dtypes = {"weight_dtype": sizes.weight_dtype, "list_dtype": sizes.list_dtype}
-        k = int(pca.match_clustered_k)
-        stored = storage_sizes(Decoder(latent=latent), k, m, n, True, **dtypes, latent_dim=latent)
-        budget = stored["bytes_total"]
+        budget = storage_sizes(
+            Decoder(latent=latent),
+            n_latents=int(pca.match_clustered_k),
+            n_texels=m,
+            n_directions=n,
+            clustered=True,
+            weight_dtype=sizes.weight_dtype,
+            list_dtype=sizes.list_dtype,
+            latent_dim=latent,
+        )["bytes_total"]
         n_components = components_for_budget(budget, m, n, pca.dtype)
         if n_components == 0:
             # The smallest PCA model, one component, is over the budget: run it, and say so
@@ -385,6 +397,7 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
         basis_bytes = model.basis.nbytes + model.mean.nbytes
         total = basis_bytes + model.coefficients.nbytes
         assert total == pca_bytes(n_components, m, n, pca.dtype)
+        original = m * n * 3 * 4  # float32 RGB
         metrics = {
             "rmse": rmse,
             "n_components": n_components,
@@ -392,9 +405,9 @@ def linear_stage(ctx: Context, cropped: Entry, prep: Entry) -> Entry:
             "bytes_latents": model.coefficients.nbytes,
             "bytes_list": 0,
             "bytes_extra": 0,
-            "bytes_original": m * n * 3 * 4,
+            "bytes_original": original,
             "bytes_total": total,
-            "compression_ratio": m * n * 3 * 4 / total,
+            "compression_ratio": original / total,
             "rmse_mean_abrdf": mean_abrdf_rmse(stages.abrdf(cropped), norm.alpha),
         }
         save_json(folder, "metrics", metrics)

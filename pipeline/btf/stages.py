@@ -47,9 +47,19 @@ def dataset_root(cfg: DictConfig) -> Path:
         root = synthetic_folder(cfg)
         if not root.is_dir():
             log.info("generating the built-in synthetic BTF into %s", root)
-        views = None if ds.format == "ubo2014" else plain_settings(ds.views)
+        gen = plain_settings(ds.synthetic)
         return write_synthetic_btf(
-            root, format=ds.format, views=views, **plain_settings(ds.synthetic)
+            root,
+            size=gen["size"],
+            seed=gen["seed"],
+            format=ds.format,
+            ext=gen["ext"],
+            views=None if ds.format == "ubo2014" else plain_settings(ds.views),
+            quality=gen["quality"],
+            material=gen["material"],
+            directions=gen["directions"],
+            n_lights=gen["n_lights"],
+            n_views=gen["n_views"],
         )
     if ds.root is None:
         raise ConfigError(f"dataset={ds.name} needs dataset.root=/path/to/the/dataset")
@@ -194,8 +204,9 @@ def abrdf(cropped: Entry):
     stage's ``images.npy`` (:func:`pipeline.data.image_abrdfs.crop_abrdfs`: in memory, or
     gathered where read for a crop too large to hold); for a UBO2014 file a
     :class:`~pipeline.data.ubo2014_decode.FactorABRDFs` that decodes what is indexed.
-    DataError, naming what is missing, when the load stage's images are gone from the cache
-    or the UBO2014 file is gone or changed (its size or modification time).
+    Raises :class:`~pipeline.core.errors.DataError`, naming what is missing, when the load
+    stage's images are gone from the cache or the UBO2014 file is gone or changed (its size
+    or modification time).
     """
     summary = cropped.manifest["summary"]
     if summary["source"] == "images":
@@ -277,7 +288,13 @@ def kmeans(ctx: Context, reduced: Entry) -> Entry:
     settings = {"k": k, "seed": ctx.cfg.seed, **plain_settings(ctx.cfg.btf.kmeans)}
 
     def compute(folder: Path) -> dict:
-        labels, centers, inertia = kmeans_pp(np.asarray(reduced.array("scores")), **settings)
+        labels, centers, inertia = kmeans_pp(
+            np.asarray(reduced.array("scores")),
+            k,
+            seed=ctx.cfg.seed,
+            n_init=settings["n_init"],
+            max_iter=settings["max_iter"],
+        )
         save_arrays(folder, labels=labels, centers=centers)
         return {"inertia": inertia}
 

@@ -4,7 +4,8 @@ A :class:`SyntheticBTF` renders one of the fabric presets of :mod:`pipeline.btf.
 seen from above. From the preset's labels, albedo, height field and fibre directions it
 derives, the same way for every preset, normals (from the height), a *depth* (0 on the
 highest crest, 1 at the lowest floor), and a tangent along the fibre twisted by the yarn's
-twist angle about the normal; :mod:`pipeline.btf.synthetic_shading` shades them.
+twist angle about the normal; :mod:`pipeline.btf.synthetic_shading` shades them. Each
+preset's exposure keeps all but the brightest highlights below 1.
 
 Directions: θ from the macro normal, φ from +x (image columns, to the right) toward +y
 (image rows, downward). The model accepts any direction, not only grid ones; directions

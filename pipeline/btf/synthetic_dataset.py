@@ -265,7 +265,8 @@ def _write_view_folders(
 def _write_ubo2014(path: Path, fabric: SyntheticBTF, lights: np.ndarray, views: np.ndarray):
     """The fabric at every light (L, 2) under every view (V, 2), as a lossless DFMF file:
     colour model 0 (linear RGB), the incident cosine in the data, and float32 factors of
-    full rank that :mod:`pipeline.data.ubo2014` decodes exactly."""
+    full rank (one of U and SV is the identity) that :mod:`pipeline.data.ubo2014` decodes
+    exactly."""
     from pipeline.data.ubo2014_write import write_dfmf
 
     # The file stores float32 angles: render at exactly those, so data and truth agree.

@@ -231,7 +231,7 @@ def column_recipes(runs: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for (dataset, _), group in runs.groupby(["dataset", "base_model"], sort=False):
         of_group = settings.loc[group.index]
-        varying = [c for c in of_group.columns if of_group[c].nunique() > 1]
+        varying = sorted(c for c in of_group.columns if of_group[c].nunique() > 1)
         for model, of_model in group.groupby("model", sort=False):
             first = of_model.index[0]
             rows.append(

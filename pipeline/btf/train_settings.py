@@ -56,9 +56,9 @@ class TrainSettings:
         precision's default (``pipeline.btf.fast.fused.DEFAULT_CHUNK``: 1024 for float32, whose
         chunk's activations should fit in a core's L2 cache; 8192 for bfloat16).
     clip_grad_norm : None, or the largest norm of all parameters' gradients together,
-        scaled down to it before each optimizer step (``torch.nn.utils.clip_grad_norm_``), a
-        remedy for the jumps of the loss of long cosine runs on the corduroy
-        (docs/results.md).
+        scaled down to it before each optimizer step (``torch.nn.utils.clip_grad_norm_``).
+        A remedy to try for the jumps of the loss that long cosine runs show on the
+        corduroy (docs/results.md); None (the default) clips nothing, as before it existed.
     keep_awake, omp_spin_count, reuse_freed_memory : opt-in machine tuning, speed only
         (:mod:`pipeline.btf.fast.tuning`): spinning idle-class processes keep the cores
         awake when the job's threads are all its cores; ``GOMP_SPINCOUNT`` for OpenMP's

@@ -13,7 +13,9 @@ one whose manifest lacks those records, an ``id`` or ``parents``, is logged, rem
 computed again.
 
 Lineage: ``parents`` records each entry the stage read with the ``id`` it had. An entry
-whose parent is gone or was computed again since is not a hit, nor are its descendants;
+whose parent is gone or was computed again since is not a hit, nor are its descendants.
+An ancestor's files are hashed when its own stage is hit, which a runner does before
+reading it (so :meth:`StageCache.lineage_problem` checks only their sizes);
 ``verify fix=true`` removes a damaged entry with its descendants.
 """
 
@@ -185,7 +187,8 @@ class StageCache:
 
     Every entry it hands out is held in use until :meth:`release` (or this object goes): a
     shared lock on ``<stage>/.inuse-<key>``, which :meth:`remove` (``gc``) respects, so a
-    job's inputs stay while it runs."""
+    job's inputs stay while it runs (on this host, and on file systems whose locks reach
+    other hosts)."""
 
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)

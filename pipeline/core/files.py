@@ -120,7 +120,8 @@ def disk_full_is_named(
     path: str | os.PathLike, hint: str = "free some space or write elsewhere"
 ) -> Iterator[None]:
     """Turn a full disk while the block writes ``path`` into :func:`no_space`'s
-    :class:`DiskFullError`; other errors pass unchanged."""
+    :class:`DiskFullError` (other errors pass unchanged). The space it names is measured
+    at once: a caller that removes what was written may raise a new one after."""
     try:
         yield
     except Exception as error:

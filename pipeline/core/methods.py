@@ -43,9 +43,11 @@ class Method:
     unused : ``(cfg) -> list[str]``, flattened settings this job does not read (e.g. the
         method's learning rate when ``train.lr`` replaces it): not logged, not in the recipe.
     schemas : Hydra structured configs to register before composing, as
-        ``(group, name, dataclass)``, which the YAML files extend.
+        ``(group, name, dataclass)``: the one source of a settings group's defaults,
+        which the YAML files extend (``defaults: [/<group>/<name>@_here_, _self_]``).
     check : ``(cfg) -> None`` raising :class:`ConfigError` for a bad setting, called for
-        every job of a sweep before the first runs; or None.
+        every job of a sweep before the first runs, and by the job itself (not by a
+        library call of the method's runner); or None.
     settings : ``(prefix, dataclass)`` pairs whose fields declare their roles
         (:func:`pipeline.core.settings.setting`): the recipe leaves out what is not a result.
     """

@@ -129,8 +129,9 @@ def recipe_suffixes(
     recipes are equal. ``runs`` has MLflow's ``params.*``.
 
     Runs with the same suffix in a group have equal recipes (less ``ignore``, the table's
-    own axes), so grouping by ``by`` plus the suffix pools seeds only. When the ``most``
-    settings shown do not tell two recipes apart, the recipe's hash is added.
+    own axes), so grouping by ``by`` plus the suffix pools seeds only. A setting one run
+    lacks counts as a difference; when the ``most`` settings shown do not tell two recipes
+    apart, the recipe's hash is added.
     """
     suffix = pd.Series("", index=runs.index, dtype=object)
     if runs.empty:

@@ -212,7 +212,17 @@ def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
     ``segmentation_accuracy_object_<name>`` (object pixels: ground-truth label != 0) in
     the chosen colour space, and the same with ``_rgb`` / ``_chromaticity`` appended.
     """
-    seg = plain_settings(ctx.cfg.method.segmentation)  # checked by settings.CONSTRAINTS
+    seg = plain_settings(ctx.cfg.method.segmentation)
+    # The job checks these at the door (settings.CONSTRAINTS); a library call does not.
+    if seg["features"] not in ("mean_colour", "coefficients"):
+        raise ConfigError(
+            f"method.segmentation.features={seg['features']!r} is not mean_colour or coefficients"
+        )
+    if seg["colour_space"] not in COLOUR_SPACES:
+        raise ConfigError(
+            f"method.segmentation.colour_space={seg['colour_space']!r} is not one of "
+            f"{list(COLOUR_SPACES)}"
+        )
     points = seg["points"]
     if points is None and data.manifest["summary"]["regions"]:
         points = representative_points(data.array("regions", mmap=False))

@@ -51,8 +51,13 @@ VIEW = (0.0, 0.0, 1.0)
 # about 64 MB in float64 so that a 400x400 capture fits on a small machine.
 _BATCH_BYTES = 64 * 2**20
 # Relative eigenvalue cutoff of the normal equations. Forming AᵀA loses everything below
-# about eps·‖AᵀA‖, so smaller eigenvalues are round-off: dropping them keeps systems with
-# cond(A) up to ~1e7 exact and truncates the rest. With λ > 0 the penalty lifts them.
+# about eps·‖AᵀA‖, so eigenvalues under 1e-14 of the largest are round-off: dropping
+# them keeps systems with cond(A) up to ~1e7 exact and truncates the rest (a truncated
+# pseudo-inverse). With λ > 0 the penalty lifts the small eigenvalues, so nothing is
+# dropped; without regularization the paper's geometry is far worse: on the 6 x 55
+# light grid, cond(A) is ~1e12 at M = 10 for a generic normal (θs spans well under a
+# period, so high harmonics are nearly dependent) -- the reason eq. 19 is needed, and the
+# reason λ = 0 is not solved this way (see ``resolve_solver``).
 _EIG_CUTOFF = 1e-14
 
 
@@ -146,10 +151,12 @@ def _pixel_batches(n_pixels: int, n_lights: int, n_coeffs: int):
 def _solve_normal(design: np.ndarray, observed: np.ndarray, penalty: np.ndarray) -> np.ndarray:
     """Eq. 19 by batched normal equations: (AᵀA + λD) x = Aᵀy per pixel.
 
-    design (P, n, K), observed (P, n, C), penalty (K,) -> (P, K, C). An eigendecomposition
-    cut at ``_EIG_CUTOFF``, not a plain ``solve``, which blows round-off up into huge
-    coefficients where a pixel is rank-deficient (normal = view at λ = 0): the
-    minimum-norm least-squares solution there.
+    design (P, n, K), observed (P, n, C), penalty (K,) -> (P, K, C). A symmetric
+    eigendecomposition with a relative cutoff rather than a plain ``solve``: with λ = 0
+    some pixels are exactly rank-deficient (where the normal equals the view,
+    cos θs = cos θd for every light, so two columns coincide), and a plain solve blows
+    round-off up into huge coefficients. Dropping eigenvalues below ``_EIG_CUTOFF``
+    times the largest gives the minimum-norm least-squares solution there.
     """
     design_t = design.transpose(0, 2, 1)  # (P, K, n)
     gram = design_t @ design  # (P, K, K)
@@ -344,9 +351,11 @@ def fit_fourier(
         Use max(cos θd, 0) as the diffuse basis (not in the paper); pass the same value
         to :func:`render_fourier`.
     solver : {"auto", "normal", "svd"}
-        :func:`resolve_solver`. "normal": batched normal equations (fast; exact for
-        cond(A) up to ~1e7, a minimum-norm truncation beyond). "svd": batched SVD, as
-        accurate as ``np.linalg.lstsq`` but slower.
+        "auto" (default): "svd" at λ = 0 (plain least squares, equal to
+        ``np.linalg.lstsq``), "normal" at λ > 0 (:func:`resolve_solver`).
+        "normal": batched normal equations (fast; exact for cond(A) up to ~1e7, a
+        minimum-norm truncation beyond). "svd": batched SVD of the augmented system,
+        as accurate as ``np.linalg.lstsq`` but slower.
 
     Returns
     -------

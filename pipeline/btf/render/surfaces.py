@@ -17,7 +17,8 @@ A query beyond the polygon that the outermost measured directions of a set span 
 stereographic coordinates (:class:`pipeline.btf.interpolation.DirectionHull`; for UBO2003
 the 24 directions of the theta = 75 degree ring) has no measured neighbours: the measured
 BTF and the PCA baseline answer it with their value clamped onto that polygon
-(:func:`clamp_to_grid`: theta lowered, phi kept), while a neural decoder would extrapolate.
+(:meth:`DirectionHull.clamp <pipeline.btf.interpolation.DirectionHull.clamp>`: theta
+lowered, phi kept), while a neural decoder would extrapolate.
 Where a render has no truth (measured data), every material is queried through the same
 clamp (:class:`GridClamped`), so that renders differ by their reconstruction of the
 measured domain only, never by an extrapolation that nothing can check; the share of
@@ -179,7 +180,7 @@ class GridClamped(Material):
 
 class BeyondGridIndicator(Material):
     """Marks the queries beyond the measured grid: RGB = (light or view beyond, light
-    beyond, 1) (:func:`beyond_grid`, each against its own set), whatever the texel.
+    beyond, 1) (``DirectionHull.beyond``, each against its own set), whatever the texel.
 
     Rendered with the same samples as the models, channel 0 over channel 2 is, per pixel,
     the share of its (camera sample, light) pairs whose light or view lies beyond the grid,
