@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.ubo2014_load import hemisphere_angles
 from pipeline.core import cli
 from pipeline.core.cache import folder_bytes
 from pipeline.core.files import human
 from pipeline.core.settings import Integer, ListOf, OneOf
 from pipeline.data.ubo2014_header import read_dfmf
-from pipeline.data.ubo2014_info import hemisphere_angles
 from pipeline.data.ubo2014_write import factorize, write_dfmf
 
 PROG = "python -m benchmarks.ubo2014_chain"

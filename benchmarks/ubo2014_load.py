@@ -29,7 +29,6 @@ from pipeline.core.memory import stage_peak
 from pipeline.core.settings import Integer, ListOf, OneOf
 from pipeline.data.ubo2014 import count_ubo2014_images, load_ubo2014
 from pipeline.data.ubo2014_header import read_dfmf
-from pipeline.data.ubo2014_info import hemisphere_angles
 from pipeline.data.ubo2014_write import write_dfmf
 
 PROG = "python -m benchmarks.ubo2014_load"
@@ -72,6 +71,15 @@ COMMAND = cli.Command(
     "Settings and their defaults:",
     what="the load benchmark",
 )
+
+
+def hemisphere_angles(count: int, max_theta_deg: float = 75.0) -> np.ndarray:
+    """``count`` (θ, φ) radians spread over the cap θ <= max_theta (a Fibonacci spiral),
+    shape (count, 2)."""
+    index = np.arange(count) + 0.5
+    cos_theta = 1.0 - index / count * (1.0 - np.cos(np.radians(max_theta_deg)))
+    phi = np.mod(index * np.pi * (3.0 - np.sqrt(5.0)), 2 * np.pi)
+    return np.stack([np.arccos(cos_theta), phi], axis=1)
 
 
 def parse(argv: list[str]) -> UBO2014LoadSettings:

@@ -13,6 +13,7 @@ import torch
 from helpers import compose_config
 
 from benchmarks.ubo2014_chain import direction_pairs
+from benchmarks.ubo2014_load import hemisphere_angles
 from pipeline.btf import stages
 from pipeline.btf.batches import HostBatches, Sampling
 from pipeline.btf.evaluate import reconstruction_error
@@ -20,7 +21,6 @@ from pipeline.btf.model import Decoder
 from pipeline.btf.stereographic import direction_features
 from pipeline.btf.synthetic import SyntheticBTF
 from pipeline.core.stage import Context
-from pipeline.data.ubo2014_info import hemisphere_angles
 from pipeline.data.ubo2014_write import write_dfmf
 
 N_VIEWS, N_LIGHTS, SIZE, CROP, OFFSET = 12, 20, 12, 6, (2, 3)  # 240 directions

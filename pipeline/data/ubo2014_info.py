@@ -49,15 +49,6 @@ def parse(argv: list[str]) -> UBO2014InfoSettings:
     return settings
 
 
-def hemisphere_angles(count: int, max_theta_deg: float = 75.0) -> np.ndarray:
-    """``count`` (θ, φ) radians spread over the cap θ <= max_theta (a Fibonacci spiral),
-    shape (count, 2)."""
-    index = np.arange(count) + 0.5
-    cos_theta = 1.0 - index / count * (1.0 - np.cos(np.radians(max_theta_deg)))
-    phi = np.mod(index * np.pi * (3.0 - np.sqrt(5.0)), 2 * np.pi)
-    return np.stack([np.arccos(cos_theta), phi], axis=1)
-
-
 def main(argv: list[str] | None = None) -> None:
     """Print the header facts, the views and view 0's lights of ``file`` (degrees)."""
     dfmf = read_dfmf(Path(COMMAND.parse_args(argv, parse).file))
