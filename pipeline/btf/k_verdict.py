@@ -37,7 +37,9 @@ POWER = 0.8
 # RMSE). Not its largest clustering penalty (+4.4 %, k = 500 over the Neural BTF), which is
 # no step between k and must not be compared with one (pipeline.btf.paper).
 PAPER_LARGEST_K_STEP = round(paper.largest_k_step(), 3)
-EXACT_MAX_WORK = 2_000_000  # rank-sum states x block orderings over all blocks: ~0.2 s
+# Rank-sum states x block orderings over all blocks, above which Friedman's exact p gives
+# way to the chi-square (its time at this bound: docs/performance.md).
+EXACT_MAX_WORK = 2_000_000
 
 
 @dataclass(frozen=True)

@@ -117,9 +117,11 @@ def sections(runs: pd.DataFrame, out: Path, settings) -> list[str]:
         "else the chi-square) as the check without normality, the trend of RMSE per doubling of "
         "k within seeds, and each step's effect with its Bonferroni interval, Holm-adjusted p "
         "and size relative to the smaller k's mean. Without evidence: the step these runs "
-        "detect with 80 % power and the seeds needed for a 5.7 % difference (the paper's "
-        "largest step between two k: fabric02, k = 500 -> 1000; its 4.4 % is k = 500 over the "
-        "Neural BTF, no step). Runs pooled only within one recipe (see the column labels).",
+        "detect with 80 % power and the seeds needed for a "
+        f"{100 * paper.largest_k_step():.1f} % difference (the paper's largest step between "
+        f"two k: fabric02, k = 500 -> 1000; its {100 * paper.largest_clustering_penalty():.1f} % "
+        "is k = 500 over the Neural BTF, no step). Runs pooled only within one recipe (see the "
+        "column labels).",
     )
     tolerance = float(settings.convergence_tolerance)
     add(

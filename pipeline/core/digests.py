@@ -1,7 +1,7 @@
 """sha256 records of the files of a cache entry, checked by several threads at once.
 
 A file above :data:`CHUNK_BYTES` gets one sha256 per chunk, so that several threads hash
-one large file (hashlib releases the GIL): on 2 busy cores an 800 MB entry takes ~0.5 s.
+one large file (hashlib releases the GIL; the time it takes: docs/performance.md).
 """
 
 from __future__ import annotations

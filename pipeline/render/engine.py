@@ -64,7 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.render.materials import spherical, texels_of_uv
-from pipeline.render.scene import CLOTH, FLOOR, PointLight, Scene, unit_vectors
+from pipeline.render.scene import CLOTH, FLOOR, PointLight, Scene, normalized
 
 DEFAULT_BATCH_RAYS = 1 << 18
 # Shadow rays towards a point light stop this fraction short of it.
@@ -297,9 +297,9 @@ def _shade(
         return np.einsum("kj,kjd->kd", bary, per_vertex[corners])
 
     position = interpolate(tracer.vertices)
-    normal = unit_vectors(interpolate(mesh.normals))
+    normal = normalized(interpolate(mesh.normals))
     tangent = interpolate(mesh.tangents)
-    tangent = unit_vectors(tangent - _dot(tangent, normal)[:, None] * normal)
+    tangent = normalized(tangent - _dot(tangent, normal)[:, None] * normal)
     bitangent = np.cross(normal, tangent)
     geometric = tracer.face_normals[triangle]
     view = -directions[hit]

@@ -37,7 +37,7 @@ def _vector3(value, name: str) -> np.ndarray:
     return array
 
 
-def unit_vectors(vectors: np.ndarray) -> np.ndarray:
+def normalized(vectors: np.ndarray) -> np.ndarray:
     """``vectors`` (..., 3) divided by their lengths."""
     return vectors / np.linalg.norm(vectors, axis=-1, keepdims=True)
 
@@ -105,7 +105,7 @@ class Mesh:
     def face_normals(self) -> np.ndarray:
         """Unit geometric normals ``(v1 - v0) x (v2 - v0)``, ndarray of shape (F, 3)."""
         corners = self.vertices.astype(np.float64)[self.triangles]
-        return unit_vectors(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
+        return normalized(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
 
 
 def merge_meshes(*meshes: Mesh) -> Mesh:
@@ -226,8 +226,8 @@ def folded_sheet(
     # dP/du ~ (1, dh/dX, 0) and dP/dv ~ (0, -dh/dZ, -1) (X, Z in the same units as h / half).
     d_du = np.stack([np.full_like(dh_dx, half), dh_dx, np.zeros_like(dh_dx)], axis=-1)
     d_dv = np.stack([np.zeros_like(dh_dz), -dh_dz, np.full_like(dh_dz, -half)], axis=-1)
-    normals = unit_vectors(np.cross(d_du, d_dv))
-    tangents = unit_vectors(d_du)  # orthogonal to the normal already
+    normals = normalized(np.cross(d_du, d_dv))
+    tangents = normalized(d_du)  # orthogonal to the normal already
 
     n = resolution + 1
     index = np.arange(n * n).reshape(n, n)
@@ -279,8 +279,8 @@ class Camera:
 
     def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unit (right, up, forward) vectors of the camera, each of shape (3,)."""
-        forward = unit_vectors(self.look_at - self.position)
-        right = unit_vectors(np.cross(forward, self.up))
+        forward = normalized(self.look_at - self.position)
+        right = normalized(np.cross(forward, self.up))
         return right, np.cross(right, forward), forward
 
     def rays(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -300,7 +300,7 @@ class Camera:
         half_width = half_height * self.width / self.height
         sx = (2.0 * np.asarray(x, dtype=np.float64) / self.width - 1.0) * half_width
         sy = (1.0 - 2.0 * np.asarray(y, dtype=np.float64) / self.height) * half_height
-        directions = unit_vectors(forward + sx[:, None] * right + sy[:, None] * up)
+        directions = normalized(forward + sx[:, None] * right + sy[:, None] * up)
         return np.broadcast_to(self.position, directions.shape).copy(), directions
 
 
