@@ -140,3 +140,36 @@ def test_debug_shows_the_traceback(tmp_path):
         timeout=300,
     )
     assert done.returncode != 0 and "Traceback" in done.stdout + done.stderr
+
+
+@pytest.mark.parametrize(
+    ("override", "named"),
+    [
+        ("trian.lr=1", "trian.lr=1: no such setting (did you mean train.lr?)"),
+        ("btf.crp.size=3", "btf.crp.size=3: no such setting (did you mean btf.crop.size?)"),
+    ],
+)
+def test_a_misspelt_group_names_the_closest_whole_key(override, named):
+    """Hydra fails at the first unknown part (``trian``); the closest key is looked for as
+    the whole key was written."""
+    from pipeline.core.errors import ConfigError
+    from pipeline.core.methods import CONF_DIR
+    from pipeline.core.refusal import check_command_line
+
+    with pytest.raises(ConfigError) as refused:
+        check_command_line(["experiment=smoke", override], CONF_DIR)
+    assert str(refused.value) == named
+
+
+def test_hydra_flags_and_their_values_are_not_read_as_overrides():
+    """``--cfg job`` is a flag with its value (Hydra's parser says which flags take one);
+    a bad setting after it is still refused, and ``--help`` asks for no composition."""
+    from pipeline.core.errors import ConfigError
+    from pipeline.core.methods import CONF_DIR
+    from pipeline.core.refusal import check_command_line
+
+    check_command_line(["--cfg", "job", "experiment=smoke"], CONF_DIR)
+    check_command_line(["-c", "hydra", "-m", "experiment=smoke", "seed=0,1"], CONF_DIR)
+    check_command_line(["--help", "sed=3"], CONF_DIR)
+    with pytest.raises(ConfigError, match="did you mean seed"):
+        check_command_line(["--cfg", "job", "sed=3"], CONF_DIR)

@@ -109,6 +109,8 @@ class Model:
         the stored latents for the evaluate and export stages; None: the linear chain.
     size : ``(column, prefix)``: the column of a run (``mlflow.search_runs``) that is its
         size axis in the rate-distortion figures, and that axis' label (``k = 500``).
+    size_settings : the settings (flattened keys) that set its size: a rate-distortion
+        line varies them, so they are left out of the comparison of its recipes.
     column : ``(run) -> str``, its Table 2 column from a run (a row of
         ``mlflow.search_runs``: ``params.*`` strings and ``metrics.*``).
     trains : it trains the autoencoder, so ``train.*`` makes its numbers.
@@ -123,6 +125,7 @@ class Model:
     title: str
     stage: str | None
     size: tuple[str, str]
+    size_settings: tuple[str, ...]
     column: Callable[[Mapping], str] = field(repr=False)
     trains: bool
     clusters: bool
@@ -185,6 +188,7 @@ MODELS: dict[str, Model] = {
             trains=True,
             clusters=False,
             size=("params.btf.network.latent", "latent "),
+            size_settings=("btf.network.latent",),
             column=lambda run: "Neural BTF",
             stored_types=_weight_type,
         ),
@@ -196,6 +200,7 @@ MODELS: dict[str, Model] = {
             trains=True,
             clusters=True,
             size=("params.model.k", "k = "),
+            size_settings=("model.k",),
             column=lambda run: "k = " + _int_text(run.get("params.model.k")),
             rank=2,
             stored_types=_clustered_types,
@@ -208,6 +213,7 @@ MODELS: dict[str, Model] = {
             trains=False,
             clusters=False,
             size=("metrics.n_components", "c = "),
+            size_settings=("model.n_components", "model.match_clustered_k"),
             column=_pca_column,
             rank=3,
             stored_types=lambda run: _param(run, "model.dtype", "float32"),
@@ -220,6 +226,7 @@ MODELS: dict[str, Model] = {
             trains=False,
             clusters=False,
             size=("params.btf.network.latent", "latent "),
+            size_settings=("btf.network.latent",),
             column=lambda run: "latent texture",
             rank=1,
             stored_types=_weight_type,

@@ -32,15 +32,6 @@ from pipeline.core.report import param, safe_stem, save_figure, write_file, writ
 
 BUDGETS_KB = (64, 128, 256, 512)  # KB = 1024 bytes, as Table 1's; tables.budgets_kb sets them
 N_LEVELS = 4  # RMSE levels of the bytes-to-reach table, per dataset
-# The size setting of each method: what a line varies (left out of its recipe comparison).
-AXES = {
-    "pca": ["model.n_components", "model.match_clustered_k"],
-    "clustered": ["model.k"],
-    "neural_btf": ["btf.network.latent"],
-    "latent_texture": ["btf.network.latent"],
-}
-# A Neural BTF run logged before its latent size was a setting had the paper's 8.
-DEFAULT_SIZE = {"neural_btf": 8}
 # Mean RMSEs closer than this are a tie, which the fewer bytes win (the front and the best
 # at a budget): a model stored in float16 differs from its float32 copy by rounding alone
 # (far below this; docs/results.md has the measured gaps), and at twice the bytes that is
@@ -61,7 +52,7 @@ def arms(runs: pd.DataFrame) -> pd.DataFrame:
     arm, size = [], []
     for m, (_, run) in zip(models, runs.iterrows(), strict=True):
         arm.append(f"{m.title} ({m.stored_types(run)})" if m else "? (?)")
-        value = run.get(m.size[0], DEFAULT_SIZE.get(m.name)) if m else None
+        value = run.get(m.size[0]) if m else None
         size.append(_num(pd.Series([value])).iloc[0])
     runs["arm"] = arm
     runs["size"] = size
@@ -71,11 +62,11 @@ def arms(runs: pd.DataFrame) -> pd.DataFrame:
     ]
     runs["line"] = runs["arm"]
     names = pd.Series([m.name if m else None for m in models], index=runs.index)
-    for name, ignore in AXES.items():
-        rows = names == name
+    for model in MODELS.values():
+        rows = names == model.name
         if rows.any():
             runs.loc[rows, "line"] = runs.loc[rows, "arm"] + recipe_labels(
-                runs[rows], ["dataset", "arm"], ignore=ignore
+                runs[rows], ["dataset", "arm"], ignore=model.size_settings
             )
     return runs
 

@@ -303,6 +303,7 @@ def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
     needed = [f"metrics.{m}" for m, _ in SIZE_ROWS] + ["metrics.bytes_original"]
     if any(column not in runs for column in needed):
         return pd.DataFrame()
+    runs = runs.assign(_clusters=_clusters(runs))
     for (dataset, model), group in runs.groupby(["dataset", "model"], sort=False):
         group = group.dropna(subset=needed)
         if group.empty:
@@ -312,7 +313,7 @@ def table_sizes(runs: pd.DataFrame) -> pd.DataFrame:
         original = float(first["metrics.bytes_original"])
         rows.append(_size_row(dataset, model, parts, original, stored_as(first)))
         if (
-            first["params.model.name"] == "clustered"
+            first["_clusters"]
             and parts["per-texel scale"] == 0
             and pd.notna(first.get("metrics.rmse_with_texel_scale"))
             and pd.notna(first.get("metrics.n_texels"))

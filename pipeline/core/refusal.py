@@ -52,7 +52,9 @@ def check_command_line(argv: Sequence[str], conf_dir: Path, config_name: str = "
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
-    overrides = [a for a in argv if not a.startswith("-")]
+    overrides, config_name = _hydra_arguments(argv, config_name)
+    if overrides is None:  # --help, --version, a bad flag: Hydra answers it
+        return
     try:
         lines = first_values(overrides)
     except HydraException as error:
@@ -75,6 +77,26 @@ def check_command_line(argv: Sequence[str], conf_dir: Path, config_name: str = "
         raise ConfigError(
             f"{overrides[lines.index(sweeps[0])]} is a sweep: add -m (or give one value)"
         )
+
+
+def _hydra_arguments(argv: Sequence[str], config_name: str) -> tuple[list[str] | None, str]:
+    """The overrides of a Hydra command line (flags and their values, as in ``--cfg job``,
+    left out) and the config it composes; None where it asks for no composition."""
+    from hydra._internal.utils import get_args_parser  # Hydra's own: which flags take values
+
+    if {"-h", "--help", "--hydra-help", "--version", "-sc", "--shell-completion"} & set(argv):
+        return None, config_name
+    parser = get_args_parser()
+
+    def unparsed(*args, **kwargs) -> NoReturn:
+        raise ValueError("not a Hydra command line")
+
+    parser.error = parser.exit = unparsed  # type: ignore[method-assign]
+    try:
+        args = parser.parse_args(list(argv))
+    except ValueError:
+        return None, config_name
+    return list(args.overrides), args.config_name or config_name
 
 
 def explain(error: BaseException, lines: Sequence[str], conf_dir: Path, config_name: str) -> str:
@@ -110,20 +132,25 @@ def _failed_key(text: str) -> str | None:
 
 
 def _given(lines: Sequence[str], key: str) -> str:
-    """The override that set ``key`` as the user wrote it, else the key."""
+    """The override that set ``key`` (or a setting under it) as the user wrote it, else
+    the key."""
     for line in lines:
-        if line.lstrip("+~").split("=", 1)[0] == key:
+        written = line.lstrip("+~").split("=", 1)[0]
+        if written == key or written.startswith(f"{key}."):
             return line
     return key
 
 
 def _closest(key: str, lines: Sequence[str], conf_dir: Path, config_name: str) -> str:
-    """`` (did you mean KEY?)`` among the settings the config has without ``key``."""
+    """`` (did you mean KEY?)`` among the settings the config has without the override
+    that failed at ``key``, compared as it was written (``trian.lr``, not ``trian``)."""
     from hydra import compose, initialize_config_dir
 
     from pipeline.core.settings import leaf_keys
 
-    others = [line for line in lines if line.lstrip("+~").split("=", 1)[0] != key]
+    failed = _given(lines, key)
+    key = failed.lstrip("+~").split("=", 1)[0]
+    others = [line for line in lines if line != failed]
     try:
         with initialize_config_dir(config_dir=str(conf_dir), version_base="1.3"):
             cfg = compose(config_name=config_name, overrides=others)

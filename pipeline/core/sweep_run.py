@@ -17,18 +17,24 @@ from pipeline.core.errors import PipelineError
 from pipeline.core.process import stop_children
 from pipeline.core.run import PARENT_RUN_FILE, environment_tags, param_value
 from pipeline.core.store import ENDED_BY_TAG, NOTE_TAG, fail_runs_at_stop, init_store, tracking_uri
+from pipeline.core.sweeper import expand
 
 log = logging.getLogger(__name__)
 
 
 def swept_settings(config: DictConfig) -> dict[str, str]:
-    """The multirun's settings from its sweeper and its command line (which wins):
-    ``{"variant": "neural_btf,k128", "seed": "0", ...}``."""
-    settings = {str(k): str(v) for k, v in (config.hydra.sweeper.get("params") or {}).items()}
-    for override in config.hydra.overrides.task:
-        key, _, value = override.partition("=")
-        settings[key.lstrip("+~")] = value
-    return settings
+    """Each setting the multirun's jobs set, with its values in job order, from the jobs
+    the sweeper launches (:func:`pipeline.core.sweeper.expand`: its arms, its axes and the
+    command line): ``{"model": "neural_btf,clustered", "model.k": "128", "seed": "0,1"}``."""
+    sweeper = config.hydra.sweeper
+    jobs = expand(sweeper.get("arms"), sweeper.get("params"), list(config.hydra.overrides.task))
+    values: dict[str, list[str]] = {}
+    for job in jobs:
+        for line in job:
+            key, _, value = line.partition("=")
+            if value not in values.setdefault(key.lstrip("+~"), []):
+                values[key.lstrip("+~")].append(value)
+    return {key: ",".join(given) for key, given in values.items()}
 
 
 class SweepParentRun(Callback):
