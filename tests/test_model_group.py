@@ -188,6 +188,7 @@ def test_keys_recipe_and_logged_settings_follow_from_the_declaration(name):
     logged = set(flatten(cfg)) - set(unused(cfg))
     assert {f"model.{f.name}" for f in dataclasses.fields(model.config)} - {"model.lr"} <= logged
     assert ("train.epochs" in logged) == model.trains
+    assert ("btf.kmeans.n_init" in logged) == ("btf.pca.n_components" in logged) == model.clusters
     # A model trained by train.* logs the train.lr it trains at, not its default model.lr.
     assert ("model.lr" in logged) == (not model.trains and "lr" in model.config.__annotations__)
     assert BTF.roles()["train.device"] == "speed"

@@ -139,12 +139,17 @@ class Model:
     def unused(self, cfg: DictConfig) -> list[str]:
         """Flattened settings this model's numbers do not depend on: not logged, not in
         the recipe. ``model.lr`` is only the default of ``train.lr`` (which the job
-        resolves and logs); a model that trains nothing reads no ``train.*``."""
-        lr = ["model.lr"] if self.trains else []
-        return lr + ([] if self.trains else [f"train.{key}" for key in cfg.train])
+        resolves and logs); a model that trains nothing reads no ``train.*``, one that
+        does not cluster none of the clustering stages' :data:`CLUSTERING` settings."""
+        unused = ["model.lr"] if self.trains else [f"train.{key}" for key in cfg.train]
+        if not self.clusters:
+            unused += [f"btf.{group}.{key}" for group in CLUSTERING for key in cfg.btf[group]]
+        return unused
 
 
 TRAIN = "pipeline.btf.runner:train_stage"  # the autoencoder's
+# The settings groups under btf.* that only the reduction and k-means stages read.
+CLUSTERING = ("pca", "kmeans")
 
 
 def _param(run: Mapping, key: str, default: str) -> str:
