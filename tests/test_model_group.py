@@ -154,24 +154,25 @@ def test_every_setting_declares_its_role():
 
 def test_every_setting_of_method_a_is_declared_once_with_a_role():
     """Every leaf of a method-A job's btf.*, train.* and model.* is a declared field with a
-    role (btf.render.* has its own checks and recipe), and the config's defaults are the
-    declaration's: conf/btf/default.yaml holds no value of its own for them."""
-    from pipeline.btf.data_settings import GROUPS
+    role, and the config's defaults are the declaration's: conf/btf/default.yaml holds no
+    value of its own for them."""
+    from pipeline.btf.data_settings import DECLARED
 
     cfg = compose_config("experiment=none", "model=clustered")
     declared = BTF.roles()
     leaves = {
         key
         for key in flatten(cfg)
-        if key.startswith(("btf.", "train.", "model."))
-        and not key.startswith("btf.render.")
-        and key != "model.name"
+        if key.startswith(("btf.", "train.", "model.")) and key != "model.name"
     }
     assert leaves <= set(declared), sorted(leaves - set(declared))
-    for group, settings in GROUPS.items():
+    assert {"btf.render.spp", "btf.render.crops.dark"} <= leaves
+    for prefix, settings in DECLARED.items():
         for f in dataclasses.fields(settings):
             default = f.default_factory() if f.default is dataclasses.MISSING else f.default
-            assert cfg.btf[group][f.name] == default, f"btf.{group}.{f.name}"
+            if not dataclasses.is_dataclass(default):  # nested: checked under its own prefix
+                value = OmegaConf.select(cfg, f"{prefix}.{f.name}")
+                assert value == default, f"{prefix}.{f.name}"
 
 
 @pytest.mark.parametrize("name", list(MODELS))

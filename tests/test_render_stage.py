@@ -12,11 +12,11 @@ import pytest
 from helpers import WIRING_STEPS, compose_config
 from mlflow.tracking import MlflowClient
 
+from pipeline.btf.methods import BTF
 from pipeline.btf.render.stage import (
     choose_crops,
     compare,
     high_frequency_energy,
-    render_settings,
     scores,
     window_sums,
 )
@@ -99,12 +99,17 @@ def test_comparison_of_a_render_with_itself_and_with_grain():
         ("btf.render.spp=[0]", "btf.render.spp"),
         ("btf.render.crop_size=64", "btf.render.crop_size"),
         ("btf.render.crops.dark=[14,14]", "btf.render.crops.dark"),
+        ("btf.render.lights=sun", "btf.render.lights='sun' must be one of point"),
+        ("btf.render.exposure=0", "btf.render.exposure=0.0 must be"),
+        ("btf.render.crops.bright=[1]", "btf.render.crops.bright"),
     ],
 )
 def test_bad_render_settings_name_the_setting(override, named):
+    """Refused at the door (before any stage runs), by the declared constraints or, for
+    the crops against the frame, by render_settings."""
     cfg = compose_config("experiment=render_smoke", override)
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
-        render_settings(cfg)
+        BTF.check(cfg)
 
 
 def test_render_settings_are_not_part_of_the_recipe():

@@ -1,9 +1,10 @@
-"""Method A's data and network settings (``btf.*`` but ``btf.render.*``), each declared once:
-its default, what it may be and one line of help. These dataclasses are the structured
-configs that ``conf/btf/default.yaml`` extends (Hydra checks names and types), the
+"""Method A's data, network and render settings (``btf.*``), each declared once: its
+default, what it may be and one line of help. These dataclasses are the structured configs
+that ``conf/btf/default.yaml`` extends (Hydra refuses unknown keys and wrong types), the
 constraints :func:`pipeline.btf.runner.check_settings_at_the_door` checks, and the roles the
-recipe reads (every one changes a result). ``btf.render.*`` is checked by
-:func:`pipeline.btf.render.stage.render_settings` and has a recipe of its own.
+recipe reads (every one changes a result). ``btf.render.*`` has a recipe of its own
+(:func:`pipeline.core.recipe.render_recipe_id`); what depends on two of its settings (a crop
+inside the frame) is checked by :func:`pipeline.btf.render.stage.render_settings`.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from pipeline.btf.models import STORAGE_TYPES
-from pipeline.core.settings import Integer, ListOf, OneOf, constraints, setting
+from pipeline.core.settings import Either, Integer, ListOf, OneOf, Real, constraints, setting
 
 SEED_BITS = Integer(0, 2**32 - 1)  # scikit-learn's random_state takes 32 bits
 
@@ -89,6 +90,57 @@ class InterpolationSettings:
     seed: int = setting(0, Integer(0), help="of the held-out lights and off-grid pairs")
 
 
+# A corner's [row, col], or null: chosen on the truth, else on the reference.
+_CORNER = Either(OneOf(None), ListOf(Integer(0), length=2))
+
+
+@dataclass
+class RenderCrops:
+    """``btf.render.crops``: the top-left pixel of the dark and the bright crop."""
+
+    dark: list[int] | None = setting(None, _CORNER, help="[row, col]; null: chosen")
+    bright: list[int] | None = setting(None, _CORNER, help="[row, col]; null: chosen")
+
+
+@dataclass
+class RenderSettings:
+    """``btf.render``: Fig. 8 and Tables 3-4, the crop tiled over a folded sheet
+    (:mod:`pipeline.btf.render`). Renders the measured reference, each model and, for the
+    built-in material (``dataset.name=synthetic``, ``dataset.root=null``), the analytic
+    generator: the truth, which then scores every render (the reference's own distance
+    from it logged too). Without a truth, light and view beyond the grid's 75-degree ring
+    are clamped onto it for every material alike; the share of samples beyond the grid is
+    logged either way."""
+
+    enabled: bool = setting(
+        False, OneOf(True, False), help="render after fitting (experiment=render turns it on)"
+    )
+    width: int = setting(256, Integer(1), help="pixels")
+    height: int = setting(256, Integer(1), help="pixels")
+    spp: list[int] = setting(
+        [1, 16, 128],
+        ListOf(Integer(1), at_least=1),
+        help="samples per pixel, each rendered; the largest is the headline",
+    )
+    seed: int = setting(
+        0, SEED_BITS, help="pixel samples: one seed for every model, the reference and the truth"
+    )
+    lights: str = setting(
+        "point", OneOf("point", "directional", "both"), help="pipeline.render.scene.default_scene"
+    )
+    floor: bool = setting(False, OneOf(True, False), help="a Lambertian floor under the sheet")
+    tiles: int = setting(4, Integer(1), help="the crop repeats tiles x tiles times over the sheet")
+    mesh_resolution: int = setting(96, Integer(1), help="the sheet's quads per side")
+    exposure: float = setting(
+        1.0,
+        Real(0.0, closed=False),
+        help="linear radiance x exposure, then gamma 2.2: the PNGs and the displayed frame "
+        "that FLIP, SSIM and PSNR score",
+    )
+    crop_size: int = setting(32, Integer(1), help="pixels per side of the dark and bright crops")
+    crops: RenderCrops = setting(RenderCrops(), help="btf.render.crops.*")
+
+
 # btf.<group> -> its settings: the structured configs conf/btf/default.yaml extends.
 GROUPS = {
     "crop": CropSettings,
@@ -97,12 +149,15 @@ GROUPS = {
     "network": NetworkSettings,
     "sizes": SizesSettings,
     "interpolation": InterpolationSettings,
+    "render": RenderSettings,
 }
+# Every declared settings class by its prefix, nested ones included.
+DECLARED = {**{f"btf.{name}": cls for name, cls in GROUPS.items()}, "btf.render.crops": RenderCrops}
 
 
 def btf_constraints() -> dict:
     """``{"btf.<group>.<field>": constraint}`` of every declared setting, and ``seed``'s."""
     found = {"seed": SEED_BITS}
-    for group, settings in GROUPS.items():
-        found.update(constraints(settings, f"btf.{group}"))
+    for prefix, settings in DECLARED.items():
+        found.update(constraints(settings, prefix))
     return found

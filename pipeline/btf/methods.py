@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.btf.data_settings import GROUPS
+from pipeline.btf.data_settings import DECLARED, GROUPS
 from pipeline.btf.models import MODELS, model_of, schemas
 from pipeline.btf.train_settings import TrainSettings
 from pipeline.core.methods import Method
@@ -104,6 +104,6 @@ BTF = Method(
     settings=(
         ("train", TrainSettings),
         *(("model", model.config) for model in MODELS.values()),
-        *((f"btf.{name}", settings) for name, settings in GROUPS.items()),
+        *DECLARED.items(),
     ),
 )

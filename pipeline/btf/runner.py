@@ -43,6 +43,10 @@ def check_settings_at_the_door(cfg, model: Model) -> None:
         from pipeline.btf.clustering import check_k
 
         check_k(cfg.model.k, int(cfg.btf.crop.size) ** 2)
+    if cfg.btf.render.enabled:
+        from pipeline.btf.render.stage import render_settings
+
+        render_settings(cfg)
 
 
 def check_settings_against_the_data(cfg, loaded: Entry) -> None:

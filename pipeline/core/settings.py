@@ -11,6 +11,7 @@ pipeline.core.errors.ConfigError: k=True must be an integer >= 1
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import functools
@@ -321,8 +322,8 @@ def setting(
     if added and isinstance(default, list | dict):
         raise ValueError("an added setting needs a plain default, compared as it is")
     metadata = {"role": role, "constraint": constraint, "help": help, "added": added}
-    if isinstance(default, list | dict):
-        return dataclasses.field(default_factory=lambda: type(default)(default), metadata=metadata)
+    if isinstance(default, list | dict) or dataclasses.is_dataclass(default):  # nested settings
+        return dataclasses.field(default_factory=lambda: copy.deepcopy(default), metadata=metadata)
     return dataclasses.field(default=default, metadata=metadata)
 
 

@@ -65,19 +65,12 @@ _HF_SIGMA = 1.0  # pixels: what a blur of this width removes is "high frequency"
 
 
 def render_settings(cfg) -> dict:
-    """``btf.render`` without its switch, checked; the render stages' settings."""
+    """``btf.render`` without its switch: the render stages' settings, spp sorted. Each value
+    is checked at the door (:class:`pipeline.btf.data_settings.RenderSettings`); this checks
+    the crops against the frame (also at the door, when rendering is on)."""
     settings = plain_settings(cfg.btf.render)
     settings.pop("enabled", None)
-    for name in ("width", "height", "crop_size"):
-        value = settings[name]
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ConfigError(f"btf.render.{name}={value!r} must be an integer >= 1")
-    spp = settings["spp"]
-    if isinstance(spp, int):
-        spp = [spp]
-    if not spp or any(isinstance(s, bool) or not isinstance(s, int) or s < 1 for s in spp):
-        raise ConfigError(f"btf.render.spp={settings['spp']!r} must be a list of integers >= 1")
-    settings["spp"] = sorted(set(spp))
+    settings["spp"] = sorted(set(settings["spp"]))
     if settings["crop_size"] > min(settings["width"], settings["height"]):
         raise ConfigError(
             f"btf.render.crop_size={settings['crop_size']} is larger than the "
