@@ -112,7 +112,7 @@ def test_training_with_either_backend_gives_the_same_model(queries, threads, chu
 
     fused, plain = run("fused"), run("autograd")
     assert fused.steps == plain.steps == 6
-    np.testing.assert_allclose(fused.epoch_losses, plain.epoch_losses, rtol=RTOL)
+    np.testing.assert_allclose(fused.pass_losses, plain.pass_losses, rtol=RTOL)
     for a, b in ((fused.encoder, plain.encoder), (fused.decoder, plain.decoder)):
         for (name, x), y in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
             torch.testing.assert_close(x, y, rtol=RTOL, atol=ATOL, msg=name)
@@ -148,8 +148,8 @@ def test_autograd_bfloat16_on_the_cpu_runs_the_decoder_under_autocast():
         )
 
     single, half = run("float32"), run("bfloat16")
-    assert half.epoch_losses != single.epoch_losses
-    np.testing.assert_allclose(half.epoch_losses, single.epoch_losses, rtol=0.02)
+    assert half.pass_losses != single.pass_losses
+    np.testing.assert_allclose(half.pass_losses, single.pass_losses, rtol=0.02)
     assert all(p.dtype == torch.float32 for p in half.decoder.parameters())
 
 

@@ -194,7 +194,7 @@ def test_training_is_deterministic_for_a_seed():
         a.decoder.state_dict().values(), b.decoder.state_dict().values(), strict=True
     ):
         torch.testing.assert_close(pa, pb, rtol=0, atol=0)
-    assert a.epoch_losses == b.epoch_losses and a.epoch_losses != c.epoch_losses
+    assert a.pass_losses == b.pass_losses and a.pass_losses != c.pass_losses
 
 
 class CountingDecoder(Decoder):
@@ -482,7 +482,7 @@ def test_epoch_texels_fixes_the_steps_whatever_the_crop(m, epoch_texels, expecte
         encoder_channels=(2, 2, 2),
     )
     assert result.steps == expected_steps
-    assert len(result.epoch_losses) == expected_steps // (m // 5)  # one loss per pass
+    assert len(result.pass_losses) == expected_steps // (m // 5)  # one loss per pass
 
 
 def test_epoch_texels_below_the_batch_is_refused():

@@ -115,9 +115,9 @@ def train_stage(
             sources = np.asarray(reps.array("representatives"))
             source_of_texel = clusters.array("labels", mmap=False).astype(np.int64)
 
-        def on_epoch(epoch: int, loss: float, step: int) -> None:
+        def on_pass(texel_pass: int, loss: float, step: int) -> None:
             # Keyed by training step, like the curve_* metrics, so that the UI's "Step"
-            # axis means one thing; the epoch is the point's index.
+            # axis means one thing; the pass over the texels is the point's index.
             ctx.log.metric("loss", loss, step=step)
 
         network = cfg.btf.network
@@ -135,17 +135,17 @@ def train_stage(
             hidden=int(network.hidden),
             layers=int(network.layers),
             target_from_source=stage_settings["target"] == "representative",
-            on_epoch=on_epoch,
+            on_pass=on_pass,
             on_curve=partial(log_curve_point, ctx.log),
         )
         latents = encode(result.encoder, sources, norm)
         torch.save(result.decoder.state_dict(), folder / "decoder.pt")
         torch.save(result.encoder.state_dict(), folder / "encoder.pt")
         save_arrays(folder, latents=latents, latent_of_texel=source_of_texel.astype(np.int32))
-        save_json(folder, "losses", result.epoch_losses)
+        save_json(folder, "losses", result.pass_losses)
         save_json(folder, "curve", result.curve)
         summary = {"steps": result.steps, "seconds": result.seconds, "queries": result.queries}
-        return {**summary, "final_loss": result.epoch_losses[-1]}
+        return {**summary, "final_loss": result.pass_losses[-1]}
 
     return ctx.run("train", stage_settings, inputs, compute, version="3")
 
@@ -278,8 +278,8 @@ def run(ctx: Context) -> dict[str, float]:
         # A cached model: replay its loss curve so every run shows one, at the steps where
         # train() logged it (the end of each pass over the texels; the last may be cut).
         per_pass = cropped.manifest["summary"]["M"] // ctx.cfg.train.batch_size
-        for epoch, loss in enumerate(trained.json("losses")):
-            step = min((epoch + 1) * per_pass, trained.manifest["summary"]["steps"])
+        for texel_pass, loss in enumerate(trained.json("losses")):
+            step = min((texel_pass + 1) * per_pass, trained.manifest["summary"]["steps"])
             ctx.log.metric("loss", loss, step=step)
         for point in trained.json("curve"):
             log_curve_point(ctx.log, point)

@@ -3,8 +3,9 @@
 A step takes ``batch_size`` texels (the paper's batch of 5 ABRDFs), encodes each one's
 input ABRDF (its own for Neural BTF, its cluster's median for the clustered method), and
 decodes ``queries_per_abrdf`` random training directions per texel (or all of them, in
-order, with -1) against its target values. An epoch visits every texel once in a seeded
-random order. The steps are deterministic for a seed and a number of threads.
+order, with -1) against its target values. A pass visits every texel once in a seeded
+random order; an epoch, the unit of ``train.epochs`` and of the schedule, is a pass or
+``train.epoch_texels`` texels. The steps are deterministic for a seed and a number of threads.
 
 How a step computes its gradients is ``train.backend`` (:mod:`pipeline.btf.backends`);
 where its batches come from, the host or arrays kept on the device, is
@@ -53,7 +54,7 @@ def resolve_device(name: str) -> torch.device:
 class TrainResult:
     encoder: Encoder
     decoder: Decoder
-    epoch_losses: list[float]
+    pass_losses: list[float]  # the mean loss of each pass over the texels
     steps: int
     seconds: float
     queries: int
@@ -74,7 +75,7 @@ class _Curve:
         self.points: list[dict] = []
 
     @torch.no_grad()
-    def measure(self, encoder, decoder, step, epoch, seconds, queries) -> dict:
+    def measure(self, encoder, decoder, step, texel_pass, seconds, queries) -> dict:
         encoder.eval()
         decoder.eval()
         device = self.features.device
@@ -86,7 +87,13 @@ class _Curve:
         encoder.train()
         decoder.train()
         rmse = float(torch.sqrt(torch.mean(torch.square(pred - self.targets))))
-        point = {"step": step, "epoch": epoch, "seconds": seconds, "queries": queries, "rmse": rmse}
+        point = {
+            "step": step,
+            "texel_pass": texel_pass,
+            "seconds": seconds,
+            "queries": queries,
+            "rmse": rmse,
+        }
         self.points.append(point)
         return point
 
@@ -105,7 +112,7 @@ def train(
     hidden: int = 106,
     layers: int = 3,
     target_from_source: bool = False,
-    on_epoch: Callable[[int, float, int], None] | None = None,
+    on_pass: Callable[[int, float, int], None] | None = None,
     on_curve: Callable[[dict], None] | None = None,
 ) -> TrainResult:
     """Train encoder and decoder jointly.
@@ -201,8 +208,8 @@ def train(
     encoder.train()
     decoder.train()
 
-    def measure(epoch: int) -> None:
-        point = curve.measure(encoder, decoder, step, epoch, seconds, step * b * q)
+    def measure(texel_pass: int) -> None:
+        point = curve.measure(encoder, decoder, step, texel_pass, seconds, step * b * q)
         log.info("curve: step %d, %.0f s, RMSE %.4f", step, seconds, point["rmse"])
         if on_curve is not None:
             on_curve(point)
@@ -214,7 +221,7 @@ def train(
         ):
             if curve is not None:
                 measure(0)
-            for epoch in range(-(-total // max(steps_per_pass, 1))):  # passes over M texels
+            for texel_pass in range(-(-total // max(steps_per_pass, 1))):
                 batches.new_pass()
                 running, count = 0.0, 0
                 clock = time.perf_counter()
@@ -236,14 +243,14 @@ def train(
                     bar.update(1)
                     if curve is not None and step % settings.curve_every == 0:
                         seconds += _elapsed(clock, device)
-                        measure(epoch)
+                        measure(texel_pass)
                         clock = time.perf_counter()
                 seconds += _elapsed(clock, device)
                 if count:
                     losses.append(float(running) / count)
-                    bar.set_postfix(texel_pass=epoch, loss=f"{losses[-1]:.3g}")
-                    if on_epoch is not None:
-                        on_epoch(epoch, losses[-1], step)
+                    bar.set_postfix(texel_pass=texel_pass, loss=f"{losses[-1]:.3g}")
+                    if on_pass is not None:
+                        on_pass(texel_pass, losses[-1], step)
                 if step >= total:
                     break
             if curve is not None and step % settings.curve_every:
