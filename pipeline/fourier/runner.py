@@ -21,6 +21,7 @@ import numpy as np
 
 from pipeline.core.cache import Entry, save_arrays, save_json
 from pipeline.core.errors import ConfigError, DataError
+from pipeline.core.settings import check_settings
 from pipeline.core.stage import Context, plain_settings
 from pipeline.data.light_stack import load_normal_map
 from pipeline.fourier.baselines import fit_hsh, fit_ptm, lambertian_normals, render_hsh, render_ptm
@@ -39,7 +40,7 @@ from pipeline.fourier.series import (
     resolve_solver,
     rms_error,
 )
-from pipeline.fourier.settings import fourier_settings
+from pipeline.fourier.settings import CONSTRAINTS, fourier_settings
 from pipeline.fourier.stack import data_stage, file_settings, shrink, unit_normals, view_of
 
 
@@ -212,17 +213,9 @@ def segmentation_stage(ctx: Context, data: Entry, fitted: Entry) -> Entry:
     ``segmentation_accuracy_object_<name>`` (object pixels: ground-truth label != 0) in
     the chosen colour space, and the same with ``_rgb`` / ``_chromaticity`` appended.
     """
+    # The job checks these at the door; a library call (a test's, a script's) is checked here.
+    check_settings(ctx.cfg, CONSTRAINTS)
     seg = plain_settings(ctx.cfg.method.segmentation)
-    # The job checks these at the door (settings.CONSTRAINTS); a library call does not.
-    if seg["features"] not in ("mean_colour", "coefficients"):
-        raise ConfigError(
-            f"method.segmentation.features={seg['features']!r} is not mean_colour or coefficients"
-        )
-    if seg["colour_space"] not in COLOUR_SPACES:
-        raise ConfigError(
-            f"method.segmentation.colour_space={seg['colour_space']!r} is not one of "
-            f"{list(COLOUR_SPACES)}"
-        )
     points = seg["points"]
     if points is None and data.manifest["summary"]["regions"]:
         points = representative_points(data.array("regions", mmap=False))
