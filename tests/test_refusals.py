@@ -170,6 +170,7 @@ def test_hydra_flags_and_their_values_are_not_read_as_overrides():
 
     check_command_line(["--cfg", "job", "experiment=smoke"], CONF_DIR)
     check_command_line(["-c", "hydra", "-m", "experiment=smoke", "seed=0,1"], CONF_DIR)
+    check_command_line(["--cfg=job", "-i", "config", "experiment=smoke"], CONF_DIR)
     check_command_line(["--help", "sed=3"], CONF_DIR)
     with pytest.raises(ConfigError, match="did you mean seed"):
         check_command_line(["--cfg", "job", "sed=3"], CONF_DIR)

@@ -79,24 +79,32 @@ def check_command_line(argv: Sequence[str], conf_dir: Path, config_name: str = "
         )
 
 
+# Hydra's flags that take a value, which is not an override (its parser, in a private
+# module, says so: hydra._internal.utils.get_args_parser); --info's value is optional.
+_VALUED = {"--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn"}
+_VALUED |= {"--config-dir", "-cd", "--experimental-rerun"}
+_INFO = ("--info", "-i"), ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
+_NO_COMPOSE = {"-h", "--help", "--hydra-help", "--version", "-sc", "--shell-completion"}
+
+
 def _hydra_arguments(argv: Sequence[str], config_name: str) -> tuple[list[str] | None, str]:
     """The overrides of a Hydra command line (flags and their values, as in ``--cfg job``,
     left out) and the config it composes; None where it asks for no composition."""
-    from hydra._internal.utils import get_args_parser  # Hydra's own: which flags take values
-
-    if {"-h", "--help", "--hydra-help", "--version", "-sc", "--shell-completion"} & set(argv):
-        return None, config_name
-    parser = get_args_parser()
-
-    def unparsed(*args, **kwargs) -> NoReturn:
-        raise ValueError("not a Hydra command line")
-
-    parser.error = parser.exit = unparsed  # type: ignore[method-assign]
-    try:
-        args = parser.parse_args(list(argv))
-    except ValueError:
-        return None, config_name
-    return list(args.overrides), args.config_name or config_name
+    overrides, given = [], list(argv)
+    while given:
+        flag = given.pop(0)
+        name, has_value, value = flag.partition("=")
+        if name in _NO_COMPOSE:
+            return None, config_name
+        if name in _VALUED and not has_value and given:
+            value = given.pop(0)
+        elif name in _INFO[0] and not has_value and given and given[0] in _INFO[1]:
+            given.pop(0)
+        if name in ("--config-name", "-cn"):
+            config_name = value
+        if not flag.startswith("-"):
+            overrides.append(flag)
+    return overrides, config_name
 
 
 def explain(error: BaseException, lines: Sequence[str], conf_dir: Path, config_name: str) -> str:
