@@ -112,7 +112,7 @@ def test_a_spec_of_another_method_or_missing_is_refused():
 @pytest.mark.parametrize(
     "override, hint",
     [
-        ("+btf.crop.szie=32", "did you mean btf.crop.size"),
+        # +btf.crop.szie: tests/test_refusals.py's BEFORE_ANY_JOB
         ("++btf.crop.szie=32", "did you mean btf.crop.size"),
         ("+method.prior_strenght=0.1", "did you mean method.prior_strength"),
     ],
