@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from pipeline.btf.models import STORAGE_TYPES
 from pipeline.core.settings import Either, Integer, ListOf, OneOf, Real, constraints, setting
+from pipeline.render.scene import LIGHT_SETTINGS
 
 SEED_BITS = Integer(0, 2**32 - 1)  # scikit-learn's random_state takes 32 bits
 
@@ -126,7 +127,7 @@ class RenderSettings:
         0, SEED_BITS, help="pixel samples: one seed for every model, the reference and the truth"
     )
     lights: str = setting(
-        "point", OneOf("point", "directional", "both"), help="pipeline.render.scene.default_scene"
+        "point", OneOf(*LIGHT_SETTINGS), help="pipeline.render.scene.default_scene"
     )
     floor: bool = setting(False, OneOf(True, False), help="a Lambertian floor under the sheet")
     tiles: int = setting(4, Integer(1), help="the crop repeats tiles x tiles times over the sheet")

@@ -83,7 +83,8 @@ def check_command_line(argv: Sequence[str], conf_dir: Path, config_name: str = "
 # module, says so: hydra._internal.utils.get_args_parser); --info's value is optional.
 _VALUED = {"--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn"}
 _VALUED |= {"--config-dir", "-cd", "--experimental-rerun"}
-_INFO = ("--info", "-i"), ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
+_INFO = {"--info", "-i"}
+_INFO_VALUES = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
 _NO_COMPOSE = {"-h", "--help", "--hydra-help", "--version", "-sc", "--shell-completion"}
 
 
@@ -98,7 +99,7 @@ def _hydra_arguments(argv: Sequence[str], config_name: str) -> tuple[list[str] |
             return None, config_name
         if name in _VALUED and not has_value and given:
             value = given.pop(0)
-        elif name in _INFO[0] and not has_value and given and given[0] in _INFO[1]:
+        elif name in _INFO and not has_value and given and given[0] in _INFO_VALUES:
             given.pop(0)
         if name in ("--config-name", "-cn"):
             config_name = value

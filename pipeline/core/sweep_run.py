@@ -32,8 +32,9 @@ def swept_settings(config: DictConfig) -> dict[str, str]:
     for job in jobs:
         for line in job:
             key, _, value = line.partition("=")
-            if value not in values.setdefault(key.lstrip("+~"), []):
-                values[key.lstrip("+~")].append(value)
+            given = values.setdefault(key.lstrip("+~"), [])
+            if value not in given:
+                given.append(value)
     return {key: ",".join(given) for key, given in values.items()}
 
 
